@@ -1,0 +1,215 @@
+"""Every tunable value, as dataclasses, with the presets ``dense``, ``sparse`` and ``sparse-fast``.
+
+Overrides use dotted keys (``keyframes.iterations=40``) from the command line, or a YAML/JSON file
+holding the same nesting. Values the paper does not give follow Scaffold-GS / H2-Mapping, tuned
+for this engine where noted in docs/method.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+@dataclass
+class ModelConfig:
+    encoding: str = "hash"  # "hash" (dense version) or "anchor" (sparse version: a feature per anchor)
+    n_offsets: int = 10
+    feature_dim: int = 32
+    hidden_dim: int = 32
+    hash_levels: int = 8
+    hash_features_per_level: int = 4
+    hash_log2_size: int = 19
+    hash_min_resolution: float = 4.0  # cells per metre at the coarsest hash level
+    hash_max_resolution: float = 128.0  # cells per metre at the finest hash level
+
+
+@dataclass
+class OctreeConfig:
+    voxel_size: float = 0.1  # gamma_0, metres: the coarsest anchor level
+    max_level: int = 2  # finest anchor level; gamma_{l+1} = gamma_l / 4
+    depth_min: float = 0.1
+    depth_max: float = 5.0
+    allocation_stride: int = 2  # back-project every n-th pixel in each direction when allocating
+
+
+@dataclass
+class KeyframeConfig:
+    overlap_threshold: float = 0.8  # a frame becomes a keyframe when N_overlap / N_union is below this
+    local_threshold: float = 0.3  # rho_w: keyframes overlapping K_new at least this much are "local"
+    local_count: int = 2  # b1
+    global_count: int = 2  # b2
+    iterations: int = 30  # k: optimisation iterations per new keyframe
+    first_iterations: int = 100  # iterations on the very first keyframe
+
+
+@dataclass
+class RefineConfig:
+    interval: int = 10  # m: grow and prune every m iterations
+    grad_threshold: float = 0.0004  # tau_0 on the mean screen-space gradient (NDC units, as 3DGS)
+    min_observations: int = 3  # a Gaussian's gradient is trusted after this many renders
+    prune_opacity: float = 0.01  # rho: an anchor whose Gaussians all stay below it is removed
+    prune_min_observations: int = 10  # anchors seen fewer times are never pruned
+    max_new_anchors: int = 20000  # cap per growth step, keeps one step bounded
+
+
+@dataclass
+class LossConfig:
+    color: float = 0.8
+    ssim: float = 0.2
+    depth: float = 0.5
+    scale: float = 0.01
+
+
+@dataclass
+class OptimConfig:
+    offsets_lr: float = 0.01
+    features_lr: float = 0.0075
+    scaling_lr: float = 0.007
+    hash_lr: float = 0.01
+    opacity_mlp_lr: float = 0.002
+    color_mlp_lr: float = 0.008
+    cov_mlp_lr: float = 0.004
+
+
+@dataclass
+class MapperConfig:
+    model: ModelConfig = field(default_factory=ModelConfig)
+    octree: OctreeConfig = field(default_factory=OctreeConfig)
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    refine: RefineConfig = field(default_factory=RefineConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    backend: str = "auto"  # rasterizer: auto, torch, cpu, gsplat
+    seed: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> MapperConfig:
+        config = cls()
+        apply_overrides(config, flatten(data))
+        return config
+
+
+PRESETS = ("dense", "sparse", "sparse-fast")
+
+
+def preset(name: str) -> MapperConfig:
+    """The configuration of a named preset."""
+    config = MapperConfig()
+    if name == "dense":
+        return config
+    if name in ("sparse", "sparse-fast"):
+        config.model.encoding = "anchor"
+        config.refine.prune_opacity = 0.05
+        if name == "sparse-fast":
+            config.keyframes.iterations //= 2
+            config.keyframes.first_iterations //= 2
+        return config
+    raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+
+
+def flatten(data: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}``."""
+    flat: dict[str, Any] = {}
+    for key, value in data.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            flat.update(flatten(value, f"{name}."))
+        else:
+            flat[name] = value
+    return flat
+
+
+def _coerce(value: Any, current: Any, key: str) -> Any:
+    """Convert an override to the type of the field it replaces."""
+    kind = type(current)
+    if isinstance(value, str):
+        if kind is bool:
+            lowered = value.lower()
+            if lowered not in ("true", "false", "1", "0", "yes", "no"):
+                raise ValueError(f"config {key} expects true/false, got {value!r}")
+            return lowered in ("true", "1", "yes")
+        try:
+            return kind(value)
+        except ValueError as error:
+            raise ValueError(f"config {key} expects {kind.__name__}, got {value!r}") from error
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+        raise ValueError(f"config {key} expects {kind.__name__}, got {value!r}")
+    return value
+
+
+def apply_overrides(config: MapperConfig, overrides: dict[str, Any]) -> MapperConfig:
+    """Set dotted keys on ``config`` in place; unknown keys and wrong types raise ValueError."""
+    for key, value in overrides.items():
+        target: Any = config
+        parts = key.split(".")
+        for part in parts[:-1]:
+            if not dataclasses.is_dataclass(target) or not hasattr(target, part):
+                raise ValueError(f"unknown config section {key!r}")
+            target = getattr(target, part)
+        leaf = parts[-1]
+        names = {f.name for f in dataclasses.fields(target)} if dataclasses.is_dataclass(target) else set()
+        if leaf not in names or dataclasses.is_dataclass(getattr(target, leaf)):
+            raise ValueError(f"unknown config key {key!r}")
+        setattr(target, leaf, _coerce(value, getattr(target, leaf), key))
+    validate(config)
+    return config
+
+
+def parse_override_args(items: list[str]) -> dict[str, str]:
+    """``["a.b=1", ...]`` -> ``{"a.b": "1"}``."""
+    parsed = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"override {item!r} is not of the form section.key=value")
+        parsed[key.strip()] = value.strip()
+    return parsed
+
+
+def load_file(path: str | Path) -> dict[str, Any]:
+    """Read a YAML or JSON override file into a flat dict."""
+    text = Path(path).read_text()
+    data = json.loads(text) if str(path).endswith(".json") else yaml.safe_load(text)
+    if not isinstance(data, dict):
+        raise ValueError(f"config file {path} must hold a mapping")
+    return flatten(data)
+
+
+def build(preset_name: str, overrides: dict[str, Any] | None = None) -> MapperConfig:
+    return apply_overrides(preset(preset_name), overrides or {})
+
+
+def validate(config: MapperConfig) -> None:
+    """Reject values the engine cannot run with, naming the key."""
+    if config.model.encoding not in ("hash", "anchor"):
+        raise ValueError(f"model.encoding must be 'hash' or 'anchor', got {config.model.encoding!r}")
+    checks = {
+        "model.n_offsets": config.model.n_offsets >= 1,
+        "model.feature_dim": config.model.feature_dim >= 1,
+        "octree.voxel_size": config.octree.voxel_size > 0,
+        "octree.max_level": 0 <= config.octree.max_level <= 4,
+        "octree.depth_max": config.octree.depth_max > config.octree.depth_min >= 0,
+        "octree.allocation_stride": config.octree.allocation_stride >= 1,
+        "keyframes.overlap_threshold": 0 < config.keyframes.overlap_threshold <= 1,
+        "keyframes.iterations": config.keyframes.iterations >= 0,
+        "keyframes.local_count": config.keyframes.local_count >= 0,
+        "keyframes.global_count": config.keyframes.global_count >= 0,
+        "refine.interval": config.refine.interval >= 1,
+        "refine.prune_opacity": 0 <= config.refine.prune_opacity < 1,
+    }
+    for key, ok in checks.items():
+        if not ok:
+            raise ValueError(f"config {key} is out of range")
+    if config.backend not in ("auto", "torch", "cpu", "gsplat"):
+        raise ValueError(f"backend must be auto, torch, cpu or gsplat, got {config.backend!r}")
