@@ -1,0 +1,126 @@
+"""The anchor map: per-anchor tensors, grown and pruned with their optimiser state.
+
+Each anchor v has a centre p_v (the centre of its octree cell, derived from its Morton code and
+level so it is exact), a level l_v, a learnable log-scale s_v (3), n learnable offsets o_v (n, 3)
+and, in the sparse version, a learnable feature f_v. Gaussians sit at p_v + s_v * o_v.
+Per-Gaussian statistics for refinement and pruning live here too, so that they follow the anchors
+whenever anchors are added or removed.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+LEARNABLE = ("log_scales", "offsets", "features")
+
+
+class AnchorMap(nn.Module):
+    """Anchors as rows of parallel tensors; learnable rows are ``nn.Parameter``s."""
+
+    def __init__(self, n_offsets: int, feature_dim: int, with_features: bool, device: torch.device) -> None:
+        super().__init__()
+        self.n_offsets = n_offsets
+        self.feature_dim = feature_dim
+        self.with_features = with_features
+        self.device = device
+        self.codes = torch.zeros(0, dtype=torch.int64, device=device)
+        self.levels = torch.zeros(0, dtype=torch.int64, device=device)
+        self.positions = torch.zeros(0, 3, device=device)
+        self.log_scales = nn.Parameter(torch.zeros(0, 3, device=device))
+        self.offsets = nn.Parameter(torch.zeros(0, n_offsets, 3, device=device))
+        self.features = nn.Parameter(torch.zeros(0, feature_dim if with_features else 0, device=device))
+        self.reset_statistics(torch.ones(0, dtype=torch.bool, device=device))
+        self.observations = torch.zeros(0, dtype=torch.int64, device=device)
+
+    def __len__(self) -> int:
+        return int(self.positions.shape[0])
+
+    def reset_statistics(self, rows: torch.Tensor | None = None) -> None:
+        """Zero the refinement statistics (all rows, or the boolean ``rows``)."""
+        shape = (len(self), self.n_offsets)
+        if rows is None or not hasattr(self, "grad_sum"):
+            self.grad_sum = torch.zeros(shape, device=self.device)
+            self.grad_count = torch.zeros(shape, dtype=torch.int64, device=self.device)
+            self.max_opacity = torch.zeros(len(self), device=self.device)
+            self.spawned = torch.zeros(shape, dtype=torch.bool, device=self.device)
+            return
+        self.grad_sum[rows] = 0
+        self.grad_count[rows] = 0
+        self.max_opacity[rows] = 0
+
+    def add(
+        self,
+        codes: torch.Tensor,
+        levels: torch.Tensor,
+        positions: torch.Tensor,
+        cell_sizes: torch.Tensor,
+        features: torch.Tensor | None,
+        optimizer: torch.optim.Optimizer | None,
+    ) -> None:
+        """Append anchors; new rows start with scale = cell size and zero offsets."""
+        count = int(codes.shape[0])
+        if count == 0:
+            return
+        device = self.device
+        new_values = {
+            "log_scales": torch.log(cell_sizes.to(device)).unsqueeze(-1).expand(count, 3).contiguous(),
+            "offsets": torch.zeros(count, self.n_offsets, 3, device=device),
+            "features": (
+                features.to(device)
+                if features is not None
+                else torch.zeros(count, self.features.shape[1], device=device)
+            ),
+        }
+        for name in LEARNABLE:
+            self._replace(name, torch.cat([getattr(self, name).detach(), new_values[name]]), optimizer,
+                          lambda state, n=count: torch.cat([state, state.new_zeros((n, *state.shape[1:]))]))
+        self.codes = torch.cat([self.codes, codes.to(device)])
+        self.levels = torch.cat([self.levels, levels.to(device)])
+        self.positions = torch.cat([self.positions, positions.to(device, torch.float32)])
+        shape = (count, self.n_offsets)
+        self.grad_sum = torch.cat([self.grad_sum, torch.zeros(shape, device=device)])
+        self.grad_count = torch.cat([self.grad_count, torch.zeros(shape, dtype=torch.int64, device=device)])
+        self.spawned = torch.cat([self.spawned, torch.zeros(shape, dtype=torch.bool, device=device)])
+        self.max_opacity = torch.cat([self.max_opacity, torch.zeros(count, device=device)])
+        self.observations = torch.cat([self.observations, torch.zeros(count, dtype=torch.int64, device=device)])
+
+    def keep(self, mask: torch.Tensor, optimizer: torch.optim.Optimizer | None) -> None:
+        """Keep only the rows where ``mask`` is True (pruning)."""
+        for name in LEARNABLE:
+            self._replace(name, getattr(self, name).detach()[mask], optimizer, lambda state: state[mask])
+        for name in ("codes", "levels", "positions", "grad_sum", "grad_count", "spawned", "max_opacity",
+                     "observations"):
+            setattr(self, name, getattr(self, name)[mask])
+
+    def _replace(self, name: str, value: torch.Tensor, optimizer: torch.optim.Optimizer | None, follow) -> None:
+        """Swap a learnable tensor for ``value``, carrying Adam's moments through ``follow``."""
+        old = getattr(self, name)
+        new = nn.Parameter(value.contiguous())
+        if optimizer is not None:
+            for group in optimizer.param_groups:
+                for index, param in enumerate(group["params"]):
+                    if param is old:
+                        group["params"][index] = new
+                        state = optimizer.state.pop(old, None)
+                        if state:
+                            for key in ("exp_avg", "exp_avg_sq"):
+                                state[key] = follow(state[key])
+                            optimizer.state[new] = state
+        setattr(self, name, new)
+
+    def level_counts(self, max_level: int) -> list[int]:
+        return [int((self.levels == level).sum()) for level in range(max_level + 1)]
+
+
+def cell_size(voxel_size: float, level: torch.Tensor | int) -> torch.Tensor | float:
+    """gamma_l = gamma_0 / 4**l."""
+    if isinstance(level, int):
+        return voxel_size / 4**level
+    return voxel_size / torch.pow(4.0, level.to(torch.float32))
+
+
+def inverse_sigmoid(value: float) -> float:
+    return math.log(value / (1.0 - value))

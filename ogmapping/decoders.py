@@ -1,0 +1,48 @@
+"""The three MLP decoders that turn an anchor's feature and viewing geometry into n Gaussians."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+# Added to the decoded rotation so an untrained decoder yields valid, unrotated Gaussians.
+IDENTITY_QUAT = torch.tensor([1.0, 0.0, 0.0, 0.0])
+
+
+def _mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, out_dim))
+
+
+@dataclass
+class DecodedAttributes:
+    """Per anchor (V) and offset slot (n)."""
+
+    opacity: torch.Tensor  # (V, n), tanh: Gaussians with opacity <= 0 are dropped for this view
+    color: torch.Tensor  # (V, n, 3) in [0, 1]
+    scale_factor: torch.Tensor  # (V, n, 3) in (0, 1), multiplies the anchor scale
+    quat: torch.Tensor  # (V, n, 4) unnormalised (w, x, y, z)
+
+
+class Decoders(nn.Module):
+    """F_opacity, F_color and F_cov, each Linear(c + 4, hidden) -> ReLU -> Linear."""
+
+    def __init__(self, feature_dim: int, n_offsets: int, hidden: int) -> None:
+        super().__init__()
+        self.n = n_offsets
+        in_dim = feature_dim + 4
+        self.opacity = _mlp(in_dim, hidden, n_offsets)
+        self.color = _mlp(in_dim, hidden, 3 * n_offsets)
+        self.cov = _mlp(in_dim, hidden, 7 * n_offsets)
+
+    def forward(self, features: torch.Tensor, view_dirs: torch.Tensor, distances: torch.Tensor) -> DecodedAttributes:
+        inputs = torch.cat([features, view_dirs, distances], dim=-1)
+        count = inputs.shape[0]
+        cov = self.cov(inputs).view(count, self.n, 7)
+        return DecodedAttributes(
+            opacity=torch.tanh(self.opacity(inputs)),
+            color=torch.sigmoid(self.color(inputs).view(count, self.n, 3)),
+            scale_factor=torch.sigmoid(cov[..., :3]),
+            quat=cov[..., 3:] + IDENTITY_QUAT.to(cov),
+        )
