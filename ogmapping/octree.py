@@ -1,0 +1,167 @@
+"""Sparse voxel octree over anchor levels, stored as one sorted Morton-code tensor per level.
+
+Anchor level l has cells of size gamma_l = voxel_size / 4**l, so a level-l cell splits into 4x4x4
+level-(l+1) cells (two octree depths per anchor level). Keeping each level's occupied codes sorted
+makes membership a ``searchsorted`` and insertion a linear merge, so per-frame allocation costs
+O(frame points + map size) with no sort or unique over the whole map. All work stays on the
+tensors' device; the only host syncs are input validation and sizing the result of a merge.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ogmapping import morton
+from ogmapping.camera import Intrinsics, in_frustum
+from ogmapping.config import OctreeConfig
+
+
+class SparseVoxelOctree:
+    """Occupied cells of every anchor level, as sorted unique int64 Morton codes."""
+
+    def __init__(self, voxel_size: float, max_level: int, device: torch.device | str = "cpu") -> None:
+        if voxel_size <= 0:
+            raise ValueError(f"voxel_size must be positive, got {voxel_size}")
+        if max_level < 0:
+            raise ValueError(f"max_level must be >= 0, got {max_level}")
+        self.voxel_size = float(voxel_size)
+        self.max_level = int(max_level)
+        self.device = torch.device(device)
+        self._keys = [self._empty() for _ in range(self.levels)]
+
+    @classmethod
+    def from_config(cls, config: OctreeConfig, device: torch.device | str = "cpu") -> SparseVoxelOctree:
+        return cls(config.voxel_size, config.max_level, device)
+
+    @property
+    def levels(self) -> int:
+        """Number of anchor levels (``max_level + 1``)."""
+        return self.max_level + 1
+
+    def cell_size(self, level: int) -> float:
+        """gamma_l in metres."""
+        self._check_level(level)
+        return self.voxel_size / 4**level
+
+    def keys(self, level: int = 0) -> torch.Tensor:
+        """Sorted occupied codes of a level. Never modified in place, so safe to hold on to."""
+        self._check_level(level)
+        return self._keys[level]
+
+    def count(self, level: int = 0) -> int:
+        self._check_level(level)
+        return int(self._keys[level].numel())
+
+    def codes_of(self, points: torch.Tensor, level: int = 0) -> torch.Tensor:
+        """Code (M,) of the level-``level`` cell holding each point, duplicates kept."""
+        return morton.encode(morton.cell_coords(points, self.cell_size(level)))
+
+    def centers(self, codes: torch.Tensor, level: int = 0, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """World-space centres (M, 3) of cells, in metres."""
+        coords = morton.decode(codes)
+        return ((coords.to(torch.float64) + 0.5) * self.cell_size(level)).to(dtype)
+
+    def contains(self, codes: torch.Tensor, level: int = 0) -> torch.Tensor:
+        """Boolean mask: which codes are occupied at this level."""
+        self._check_level(level)
+        return _member(self._keys[level], codes.to(self.device, torch.int64))
+
+    def insert(self, codes: torch.Tensor, level: int = 0) -> torch.Tensor:
+        """Add cells; returns the sorted codes that were not occupied before."""
+        self._check_level(level)
+        candidates = torch.unique(codes.to(self.device, torch.int64))
+        if candidates.numel() and bool((candidates < 0).any()):
+            raise ValueError("Morton codes must be non-negative")
+        new = candidates[~_member(self._keys[level], candidates)]
+        if new.numel():
+            self._keys[level] = _merge(self._keys[level], new)
+        return new
+
+    def remove(self, codes: torch.Tensor, level: int = 0) -> torch.Tensor:
+        """Drop cells; returns the sorted codes that were occupied and are now gone."""
+        self._check_level(level)
+        doomed = torch.unique(codes.to(self.device, torch.int64))
+        hit = _member(doomed, self._keys[level])
+        removed = self._keys[level][hit]
+        if removed.numel():
+            self._keys[level] = self._keys[level][~hit]
+        return removed
+
+    def allocate(self, points: torch.Tensor) -> torch.Tensor:
+        """Occupy the coarsest cells touched by ``points``; returns the newly occupied codes."""
+        return self.insert(self.codes_of(points.to(self.device), 0), 0)
+
+    def observed(self, points: torch.Tensor) -> torch.Tensor:
+        """Sorted unique coarsest codes touched by a point cloud (occupied or not)."""
+        return torch.unique(self.codes_of(points.to(self.device), 0))
+
+    def visible(
+        self,
+        intrinsics: Intrinsics,
+        c2w: torch.Tensor | np.ndarray,
+        level: int = 0,
+        margin_px: float = 0.0,
+        near: float = 0.05,
+        far: float = 100.0,
+    ) -> torch.Tensor:
+        """Sorted occupied codes of a level whose cell centres project inside the camera frustum."""
+        keys = self.keys(level)
+        pose = torch.as_tensor(c2w, device=self.device)
+        inside = in_frustum(self.centers(keys, level), intrinsics, pose, near=near, far=far, margin=margin_px)
+        return keys[inside]
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """Plain tensors only, so the map can go into a safetensors file."""
+        state = {
+            "voxel_size": torch.tensor([self.voxel_size], dtype=torch.float64),
+            "max_level": torch.tensor([self.max_level], dtype=torch.int64),
+        }
+        for level, keys in enumerate(self._keys):
+            state[f"keys.{level}"] = keys.cpu()
+        return state
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        """Replace this octree with a saved one, checking the keys since snapshots come from outside."""
+        try:
+            voxel_size = float(state["voxel_size"].reshape(-1)[0])
+            max_level = int(state["max_level"].reshape(-1)[0])
+            saved = [state[f"keys.{level}"] for level in range(max_level + 1)]
+        except (KeyError, IndexError) as error:
+            raise ValueError(f"octree state is incomplete: {error}") from error
+        if not voxel_size > 0 or max_level < 0:
+            raise ValueError("octree state has a non-positive voxel_size or negative max_level")
+        for level, keys in enumerate(saved):
+            if keys.dtype != torch.int64 or keys.ndim != 1:
+                raise ValueError(f"octree keys.{level} must be a 1-D int64 tensor")
+            if keys.numel() and (bool(keys[0] < 0) or not bool((keys[1:] > keys[:-1]).all())):
+                raise ValueError(f"octree keys.{level} must be non-negative, sorted and unique")
+        self.voxel_size = voxel_size
+        self.max_level = max_level
+        self._keys = [keys.to(self.device).clone() for keys in saved]
+
+    def _check_level(self, level: int) -> None:
+        if not 0 <= level <= self.max_level:
+            raise ValueError(f"level must be in [0, {self.max_level}], got {level}")
+
+    def _empty(self) -> torch.Tensor:
+        return torch.empty(0, dtype=torch.int64, device=self.device)
+
+
+def _member(sorted_keys: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
+    """Which ``codes`` occur in ``sorted_keys`` (binary search, any order of ``codes``)."""
+    if sorted_keys.numel() == 0:
+        return torch.zeros(codes.shape, dtype=torch.bool, device=codes.device)
+    index = torch.searchsorted(sorted_keys, codes).clamp_(max=sorted_keys.numel() - 1)
+    return sorted_keys[index] == codes
+
+
+def _merge(sorted_keys: torch.Tensor, sorted_new: torch.Tensor) -> torch.Tensor:
+    """Linear merge of two sorted, disjoint code tensors: each new code's slot is its rank in the union."""
+    slots = torch.searchsorted(sorted_keys, sorted_new) + torch.arange(sorted_new.numel(), device=sorted_new.device)
+    merged = torch.empty(sorted_keys.numel() + sorted_new.numel(), dtype=torch.int64, device=sorted_keys.device)
+    is_new = torch.zeros(merged.numel(), dtype=torch.bool, device=merged.device)
+    is_new[slots] = True
+    merged[slots] = sorted_new
+    merged[~is_new] = sorted_keys
+    return merged
