@@ -1,0 +1,76 @@
+"""Metrics against hand computations and an independent, direct SSIM."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from ogmapping import metrics
+
+
+def _direct_ssim(a: np.ndarray, b: np.ndarray) -> float:
+    """SSIM by brute force: every 11x11 window fully inside the image, weights from the 2-D Gaussian."""
+    r = 5
+    offsets = np.arange(-r, r + 1)
+    g = np.exp(-(offsets[:, None] ** 2 + offsets[None, :] ** 2) / (2 * 1.5**2))
+    g /= g.sum()
+    c1, c2 = 0.01**2, 0.03**2
+    values = []
+    for ch in range(a.shape[2]):
+        for i in range(r, a.shape[0] - r):
+            for j in range(r, a.shape[1] - r):
+                x = a[i - r : i + r + 1, j - r : j + r + 1, ch]
+                y = b[i - r : i + r + 1, j - r : j + r + 1, ch]
+                mx, my = (g * x).sum(), (g * y).sum()
+                vx, vy = (g * (x - mx) ** 2).sum(), (g * (y - my) ** 2).sum()
+                cov = (g * (x - mx) * (y - my)).sum()
+                values.append(((2 * mx * my + c1) * (2 * cov + c2)) / ((mx**2 + my**2 + c1) * (vx + vy + c2)))
+    return float(np.mean(values))
+
+
+def test_psnr_matches_hand_computation():
+    gt = np.zeros((4, 4, 3))
+    pred = gt.copy()
+    pred[0, 0, 0] = 0.5  # mse = 0.25 / 48
+    assert metrics.psnr(pred, gt) == pytest.approx(10 * math.log10(48 / 0.25))
+    assert metrics.psnr(torch.from_numpy(pred), torch.from_numpy(gt)) == pytest.approx(22.833, abs=1e-3)
+    assert metrics.psnr(gt, gt) == math.inf
+
+
+def test_ssim_identical_is_one_and_matches_direct_computation():
+    rng = np.random.default_rng(0)
+    a = rng.random((20, 23, 3))
+    b = np.clip(a + rng.normal(0, 0.1, a.shape), 0, 1)
+    assert metrics.ssim(a, a) == pytest.approx(1.0)
+    assert metrics.ssim(a, b) == pytest.approx(_direct_ssim(a, b), abs=1e-10)
+    assert metrics.ssim(torch.from_numpy(a).float(), torch.from_numpy(b).float()) == pytest.approx(
+        _direct_ssim(a, b), abs=1e-5
+    )
+
+
+def test_depth_l1_masks_invalid_measurements():
+    gt = np.array([[1.0, 0.0], [np.nan, 2.0]])
+    pred = np.array([[1.01, 5.0], [5.0, 1.98]])
+    assert metrics.depth_l1_cm(pred, gt) == pytest.approx(1.5)
+    assert math.isnan(metrics.depth_l1_cm(pred, np.zeros_like(gt)))
+
+
+def test_lpips_reports_why_it_is_unavailable(monkeypatch, tmp_path):
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path))  # an empty hub cache
+    ok, reason = metrics.lpips_status()
+    assert not ok and reason
+    scorer = metrics.Lpips()
+    assert scorer.model is None and scorer.reason == reason
+    assert scorer(np.zeros((8, 8, 3)), np.zeros((8, 8, 3))) is None
+
+
+def test_summarise_skips_missing_values():
+    frames = [
+        {"psnr": 20.0, "ssim": 0.5, "depth_l1_cm": 2.0, "lpips": None},
+        {"psnr": 30.0, "ssim": 0.7, "depth_l1_cm": math.nan, "lpips": None},
+    ]
+    summary = metrics.summarise(frames)
+    assert summary == {"psnr": 25.0, "ssim": pytest.approx(0.6), "depth_l1_cm": 2.0, "lpips": None, "frames": 2}
