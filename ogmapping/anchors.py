@@ -9,8 +9,6 @@ whenever anchors are added or removed.
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import nn
 
@@ -32,24 +30,18 @@ class AnchorMap(nn.Module):
         self.log_scales = nn.Parameter(torch.zeros(0, 3, device=device))
         self.offsets = nn.Parameter(torch.zeros(0, n_offsets, 3, device=device))
         self.features = nn.Parameter(torch.zeros(0, feature_dim if with_features else 0, device=device))
-        self.reset_statistics(torch.ones(0, dtype=torch.bool, device=device))
+        self.reset_statistics()
+        self.spawned = torch.zeros(0, n_offsets, dtype=torch.bool, device=device)
         self.observations = torch.zeros(0, dtype=torch.int64, device=device)
 
     def __len__(self) -> int:
         return int(self.positions.shape[0])
 
-    def reset_statistics(self, rows: torch.Tensor | None = None) -> None:
-        """Zero the refinement statistics (all rows, or the boolean ``rows``)."""
-        shape = (len(self), self.n_offsets)
-        if rows is None or not hasattr(self, "grad_sum"):
-            self.grad_sum = torch.zeros(shape, device=self.device)
-            self.grad_count = torch.zeros(shape, dtype=torch.int64, device=self.device)
-            self.max_opacity = torch.zeros(len(self), device=self.device)
-            self.spawned = torch.zeros(shape, dtype=torch.bool, device=self.device)
-            return
-        self.grad_sum[rows] = 0
-        self.grad_count[rows] = 0
-        self.max_opacity[rows] = 0
+    def reset_statistics(self) -> None:
+        """Zero the per-interval refinement statistics (``spawned`` persists: growth is once-only)."""
+        self.grad_sum = torch.zeros(len(self), self.n_offsets, device=self.device)
+        self.grad_count = torch.zeros(len(self), self.n_offsets, dtype=torch.int64, device=self.device)
+        self.max_opacity = torch.zeros(len(self), device=self.device)
 
     def add(
         self,
@@ -120,7 +112,3 @@ def cell_size(voxel_size: float, level: torch.Tensor | int) -> torch.Tensor | fl
     if isinstance(level, int):
         return voxel_size / 4**level
     return voxel_size / torch.pow(4.0, level.to(torch.float32))
-
-
-def inverse_sigmoid(value: float) -> float:
-    return math.log(value / (1.0 - value))

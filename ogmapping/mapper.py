@@ -1,0 +1,255 @@
+"""The online mapper: frames in, an optimised anchor map out (the data flow of DESIGN.md).
+
+process(frame): register depth, allocate coarse anchors for newly observed space, decide whether
+the frame is a keyframe, and if so optimise k iterations, each on a freshly drawn keyframe
+window, growing and pruning anchors every m iterations.
+
+All public methods are thread-safe: ``lock`` is held per optimisation iteration, so a render or a
+stats request from another thread is served between iterations.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ogmapping import refine
+from ogmapping.anchors import AnchorMap
+from ogmapping.camera import Intrinsics, backproject, world_to_camera
+from ogmapping.config import MapperConfig
+from ogmapping.decoders import Decoders
+from ogmapping.encoding import HashGridEncoding, feature_dim, initial_anchor_features
+from ogmapping.frame import Frame
+from ogmapping.gaussians import GaussianSet, anchors_in_view, generate
+from ogmapping.keyframes import Keyframe, KeyframeSet
+from ogmapping.losses import mapping_loss
+from ogmapping.octree import SparseVoxelOctree
+from ogmapping.preprocess import clip_depth, register_depth
+from ogmapping.render import RenderOutput, rasterize, resolve_backend
+
+
+@dataclass
+class FrameResult:
+    index: int
+    keyframe: bool
+    anchors: int
+    gaussians: int
+    iterations: int
+    new_anchors: int
+    loss: float
+    seconds: float
+
+
+@dataclass
+class Rendered:
+    color: np.ndarray  # (H, W, 3) float32 in [0, 1]
+    depth: np.ndarray  # (H, W) float32 metres, 0 where nothing was rendered
+    alpha: np.ndarray  # (H, W) float32
+
+
+class Mapper:
+    """One session's map and the optimisation that builds it."""
+
+    def __init__(self, config: MapperConfig, device: str | torch.device = "cpu") -> None:
+        self.config = config
+        self.device = torch.device(device)
+        self.backend = resolve_backend(config.backend, self.device)
+        self.lock = threading.RLock()
+        torch.manual_seed(config.seed)
+        model = config.model
+        self.octree = SparseVoxelOctree.from_config(config.octree, self.device)
+        self.anchors = AnchorMap(model.n_offsets, model.feature_dim, model.encoding == "anchor", self.device)
+        self.encoding = HashGridEncoding(model).to(self.device) if model.encoding == "hash" else None
+        self.decoders = Decoders(feature_dim(model), model.n_offsets, model.hidden_dim).to(self.device)
+        self.keyframes = KeyframeSet(config.keyframes, config.seed)
+        self.optimizer = self._make_optimizer()
+        self.frames = 0
+        self.iterations = 0
+        self.last_gaussians = 0
+        self.timings: dict[str, float] = defaultdict(float)
+
+    def _make_optimizer(self) -> torch.optim.Adam:
+        lr = self.config.optim
+        groups = [
+            {"params": [self.anchors.log_scales], "lr": lr.scaling_lr, "name": "log_scales"},
+            {"params": [self.anchors.offsets], "lr": lr.offsets_lr, "name": "offsets"},
+            {"params": self.decoders.opacity.parameters(), "lr": lr.opacity_mlp_lr, "name": "opacity_mlp"},
+            {"params": self.decoders.color.parameters(), "lr": lr.color_mlp_lr, "name": "color_mlp"},
+            {"params": self.decoders.cov.parameters(), "lr": lr.cov_mlp_lr, "name": "cov_mlp"},
+        ]
+        if self.encoding is not None:
+            groups.append({"params": [self.encoding.table], "lr": lr.hash_lr, "name": "hash"})
+        else:
+            groups.append({"params": [self.anchors.features], "lr": lr.features_lr, "name": "features"})
+        return torch.optim.Adam(groups, eps=1e-15)
+
+    @contextmanager
+    def _timed(self, stage: str) -> Iterator[None]:
+        start = time.perf_counter()
+        yield
+        self.timings[stage] += time.perf_counter() - start
+
+    # ------------------------------------------------------------------ mapping
+
+    def process(self, frame: Frame) -> FrameResult:
+        """Map one frame; returns what happened to it."""
+        start = time.perf_counter()
+        with self._timed("preprocess"):
+            frame = clip_depth(register_depth(frame), self.config.octree.depth_min, self.config.octree.depth_max)
+            rgb = torch.as_tensor(frame.rgb, dtype=torch.float32, device=self.device)
+            depth = torch.as_tensor(frame.depth, dtype=torch.float32, device=self.device)
+            c2w = torch.as_tensor(frame.c2w, dtype=torch.float32, device=self.device)
+        with self.lock, self._timed("allocate"):
+            stride = self.config.octree.allocation_stride
+            points = backproject(_subsampled(depth, stride), frame.color_intrinsics, c2w)
+            new_codes = self.octree.allocate(points)
+            self._add_coarse_anchors(new_codes)
+            codes = self.octree.observed(points)
+        with self._timed("keyframes"):
+            is_keyframe = self.keyframes.should_insert(codes)
+            if is_keyframe:
+                self.keyframes.insert(Keyframe(frame.index, rgb, depth, frame.color_intrinsics, c2w, codes))
+        iterations, loss, grown = 0, float("nan"), 0
+        if is_keyframe:
+            first = len(self.keyframes) == 1
+            iterations = self.config.keyframes.first_iterations if first else self.config.keyframes.iterations
+            loss, grown = self._optimise(iterations)
+        self.frames += 1
+        return FrameResult(
+            index=frame.index,
+            keyframe=is_keyframe,
+            anchors=len(self.anchors),
+            gaussians=self.last_gaussians,
+            iterations=iterations,
+            new_anchors=int(new_codes.numel()) + grown,
+            loss=loss,
+            seconds=time.perf_counter() - start,
+        )
+
+    def _add_coarse_anchors(self, codes: torch.Tensor) -> None:
+        count = int(codes.numel())
+        if count == 0:
+            return
+        levels = torch.zeros(count, dtype=torch.int64, device=self.device)
+        sizes = torch.full((count,), self.octree.cell_size(0), device=self.device)
+        features = (
+            initial_anchor_features(count, self.config.model.feature_dim, self.device)
+            if self.anchors.with_features else None
+        )
+        self.anchors.add(codes, levels, self.octree.centers(codes, 0), sizes, features, self.optimizer)
+
+    def _optimise(self, iterations: int) -> tuple[float, int]:
+        """k iterations on fresh windows; grow and prune every ``refine.interval`` iterations."""
+        loss_value, grown = float("nan"), 0
+        interval = self.config.refine.interval
+        for step in range(1, iterations + 1):
+            with self.lock:
+                loss_value = self._iteration(self.keyframes.draw_window())
+                self.iterations += 1
+                if step % interval == 0:
+                    with self._timed("refine"):
+                        grown += refine.grow(self.anchors, self.octree, self.config.refine,
+                                             self.config.octree.voxel_size, self.optimizer)
+                        refine.prune(self.anchors, self.config.refine, self.optimizer)
+                        refine.end_interval(self.anchors)
+        return loss_value, grown
+
+    def _iteration(self, window: list[Keyframe]) -> float:
+        self.optimizer.zero_grad(set_to_none=True)
+        renders: list[tuple[GaussianSet, RenderOutput, Keyframe]] = []
+        total = torch.zeros((), device=self.device)
+        for keyframe in window:
+            gaussians, output = self._render(keyframe.c2w, keyframe.intrinsics)
+            with self._timed("loss"):
+                loss, _ = mapping_loss(output.color, output.depth, keyframe.rgb, keyframe.depth,
+                                       gaussians.scales, self.config.loss)
+            total = total + loss / len(window)
+            renders.append((gaussians, output, keyframe))
+        with self._timed("backward"):
+            if total.requires_grad:
+                total.backward()
+        with self._timed("statistics"):
+            for gaussians, output, keyframe in renders:
+                grad = output.means2d.grad if output.means2d.requires_grad else None
+                refine.accumulate(self.anchors, gaussians, grad, output.visible,
+                                  keyframe.intrinsics.width, keyframe.intrinsics.height)
+        with self._timed("optimizer"):
+            self.optimizer.step()
+        self.last_gaussians = len(renders[0][0]) if renders else 0
+        return float(total.detach())
+
+    def _features(self, rows: torch.Tensor) -> torch.Tensor:
+        if self.encoding is not None:
+            return self.encoding(self.anchors.positions[rows])
+        return self.anchors.features[rows]
+
+    def _render(self, c2w: torch.Tensor, intrinsics: Intrinsics) -> tuple[GaussianSet, RenderOutput]:
+        with self._timed("decode"):
+            rows = anchors_in_view(self.anchors, intrinsics, c2w, far=self.config.octree.depth_max * 2)
+            gaussians = generate(self.anchors, self._features, self.decoders, c2w[:3, 3], rows)
+        with self._timed("rasterize"):
+            output = rasterize(
+                gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.colors,
+                world_to_camera(c2w), intrinsics.tensor(self.device), intrinsics.width, intrinsics.height,
+                backend=self.backend,
+            )
+        return gaussians, output
+
+    # ------------------------------------------------------------------ queries
+
+    def render(self, c2w: np.ndarray, intrinsics: Intrinsics) -> Rendered:
+        """Colour, depth and alpha from any pose (camera-to-world) and intrinsics."""
+        pose = torch.as_tensor(np.asarray(c2w), dtype=torch.float32, device=self.device)
+        with self.lock, torch.no_grad():
+            _, output = self._render(pose, intrinsics)
+        return Rendered(
+            color=output.color.clamp(0, 1).cpu().numpy().astype(np.float32),
+            depth=output.depth.cpu().numpy().astype(np.float32),
+            alpha=output.alpha.cpu().numpy().astype(np.float32),
+        )
+
+    def stats(self) -> dict:
+        """Map statistics, JSON-serialisable."""
+        with self.lock:
+            return {
+                "frames": self.frames,
+                "keyframes": len(self.keyframes),
+                "iterations": self.iterations,
+                "anchors": len(self.anchors),
+                "anchors_per_level": self.anchors.level_counts(self.config.octree.max_level),
+                "gaussians": self.last_gaussians,
+                "octree_cells_per_level": [self.octree.count(level) for level in range(self.octree.levels)],
+                "device": str(self.device),
+                "backend": self.backend,
+                "timings": dict(self.timings),
+            }
+
+    def snapshot(self) -> bytes:
+        """The map as safetensors bytes (see ``ogmapping.snapshot``)."""
+        from ogmapping.snapshot import dump
+
+        with self.lock:
+            return dump(self)
+
+    @classmethod
+    def restore(cls, data: bytes, device: str | torch.device = "cpu") -> Mapper:
+        """A mapper from snapshot bytes; mapping can continue from it."""
+        from ogmapping.snapshot import load
+
+        return load(data, device)
+
+
+def _subsampled(depth: torch.Tensor, stride: int) -> torch.Tensor:
+    """Depth with only every ``stride``-th pixel per axis kept (others marked invalid)."""
+    if stride == 1:
+        return depth
+    kept = torch.zeros_like(depth)
+    kept[stride // 2 :: stride, stride // 2 :: stride] = depth[stride // 2 :: stride, stride // 2 :: stride]
+    return kept

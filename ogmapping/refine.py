@@ -1,0 +1,129 @@
+"""Anchor-based progressive refinement and opacity pruning (paper 3.2).
+
+Per level l: voxel size gamma_l = gamma_0 / 4**l and threshold tau_l = tau_0 * 2**l. A Gaussian of
+anchor v whose mean screen-space gradient reaches tau_{l_v} proposes an anchor of level l_v at its
+position; if that cell already holds an anchor of level l_v the proposal is promoted to level
+l_v + 1. A Gaussian that has spawned an anchor never spawns again. Proposals past the finest level,
+or into a cell that already exists at the promoted level, are dropped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ogmapping.anchors import AnchorMap, cell_size
+from ogmapping.config import RefineConfig
+from ogmapping.gaussians import GaussianSet
+from ogmapping.octree import SparseVoxelOctree
+
+
+def accumulate(anchors: AnchorMap, gaussians: GaussianSet, means2d_grad: torch.Tensor | None,
+               visible: torch.Tensor, width: int, height: int) -> None:
+    """Add one render's screen-space gradient norms and opacities to the anchors' statistics.
+
+    Pixel gradients are scaled by half the image size (NDC units, as 3DGS does), so thresholds do
+    not depend on resolution.
+    """
+    anchors.observations[gaussians.anchor_rows] += 1
+    anchors.max_opacity[gaussians.anchor_rows] = torch.maximum(
+        anchors.max_opacity[gaussians.anchor_rows], gaussians.anchor_opacity
+    )
+    if means2d_grad is None or len(gaussians) == 0:
+        return
+    scale = means2d_grad.new_tensor([width / 2.0, height / 2.0])
+    norms = (means2d_grad * scale).norm(dim=-1)
+    rows, slots = gaussians.rows[visible], gaussians.slots[visible]
+    anchors.grad_sum.index_put_((rows, slots), norms[visible].to(anchors.grad_sum), accumulate=True)
+    anchors.grad_count.index_put_((rows, slots), torch.ones_like(rows), accumulate=True)
+
+
+@dataclass
+class Proposals:
+    codes: torch.Tensor
+    levels: torch.Tensor
+    parents: torch.Tensor  # anchor row each new anchor grew from
+
+
+def propose(anchors: AnchorMap, octree: SparseVoxelOctree, config: RefineConfig) -> Proposals:
+    """New anchors from Gaussians over their level's threshold; marks those Gaussians as spawned."""
+    count = anchors.grad_count.clamp_min(1)
+    mean_grad = anchors.grad_sum / count
+    thresholds = config.grad_threshold * torch.pow(2.0, anchors.levels.to(mean_grad)).unsqueeze(1)
+    candidate = (mean_grad >= thresholds) & (anchors.grad_count >= config.min_observations) & ~anchors.spawned
+    rows, slots = torch.nonzero(candidate, as_tuple=True)
+    if rows.numel() > config.max_new_anchors:
+        strongest = torch.topk(mean_grad[rows, slots], config.max_new_anchors).indices
+        rows, slots = rows[strongest], slots[strongest]
+    positions = (anchors.positions[rows] + anchors.offsets.detach()[rows, slots]
+                 * torch.exp(anchors.log_scales.detach()[rows])).to(torch.float32)
+    levels = anchors.levels[rows].clone()
+    codes = torch.zeros_like(levels)
+    keep = torch.zeros_like(levels, dtype=torch.bool)
+    for level in range(octree.max_level + 1):
+        at_level = levels == level
+        if not bool(at_level.any()):
+            continue
+        own = octree.codes_of(positions[at_level], level)
+        occupied = octree.contains(own, level)
+        promoted_level = level + 1
+        if promoted_level <= octree.max_level:
+            finer = octree.codes_of(positions[at_level], promoted_level)
+            promoted_free = ~octree.contains(finer, promoted_level)
+        else:
+            finer = own
+            promoted_free = torch.zeros_like(occupied)
+        new_level = torch.where(occupied, torch.full_like(own, promoted_level), torch.full_like(own, level))
+        codes[at_level] = torch.where(occupied, finer, own)
+        keep[at_level] = ~occupied | promoted_free
+        levels[at_level] = new_level
+    anchors.spawned[rows[keep], slots[keep]] = True
+    codes, levels, parents = codes[keep], levels[keep], rows[keep]
+    first = torch.cat([_first_occurrence(codes, levels == level) for level in range(octree.max_level + 1)])
+    return Proposals(codes=codes[first], levels=levels[first], parents=parents[first])
+
+
+def _first_occurrence(codes: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Indices (into ``codes``) of the first occurrence of each distinct code where ``mask``."""
+    indices = torch.nonzero(mask).squeeze(-1)
+    if indices.numel() == 0:
+        return indices
+    _, inverse = torch.unique(codes[indices], return_inverse=True)
+    first = torch.full((int(inverse.max()) + 1,), indices.numel(), dtype=torch.int64, device=codes.device)
+    first.scatter_reduce_(0, inverse, torch.arange(indices.numel(), device=codes.device), reduce="amin")
+    return indices[first]
+
+
+def grow(anchors: AnchorMap, octree: SparseVoxelOctree, config: RefineConfig, voxel_size: float,
+         optimizer: torch.optim.Optimizer | None) -> int:
+    """Insert the proposed anchors into the octree and the map; returns how many were added."""
+    proposals = propose(anchors, octree, config)
+    total = int(proposals.codes.numel())
+    if total == 0:
+        return 0
+    for level in range(octree.max_level + 1):
+        octree.insert(proposals.codes[proposals.levels == level], level)
+    positions = torch.zeros(total, 3, device=anchors.device)
+    for level in range(octree.max_level + 1):
+        at_level = proposals.levels == level
+        if bool(at_level.any()):
+            positions[at_level] = octree.centers(proposals.codes[at_level], level).to(positions)
+    features = anchors.features.detach()[proposals.parents] if anchors.with_features else None
+    anchors.add(proposals.codes, proposals.levels, positions, cell_size(voxel_size, proposals.levels),
+                features, optimizer)
+    return total
+
+
+def prune(anchors: AnchorMap, config: RefineConfig, optimizer: torch.optim.Optimizer | None) -> int:
+    """Remove anchors seen often enough whose Gaussians all stayed below the opacity threshold."""
+    weak = (anchors.observations >= config.prune_min_observations) & (anchors.max_opacity < config.prune_opacity)
+    removed = int(weak.sum())
+    if removed:
+        anchors.keep(~weak, optimizer)
+    return removed
+
+
+def end_interval(anchors: AnchorMap) -> None:
+    """Start a fresh accumulation window after each grow/prune step."""
+    anchors.reset_statistics()
