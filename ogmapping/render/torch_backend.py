@@ -1,0 +1,108 @@
+"""Reference rasterizer: pure torch and autograd, the definition the other backends must match.
+
+Per pixel, Gaussians go front to back: ``alpha = min(ALPHA_MAX, opacity * exp(-power))``; a
+Gaussian with ``alpha < ALPHA_MIN`` is skipped; compositing stops before the first Gaussian that
+would take the transmittance below TRANSMITTANCE_MIN. Pixels are processed one 16x16 tile at a
+time (only Gaussians whose bounding square touches the tile), each tile under activation
+checkpointing, so memory stays bounded by one tile's work even for large scenes.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch.utils.checkpoint import checkpoint
+
+from ogmapping.render import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN, RenderOutput
+from ogmapping.render.projection import Projection, project_gaussians, tile_grid
+from ogmapping.render.tiles import TILE_SIZE, tile_lists
+
+
+def composite_tile(
+    pixels: torch.Tensor,
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    depths: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Composite depth-sorted Gaussians over pixel centres (P, 2).
+
+    Returns the weighted colour sum (P, 3), weighted depth sum (P,) and final transmittance (P,).
+    """
+    dx = pixels[:, :1] - means2d[:, 0]
+    dy = pixels[:, 1:] - means2d[:, 1]
+    a, b, c = conics.unbind(-1)
+    power = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+    alpha = torch.clamp(opacities * torch.exp(-power), max=ALPHA_MAX)
+    alpha = torch.where(alpha >= ALPHA_MIN, alpha, torch.zeros_like(alpha))
+    with torch.no_grad():
+        included = torch.cumprod(1.0 - alpha, dim=1) >= TRANSMITTANCE_MIN
+    alpha = torch.where(included, alpha, torch.zeros_like(alpha))
+    transmittance = torch.cumprod(1.0 - alpha, dim=1)
+    before = torch.cat([torch.ones_like(transmittance[:, :1]), transmittance[:, :-1]], dim=1)
+    weights = alpha * before
+    return weights @ colors, weights @ depths, transmittance[:, -1]
+
+
+def rasterize(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    viewmat: torch.Tensor,
+    K: torch.Tensor,
+    width: int,
+    height: int,
+    background: torch.Tensor | None = None,
+) -> RenderOutput:
+    """Render with torch ops only; see ``ogmapping.render.rasterize`` for the arguments."""
+    proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height)
+    if proj.means2d.requires_grad:
+        proj.means2d.retain_grad()
+    bg = torch.zeros(3, dtype=means.dtype, device=means.device) if background is None else background.to(means)
+    n_x, n_y = tile_grid(width, height, TILE_SIZE)
+    offsets, ids = tile_lists(proj.means2d, proj.depths, proj.radii, width, height, TILE_SIZE)
+    offsets = offsets.tolist()
+
+    # Sums over empty slices: zeros that keep the outputs in the autograd graph even when no
+    # Gaussian reaches a pixel, so ``loss.backward()`` works on empty or fully culled views.
+    anchor = sum(t[:0].sum() for t in (proj.means2d, proj.conics, proj.depths, opacities, colors))
+    color = bg.expand(height, width, 3) + anchor
+    accum_depth = means.new_zeros(height, width) + anchor
+    transmittance_final = means.new_ones(height, width) + anchor
+    needs_grad = torch.is_grad_enabled() and any(
+        t.requires_grad for t in (proj.means2d, proj.conics, opacities, colors, proj.depths, bg)
+    )
+    for tile_index in range(n_x * n_y):
+        start, end = offsets[tile_index], offsets[tile_index + 1]
+        if start == end:
+            continue
+        ty, tx = divmod(tile_index, n_x)
+        x0, y0 = tx * TILE_SIZE, ty * TILE_SIZE
+        x1, y1 = min(x0 + TILE_SIZE, width), min(y0 + TILE_SIZE, height)
+        rows = torch.arange(y0, y1, dtype=means.dtype, device=means.device) + 0.5
+        cols = torch.arange(x0, x1, dtype=means.dtype, device=means.device) + 0.5
+        grid_y, grid_x = torch.meshgrid(rows, cols, indexing="ij")
+        pixels = torch.stack([grid_x.reshape(-1), grid_y.reshape(-1)], dim=-1)
+        sel = ids[start:end]
+        args = (pixels, proj.means2d[sel], proj.conics[sel], opacities[sel], colors[sel], proj.depths[sel])
+        if needs_grad:
+            c_sum, d_sum, t_final = checkpoint(composite_tile, *args, use_reentrant=False)
+        else:
+            c_sum, d_sum, t_final = composite_tile(*args)
+        shape = (y1 - y0, x1 - x0)
+        color[y0:y1, x0:x1] = (c_sum + t_final.unsqueeze(-1) * bg).reshape(*shape, 3)
+        accum_depth[y0:y1, x0:x1] = d_sum.reshape(shape)
+        transmittance_final[y0:y1, x0:x1] = t_final.reshape(shape)
+    return finish_output(color, accum_depth, transmittance_final, proj)
+
+
+def finish_output(
+    color: torch.Tensor, accum_depth: torch.Tensor, transmittance: torch.Tensor, proj: Projection
+) -> RenderOutput:
+    """Turn accumulated depth and final transmittance into the shared output (depth = D / alpha)."""
+    alpha = 1.0 - transmittance
+    covered = alpha > 0
+    depth = torch.where(covered, accum_depth / torch.where(covered, alpha, torch.ones_like(alpha)), 0.0)
+    return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=proj.means2d, visible=proj.radii > 0)

@@ -1,0 +1,178 @@
+"""The torch reference rasterizer against a naive per-pixel loop, plus gradcheck and edge cases."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from ogmapping.render import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN
+from ogmapping.render.projection import project_gaussians
+from ogmapping.render.torch_backend import rasterize
+
+WIDTH, HEIGHT = 8, 6
+
+
+def camera(dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
+    """Identity pose and a pinhole with about a 60 degree horizontal field of view."""
+    K = torch.tensor([[7.0, 0.0, 4.0], [0.0, 7.0, 3.0], [0.0, 0.0, 1.0]], dtype=dtype)
+    return torch.eye(4, dtype=dtype), K
+
+
+def random_scene(seed: int, n: int, dtype: torch.dtype = torch.float64) -> dict[str, torch.Tensor]:
+    """Gaussians in front of the camera, some partly off-screen, sizes from sub-pixel to large."""
+    g = torch.Generator().manual_seed(seed)
+    z = 1.0 + 2.0 * torch.rand(n, generator=g, dtype=dtype)
+    xy = (torch.rand(n, 2, generator=g, dtype=dtype) - 0.5) * 1.6 * z.unsqueeze(-1)
+    return {
+        "means": torch.cat([xy, z.unsqueeze(-1)], dim=-1),
+        "quats": torch.randn(n, 4, generator=g, dtype=dtype),
+        "scales": torch.exp(torch.empty(n, 3, dtype=dtype).uniform_(-3.5, -0.5, generator=g)),
+        "opacities": torch.empty(n, dtype=dtype).uniform_(0.05, 1.0, generator=g),
+        "colors": torch.rand(n, 3, generator=g, dtype=dtype),
+    }
+
+
+def naive_render(scene: dict[str, torch.Tensor], background: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """Per-pixel loop over all unculled Gaussians in depth order, written straight from the rules."""
+    viewmat, K = camera(scene["means"].dtype)
+    proj = project_gaussians(
+        scene["means"], scene["quats"], scene["scales"], scene["opacities"], viewmat, K, WIDTH, HEIGHT
+    )
+    order = [int(i) for i in torch.sort(proj.depths, stable=True).indices if proj.radii[i] > 0]
+    color = torch.zeros(HEIGHT, WIDTH, 3, dtype=torch.float64)
+    depth = torch.zeros(HEIGHT, WIDTH, dtype=torch.float64)
+    alpha_out = torch.zeros(HEIGHT, WIDTH, dtype=torch.float64)
+    for i in range(HEIGHT):
+        for j in range(WIDTH):
+            t, c, d = 1.0, torch.zeros(3, dtype=torch.float64), 0.0
+            for k in order:
+                dx = j + 0.5 - float(proj.means2d[k, 0])
+                dy = i + 0.5 - float(proj.means2d[k, 1])
+                a, b, cc = (float(v) for v in proj.conics[k])
+                power = 0.5 * (a * dx * dx + 2.0 * b * dx * dy + cc * dy * dy)
+                alpha = min(ALPHA_MAX, float(scene["opacities"][k]) * math.exp(-power))
+                if alpha < ALPHA_MIN:
+                    continue
+                if t * (1.0 - alpha) < TRANSMITTANCE_MIN:
+                    break
+                c = c + alpha * t * scene["colors"][k].detach()
+                d += alpha * t * float(proj.depths[k])
+                t *= 1.0 - alpha
+            color[i, j] = c + t * background
+            alpha_out[i, j] = 1.0 - t
+            depth[i, j] = d / (1.0 - t) if t < 1.0 else 0.0
+    return color, depth, alpha_out
+
+
+def render(scene: dict[str, torch.Tensor], background: torch.Tensor | None = None):
+    viewmat, K = camera(scene["means"].dtype)
+    return rasterize(
+        scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["colors"],
+        viewmat, K, WIDTH, HEIGHT, background,
+    )
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_matches_naive_loop(seed: int) -> None:
+    scene = random_scene(seed, 12)
+    background = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
+    out = render(scene, background)
+    color, depth, alpha = naive_render(scene, background)
+    torch.testing.assert_close(out.color, color, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(out.depth, depth, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(out.alpha, alpha, rtol=1e-10, atol=1e-12)
+
+
+def test_stop_and_clamp_rules_are_exercised() -> None:
+    """A stack of opaque Gaussians hits both ALPHA_MAX and the transmittance stop."""
+    scene = random_scene(7, 12)
+    scene["means"][:, :2] = 0.0
+    scene["scales"][:] = 0.5
+    scene["opacities"][:] = 1.0
+    out = render(scene)
+    color, depth, alpha = naive_render(scene, torch.zeros(3, dtype=torch.float64))
+    assert float(alpha.max()) > 1.0 - 1e-3
+    torch.testing.assert_close(out.color, color, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(out.depth, depth, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(out.alpha, alpha, rtol=1e-10, atol=1e-12)
+
+
+def smooth_scene() -> dict[str, torch.Tensor]:
+    """Three large, half-transparent Gaussians near the image centre.
+
+    Every Gaussian keeps alpha well inside (ALPHA_MIN, ALPHA_MAX) at every pixel and the
+    transmittance never approaches TRANSMITTANCE_MIN, so the render is smooth in all parameters
+    and finite differences are valid (``test_gradcheck`` asserts these margins).
+    """
+    g = torch.Generator().manual_seed(11)
+    n = 3
+    return {
+        "means": torch.tensor([[0.05, -0.02, 2.0], [-0.1, 0.08, 2.5], [0.12, 0.1, 3.0]], dtype=torch.float64),
+        "quats": torch.randn(n, 4, generator=g, dtype=torch.float64),
+        "scales": torch.tensor([[0.6, 0.9, 0.5], [1.0, 0.7, 0.8], [0.8, 1.1, 0.9]], dtype=torch.float64),
+        "opacities": torch.tensor([0.5, 0.4, 0.6], dtype=torch.float64),
+        "colors": torch.rand(n, 3, generator=g, dtype=torch.float64),
+    }
+
+
+def test_gradcheck() -> None:
+    scene = smooth_scene()
+    viewmat, K = camera()
+    proj = project_gaussians(
+        scene["means"], scene["quats"], scene["scales"], scene["opacities"], viewmat, K, WIDTH, HEIGHT
+    )
+    assert bool((proj.radii > 0).all())
+    rows, cols = torch.meshgrid(torch.arange(HEIGHT) + 0.5, torch.arange(WIDTH) + 0.5, indexing="ij")
+    d = torch.stack([cols, rows], dim=-1).reshape(-1, 1, 2).double() - proj.means2d
+    a, b, c = proj.conics.unbind(-1)
+    power = 0.5 * (a * d[..., 0] ** 2 + c * d[..., 1] ** 2) + b * d[..., 0] * d[..., 1]
+    raw_alpha = scene["opacities"] * torch.exp(-power)
+    assert float(raw_alpha.min()) > 2 * ALPHA_MIN and float(raw_alpha.max()) < 0.9 * ALPHA_MAX
+    assert float(torch.prod(1.0 - raw_alpha, dim=1).min()) > 100 * TRANSMITTANCE_MIN
+
+    background = torch.tensor([0.3, 0.1, 0.7], dtype=torch.float64)
+    names = ("means", "quats", "scales", "opacities", "colors")
+    inputs = tuple(scene[name].clone().requires_grad_(True) for name in names)
+
+    def fn(*params: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        out = rasterize(*params, viewmat, K, WIDTH, HEIGHT, background)
+        return out.color, out.depth, out.alpha
+
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_means2d_gradient_is_retained() -> None:
+    scene = {k: v.clone().requires_grad_(True) for k, v in smooth_scene().items()}
+    out = render(scene)
+    (out.color.sum() + out.depth.sum()).backward()
+    assert out.means2d.grad is not None and out.means2d.grad.shape == (3, 2)
+    assert float(out.means2d.grad.abs().sum()) > 0
+    assert bool(out.visible.all())
+
+
+def test_empty_scene() -> None:
+    empty = {k: v[:0].clone().requires_grad_(True) for k, v in random_scene(0, 4).items()}
+    background = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    out = render(empty, background)
+    torch.testing.assert_close(out.color, background.expand(HEIGHT, WIDTH, 3))
+    assert bool((out.depth == 0).all()) and bool((out.alpha == 0).all())
+    assert out.means2d.shape == (0, 2) and out.visible.shape == (0,)
+
+
+def test_all_culled() -> None:
+    """Behind the camera, off to the side, and too transparent: nothing reaches a pixel."""
+    scene = random_scene(3, 6)
+    scene["means"][0:2, 2] = -1.0
+    scene["means"][2:4, 0] = 50.0
+    scene["opacities"][4:6] = 0.5 * ALPHA_MIN
+    scene = {k: v.requires_grad_(True) for k, v in scene.items()}
+    background = torch.tensor([0.4, 0.4, 0.4], dtype=torch.float64)
+    out = render(scene, background)
+    assert not bool(out.visible.any())
+    torch.testing.assert_close(out.color, background.expand(HEIGHT, WIDTH, 3))
+    assert bool((out.depth == 0).all()) and bool((out.alpha == 0).all())
+    assert out.means2d.shape == (6, 2)
+    out.color.sum().backward()
+    assert float(scene["means"].grad.abs().sum()) == 0.0
