@@ -1,0 +1,38 @@
+"""Presets and overrides."""
+
+import json
+
+import pytest
+
+from ogmapping.config import MapperConfig, build, load_file, parse_override_args, preset
+
+
+def test_presets_differ_as_the_paper_says():
+    dense, sparse, fast = preset("dense"), preset("sparse"), preset("sparse-fast")
+    assert dense.model.encoding == "hash" and sparse.model.encoding == "anchor"
+    assert sparse.refine.prune_opacity > dense.refine.prune_opacity
+    assert fast.keyframes.iterations == sparse.keyframes.iterations // 2
+
+
+def test_overrides_are_typed_and_checked():
+    config = build("sparse", parse_override_args(["keyframes.iterations=7", "octree.voxel_size=0.2"]))
+    assert config.keyframes.iterations == 7 and config.octree.voxel_size == 0.2
+    with pytest.raises(ValueError, match="unknown config key"):
+        build("sparse", {"keyframes.nope": 1})
+    with pytest.raises(ValueError, match="expects int"):
+        build("sparse", {"keyframes.iterations": "many"})
+    with pytest.raises(ValueError, match="out of range"):
+        build("sparse", {"octree.voxel_size": "-1"})
+    with pytest.raises(ValueError, match="unknown preset"):
+        preset("fastest")
+
+
+def test_dict_round_trip_and_files(tmp_path):
+    config = build("dense", {"refine.interval": 5})
+    assert MapperConfig.from_dict(config.to_dict()) == config
+    path = tmp_path / "overrides.json"
+    path.write_text(json.dumps({"loss": {"depth": 0.25}}))
+    assert load_file(path) == {"loss.depth": 0.25}
+    yaml_path = tmp_path / "overrides.yaml"
+    yaml_path.write_text("keyframes:\n  local_count: 4\n")
+    assert build("sparse", load_file(yaml_path)).keyframes.local_count == 4

@@ -1,0 +1,67 @@
+"""Keyframe insertion by overlap and the dynamic window's draws."""
+
+import torch
+
+from ogmapping.camera import Intrinsics
+from ogmapping.config import KeyframeConfig
+from ogmapping.keyframes import Keyframe, KeyframeSet, overlap_ratio
+
+INTRINSICS = Intrinsics(10, 10, 4, 3, 8, 6)
+
+
+def keyframe(index: int, codes: list[int]) -> Keyframe:
+    return Keyframe(index, torch.zeros(6, 8, 3), torch.zeros(6, 8), INTRINSICS, torch.eye(4),
+                    torch.tensor(sorted(set(codes)), dtype=torch.int64))
+
+
+def test_overlap_ratio_matches_set_arithmetic():
+    generator = torch.Generator().manual_seed(0)
+    for _ in range(20):
+        a = set(torch.randint(0, 50, (30,), generator=generator).tolist())
+        b = set(torch.randint(0, 50, (30,), generator=generator).tolist())
+        expected = len(a & b) / len(a | b)
+        got = overlap_ratio(torch.tensor(sorted(a)), torch.tensor(sorted(b)))
+        assert abs(got - expected) < 1e-12
+
+
+def test_insertion_follows_the_threshold():
+    frames = KeyframeSet(KeyframeConfig(overlap_threshold=0.5))
+    assert frames.should_insert(torch.tensor([1, 2, 3]))
+    frames.insert(keyframe(0, [1, 2, 3, 4]))
+    assert not frames.should_insert(torch.tensor([1, 2, 3, 4, 5]))  # 4/5 overlap
+    assert frames.should_insert(torch.tensor([3, 4, 5, 6, 7]))  # 2/7 overlap
+
+
+def test_local_and_global_split_by_overlap_weight():
+    frames = KeyframeSet(KeyframeConfig(local_threshold=0.5))
+    frames.insert(keyframe(0, list(range(10))))  # overlaps K_new by 8/12
+    frames.insert(keyframe(1, list(range(100, 110))))  # no overlap
+    frames.insert(keyframe(2, list(range(2, 12))))
+    assert frames.local == [0]
+    assert frames.global_ == [1]
+
+
+def test_window_draws_without_replacement_and_changes_between_iterations():
+    config = KeyframeConfig(local_threshold=0.2, local_count=3, global_count=2)
+    frames = KeyframeSet(config, seed=1)
+    for index in range(8):
+        frames.insert(keyframe(index, list(range(0, 20)) if index % 2 == 0 else list(range(100 + index, 120))))
+    frames.insert(keyframe(99, list(range(0, 20))))
+    assert len(frames.local) >= 3 and len(frames.global_) >= 2
+    draws = []
+    for _ in range(20):
+        window = frames.draw_window()
+        indices = [kf.index for kf in window]
+        assert indices[0] == 99, "K_new is always in the window"
+        assert len(indices) == 1 + 3 + 2
+        assert len(set(indices)) == len(indices), "no keyframe twice in one window"
+        local = {frames.keyframes[i].index for i in frames.local}
+        assert sum(i in local for i in indices[1:]) == 3
+        draws.append(tuple(indices))
+    assert len(set(draws)) > 1, "the window is drawn afresh every iteration"
+
+
+def test_window_with_few_keyframes_uses_what_exists():
+    frames = KeyframeSet(KeyframeConfig(local_count=2, global_count=2))
+    frames.insert(keyframe(0, [1, 2]))
+    assert [kf.index for kf in frames.draw_window()] == [0]

@@ -1,0 +1,110 @@
+"""Progressive refinement rules (paper 3.2) and pruning, on hand-built maps."""
+
+import math
+
+import torch
+
+from ogmapping.anchors import AnchorMap
+from ogmapping.config import RefineConfig
+from ogmapping.octree import SparseVoxelOctree
+from ogmapping.refine import grow, propose, prune
+
+VOXEL = 0.4
+CONFIG = RefineConfig(grad_threshold=1.0, min_observations=1, max_new_anchors=100)
+
+
+def build_map(positions: list[list[float]], levels: list[int], n_offsets: int = 2):
+    octree = SparseVoxelOctree(VOXEL, max_level=2)
+    anchors = AnchorMap(n_offsets, 4, with_features=True, device=torch.device("cpu"))
+    points = torch.tensor(positions)
+    level_tensor = torch.tensor(levels)
+    codes = torch.zeros(len(levels), dtype=torch.int64)
+    centers = torch.zeros(len(levels), 3)
+    for level in range(3):
+        mask = level_tensor == level
+        if mask.any():
+            codes[mask] = octree.codes_of(points[mask], level)
+            octree.insert(codes[mask], level)
+            centers[mask] = octree.centers(codes[mask], level)
+    sizes = VOXEL / torch.pow(4.0, level_tensor.float())
+    anchors.add(codes, level_tensor, centers, sizes, torch.randn(len(levels), 4), None)
+    return anchors, octree
+
+
+def set_gradient(anchors: AnchorMap, row: int, slot: int, value: float) -> None:
+    anchors.grad_sum[row, slot] = value
+    anchors.grad_count[row, slot] = 1
+
+
+def test_gradient_below_threshold_grows_nothing():
+    anchors, octree = build_map([[0.1, 0.1, 0.1]], [0])
+    set_gradient(anchors, 0, 0, 0.99)
+    assert propose(anchors, octree, CONFIG).codes.numel() == 0
+
+
+def test_occupied_cell_promotes_to_the_next_level():
+    anchors, octree = build_map([[0.1, 0.1, 0.1]], [0])
+    set_gradient(anchors, 0, 0, 1.5)  # offset 0: the Gaussian sits in its own (occupied) level-0 cell
+    added = grow(anchors, octree, CONFIG, VOXEL, None)
+    assert added == 1
+    assert anchors.levels.tolist() == [0, 1]
+    assert math.isclose(float(torch.exp(anchors.log_scales.detach()[1, 0])), VOXEL / 4, rel_tol=1e-6)
+    assert bool(octree.contains(octree.codes_of(anchors.positions[1:2], 1), 1).all())
+
+
+def test_free_cell_gets_an_anchor_of_the_same_level():
+    anchors, octree = build_map([[0.1, 0.1, 0.1]], [0])
+    with torch.no_grad():
+        anchors.offsets[0, 1] = torch.tensor([1.5, 0.0, 0.0])  # moves the Gaussian one coarse cell over
+    set_gradient(anchors, 0, 1, 5.0)
+    grow(anchors, octree, CONFIG, VOXEL, None)
+    assert anchors.levels.tolist() == [0, 0]
+    assert octree.count(0) == 2
+
+
+def test_threshold_doubles_per_level():
+    anchors, octree = build_map([[0.1, 0.1, 0.1], [1.01, 1.01, 1.01]], [0, 1])
+    set_gradient(anchors, 1, 0, 1.5)  # above tau_0 but below tau_1 = 2 tau_0
+    assert propose(anchors, octree, CONFIG).codes.numel() == 0
+    set_gradient(anchors, 1, 0, 2.5)
+    proposals = propose(anchors, octree, CONFIG)
+    assert proposals.levels.tolist() == [2]
+
+
+def test_a_gaussian_grows_at_most_once():
+    anchors, octree = build_map([[0.1, 0.1, 0.1]], [0])
+    set_gradient(anchors, 0, 0, 3.0)
+    assert grow(anchors, octree, CONFIG, VOXEL, None) == 1
+    anchors.reset_statistics()
+    set_gradient(anchors, 0, 0, 3.0)
+    with torch.no_grad():
+        anchors.offsets[0, 0] = torch.tensor([0.3, 0.3, 0.3])  # even in a fresh cell it may not spawn again
+    assert grow(anchors, octree, CONFIG, VOXEL, None) == 0
+    set_gradient(anchors, 0, 1, 3.0)  # its sibling still can
+    assert grow(anchors, octree, CONFIG, VOXEL, None) == 1
+
+
+def test_finest_level_never_promotes_past_max_level():
+    anchors, octree = build_map([[0.01, 0.01, 0.01]], [2])
+    set_gradient(anchors, 0, 0, 100.0)
+    assert propose(anchors, octree, CONFIG).codes.numel() == 0
+
+
+def test_duplicate_proposals_become_one_anchor():
+    anchors, octree = build_map([[0.1, 0.1, 0.1]], [0])
+    set_gradient(anchors, 0, 0, 3.0)
+    set_gradient(anchors, 0, 1, 3.0)  # both offsets are 0: the same level-1 cell
+    assert grow(anchors, octree, CONFIG, VOXEL, None) == 1
+
+
+def test_prune_removes_faint_anchors_and_optimizer_state_follows():
+    anchors, _ = build_map([[0.1, 0.1, 0.1], [1.0, 1.0, 1.0], [2.0, 2.0, 2.0]], [0, 0, 0])
+    optimizer = torch.optim.Adam([anchors.offsets, anchors.features, anchors.log_scales], lr=0.1)
+    (anchors.offsets.sum() + anchors.features.sum() + anchors.log_scales.sum()).backward()
+    optimizer.step()
+    anchors.observations[:] = torch.tensor([20, 20, 2])
+    anchors.max_opacity[:] = torch.tensor([0.5, 0.001, 0.001])  # the third is faint but seen too rarely
+    removed = prune(anchors, RefineConfig(prune_opacity=0.01, prune_min_observations=10), optimizer)
+    assert removed == 1 and len(anchors) == 2
+    assert optimizer.param_groups[0]["params"][0] is anchors.offsets
+    assert optimizer.state[anchors.offsets]["exp_avg"].shape == anchors.offsets.shape
