@@ -10,9 +10,12 @@ not settable from Python):
 - transmittance: a pixel stops *before* the Gaussian that would bring T to <= 1e-4
   (``TRANSMITTANCE_MIN``); that Gaussian does not contribute.
 - projection: EWA with ``eps2d`` = ``COVARIANCE_BLUR`` added to the 2D covariance ("classic",
-  no opacity compensation); centres with z < ``NEAR_PLANE`` are culled; the Jacobian is evaluated
-  with x/z, y/z clamped to 0.3 tan(fov/2) beyond the image edge, so Gaussians centred far outside
-  the view spread differently from a plain EWA projection.
+  no opacity compensation); centres with z < ``NEAR_PLANE`` are culled; the Jacobian clamps x/z,
+  y/z at 0.3 tan(fov/2) beyond the image edge, as ``projection.FOV_MARGIN`` does. gsplat bounds
+  each Gaussian by a tight box (our reference: a square), which changes only which tiles are
+  visited, not any pixel value. Its kernels are built with fast math (``__expf``), so a Gaussian
+  whose alpha lands within float rounding of 1/255 may be kept by one backend and skipped by
+  the other.
 - depth: "RGB+ED" composites each centre's camera z and divides by alpha (clamped at 1e-10), which
   is our expected depth and gives 0 where alpha is 0.
 - ``means2d`` of culled Gaussians is 0 rather than their projection; use it where ``visible``.
