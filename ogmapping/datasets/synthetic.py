@@ -217,9 +217,8 @@ class SyntheticScene:
     def _band_texture(base: np.ndarray, period: float) -> Texture:
         def texture(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
             weight = 0.5 + 0.5 * np.sin(2 * np.pi * points[:, 2] / period)
-            longitude = 0.5 + 0.5 * np.arctan2(normals[:, 1], normals[:, 0]) / np.pi
             light = np.clip(base + 0.3, 0.0, 1.0)
-            return _mix(base, light, weight) * (0.75 + 0.25 * longitude)[:, None]
+            return _mix(base, light, weight) * (0.875 + 0.125 * normals[:, 0])[:, None]
 
         return texture
 
