@@ -1,0 +1,1 @@
+"""Command-line client of the OG-Mapping service (``ogclient``) and the ``make demo`` driver."""

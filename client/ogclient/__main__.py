@@ -1,0 +1,154 @@
+"""``ogclient``: stream datasets or recordings into an ogserver, render, snapshot, restore, score."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import grpc
+
+from ogclient import commands
+from ogclient.connection import DEFAULT_SERVER, ClientError, connect, describe
+from ogmapping.cli import add_config_arguments, add_dataset_arguments
+from ogmapping.datasets import FORMATS
+
+EPILOG = """\
+typical session:
+  ogclient --server 127.0.0.1:50051 stream --data ../shared/data/7scenes-redkitchen --frames 0:100 \\
+      --scale 0.25 --session-out kitchen.json
+  ogclient eval --session kitchen.json --data ../shared/data/7scenes-redkitchen --frames 0:100 --scale 0.25
+  ogclient render --session kitchen.json --data ../shared/data/7scenes-redkitchen --scale 0.25 --position 55
+  ogclient snapshot --session kitchen.json --out kitchen.safetensors
+  ogclient close --session kitchen.json
+  ogclient replay recordings/<session>.mcap --close
+
+Session commands read the credentials file written by create/stream/replay/restore (--session-out,
+default session.json). --server defaults to $OGMAP_SERVER or 127.0.0.1:50051. Exit status: 0 ok,
+1 the server refused a call (or rejected frames), 2 usage error or server unreachable."""
+
+
+def add_session_out(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--session-out", default="session.json",
+                        help="where to write the new session's id and token (default session.json)")
+    parser.add_argument("--label", default="", help="free text shown by `ogclient list`")
+
+
+def add_session(parser: argparse.ArgumentParser, required: bool = True) -> None:
+    parser.add_argument("--session", required=required, metavar="FILE",
+                        help="credentials file written by create/stream/replay/restore")
+
+
+def parser() -> argparse.ArgumentParser:
+    root = argparse.ArgumentParser(prog="ogclient", description=__doc__, epilog=EPILOG,
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+    root.add_argument("--server", default=DEFAULT_SERVER, help=f"HOST:PORT of the ogserver (default {DEFAULT_SERVER})")
+    root.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the server to answer (10)")
+    sub = root.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    create = sub.add_parser("create", help="open an empty session", description="Open an empty mapping session.")
+    add_config_arguments(create)
+    add_session_out(create)
+    create.set_defaults(handler=commands.create)
+
+    stream = sub.add_parser(
+        "stream", help="stream a dataset into a (new) session",
+        description="Stream the selected frames (the same selection as `ogmap run`: positions with "
+        "index %% 10 == 5 are held out and never streamed) with a progress bar of live acks. Creates a "
+        "session unless --session names one. Rejected frames are reported and make the exit status 1.",
+    )
+    add_dataset_arguments(stream)
+    add_config_arguments(stream)
+    add_session(stream, required=False)
+    add_session_out(stream)
+    stream.add_argument("--color-encoding", choices=sorted(commands.COLOR_CHOICES), default="png",
+                        help="how colour travels (default png: lossless for 8-bit data)")
+    stream.add_argument("--depth-encoding", choices=sorted(commands.DEPTH_CHOICES), default="png16",
+                        help="how depth travels (default png16)")
+    stream.add_argument("--depth-scale", type=float, default=1000.0, help="PNG16 units per metre (default 1000 = mm)")
+    stream.add_argument("--jpeg-quality", type=int, default=95, help="for --color-encoding jpeg (default 95)")
+    stream.add_argument("--close", action="store_true", help="close the session when done")
+    stream.add_argument("--quiet", action="store_true", help="no progress bar")
+    stream.set_defaults(handler=commands.stream)
+
+    replay = sub.add_parser(
+        "replay", help="stream a session recording (.mcap) into a new session",
+        description="Create a session with the recorded preset and overrides and stream the recorded "
+        "frames, unchanged, as fast as the server takes them (or --realtime at the recorded rate).",
+    )
+    replay.add_argument("recording", help="an .mcap file from the server's record dir (crashed ones work too)")
+    replay.add_argument("--realtime", action="store_true", help="keep the recorded frame timing")
+    add_session_out(replay)
+    replay.add_argument("--close", action="store_true", help="close the session when done")
+    replay.add_argument("--quiet", action="store_true", help="no progress bar")
+    replay.set_defaults(handler=commands.replay)
+
+    render = sub.add_parser(
+        "render", help="render a pose to PNGs",
+        description="Render the map from a dataset frame's pose (--data, --position) or from a pose file "
+        "and intrinsics; writes color.png, depth.png (16-bit mm) and preview.png into --out.",
+    )
+    add_session(render)
+    render.add_argument("--data", help="dataset folder (or 'synthetic') to take pose and intrinsics from")
+    render.add_argument("--format", default="auto", choices=FORMATS, help="dataset layout (default: detect)")
+    render.add_argument("--scale", type=float, default=1.0, help="image scale (default 1)")
+    render.add_argument("--position", type=int, help="frame position in the dataset")
+    render.add_argument("--pose", help="text file with a 4x4 camera-to-world matrix")
+    render.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (with --pose)")
+    render.add_argument("--size", help="WIDTHxHEIGHT (with --pose)")
+    render.add_argument("--out", default="renders", help="output folder (default renders/)")
+    render.set_defaults(handler=commands.render)
+
+    snapshot = sub.add_parser("snapshot", help="save the map (safetensors)", description="Download the map.")
+    add_session(snapshot)
+    snapshot.add_argument("--out", required=True, help="file to write, e.g. map.safetensors")
+    snapshot.set_defaults(handler=commands.snapshot)
+
+    restore = sub.add_parser("restore", help="upload a snapshot into a new session",
+                             description="Create a session from a snapshot; mapping can continue in it.")
+    restore.add_argument("snapshot", help="a snapshot written by `ogclient snapshot` or `ogmap run`")
+    add_session_out(restore)
+    restore.set_defaults(handler=commands.restore)
+
+    stats = sub.add_parser("stats", help="print a session's statistics (JSON)", description="Session statistics.")
+    add_session(stats)
+    stats.set_defaults(handler=commands.stats)
+
+    evaluate = sub.add_parser(
+        "eval", help="score a session on streamed and held-out frames",
+        description="Render every streamed and held-out pose of the selection through the server and score "
+        "it like `ogmap run` (PSNR, SSIM, depth L1 in cm); pass the same dataset flags used to stream.",
+    )
+    add_session(evaluate)
+    add_dataset_arguments(evaluate)
+    evaluate.add_argument("--out", help="folder for results.json and side-by-side previews")
+    evaluate.add_argument("--quiet", action="store_true", help="no progress bars")
+    evaluate.set_defaults(handler=commands.evaluate_command)
+
+    listing = sub.add_parser("list", help="list the server's sessions", description="List sessions.")
+    listing.set_defaults(handler=commands.list_sessions)
+
+    close = sub.add_parser("close", help="close a session (finishes its recording)", description="Close a session.")
+    add_session(close)
+    close.set_defaults(handler=commands.close)
+    return root
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    try:
+        channel, stub = connect(args.server, args.timeout)
+        with channel:
+            return args.handler(commands.Context(stub, args.server), args)
+    except ClientError as error:
+        print(f"ogclient: {error}", file=sys.stderr)
+        return 2
+    except grpc.RpcError as error:
+        print(f"ogclient: call failed: {describe(error)}", file=sys.stderr)
+        return 1
+    except (ValueError, OSError) as error:
+        print(f"ogclient: {error}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,187 @@
+"""What each ``ogclient`` subcommand does, given parsed arguments, a stub and the server address."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from ogapi import recording
+from ogapi.convert import FrameEncoding, frame_to_proto, intrinsics_to_proto, matrix_to_list
+from ogapi.images import decode_color, decode_depth
+from ogapi.v1 import mapping_pb2 as pb
+from ogapi.v1 import mapping_pb2_grpc as pb_grpc
+
+from ogclient import frames as frame_sets
+from ogclient import replay as replaying
+from ogclient.connection import ClientError, SessionRef
+from ogclient.evaluation import evaluate, snapshot_bytes
+from ogclient.streaming import stream_frames
+from ogmapping.camera import validate_pose
+from ogmapping.cli import parse_intrinsics
+from ogmapping.config import load_file, parse_override_args
+
+COLOR_CHOICES = {"png": pb.COLOR_PNG, "jpeg": pb.COLOR_JPEG, "raw": pb.COLOR_RAW_RGB8}
+DEPTH_CHOICES = {"png16": pb.DEPTH_PNG16, "raw": pb.DEPTH_RAW_F32}
+RESTORE_CHUNK_BYTES = 1 << 20
+
+
+@dataclass
+class Context:
+    stub: pb_grpc.MappingStub
+    server: str
+
+
+def overrides_from_args(args: argparse.Namespace) -> dict[str, str]:
+    """--config FILE then --set KEY=VALUE, as the text values CreateSession takes."""
+    overrides = load_file(args.config) if args.config else {}
+    overrides.update(parse_override_args(args.overrides))
+    return {key: str(value).lower() if isinstance(value, bool) else str(value) for key, value in overrides.items()}
+
+
+def announce(credentials: pb.SessionCredentials, args: argparse.Namespace, server: str) -> SessionRef:
+    session = SessionRef.from_credentials(credentials)
+    session.save(args.session_out, server)
+    print(f"session {session.session_id} on {credentials.device}; credentials in {args.session_out}; "
+          f"server records to {credentials.recording}", flush=True)
+    return session
+
+
+def close_if_asked(ctx: Context, session: SessionRef, args: argparse.Namespace) -> None:
+    if getattr(args, "close", False):
+        response = ctx.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id),
+                                         metadata=session.metadata())
+        print(f"closed; recording {response.recording}")
+
+
+def create(ctx: Context, args: argparse.Namespace) -> int:
+    request = pb.CreateSessionRequest(preset=args.preset, overrides=overrides_from_args(args), label=args.label)
+    announce(ctx.stub.CreateSession(request), args, ctx.server)
+    return 0
+
+
+def stream(ctx: Context, args: argparse.Namespace) -> int:
+    frame_set = frame_sets.from_args(args)
+    if args.session:
+        session = SessionRef.load(args.session)
+    else:
+        request = pb.CreateSessionRequest(preset=args.preset, overrides=overrides_from_args(args), label=args.label)
+        session = announce(ctx.stub.CreateSession(request), args, ctx.server)
+    encoding = FrameEncoding(color=COLOR_CHOICES[args.color_encoding], depth=DEPTH_CHOICES[args.depth_encoding],
+                             depth_scale=args.depth_scale, jpeg_quality=args.jpeg_quality)
+    positions = frame_set.selection.streamed
+    messages = (frame_to_proto(frame_set.load(position), encoding) for position in positions)
+    result = stream_frames(ctx.stub, session, messages, total=len(positions), progress=not args.quiet)
+    print(result.summary())
+    close_if_asked(ctx, session, args)
+    return 1 if result.rejected else 0
+
+
+def replay(ctx: Context, args: argparse.Namespace) -> int:
+    recorded = recording.load(args.recording)
+    if not recorded.frames:
+        raise ClientError(f"{args.recording} holds no frames")
+    if recorded.config is not None and recorded.config.restored_from_sha256:
+        print("note: the recorded session started from a restored snapshot; the replay starts from an empty map")
+    credentials = ctx.stub.CreateSession(replaying.session_request(recorded.config, args.label))
+    session = announce(credentials, args, ctx.server)
+    result = stream_frames(ctx.stub, session, replaying.frames(recorded, args.realtime),
+                           total=len(recorded.frames), progress=not args.quiet)
+    print(result.summary())
+    close_if_asked(ctx, session, args)
+    return 1 if result.rejected else 0
+
+
+def render(ctx: Context, args: argparse.Namespace) -> int:
+    session = SessionRef.load(args.session)
+    if args.position is not None:
+        if not args.data:
+            raise ClientError("--position needs --data")
+        frame = frame_sets.open_frames(args.data, args.format, scale=args.scale).load(args.position)
+        pose, camera = frame.c2w, frame.color_intrinsics
+    elif args.pose and args.intrinsics and args.size:
+        pose = validate_pose(np.loadtxt(args.pose).reshape(4, 4), "--pose")
+        camera = parse_intrinsics(args.intrinsics, args.size)
+    else:
+        raise ClientError("give either --data DIR --position N, or --pose FILE --intrinsics fx,fy,cx,cy --size WxH")
+    request = pb.RenderRequest(session_id=session.session_id, c2w=matrix_to_list(pose),
+                               intrinsics=intrinsics_to_proto(camera),
+                               color_encoding=pb.COLOR_PNG, depth_encoding=pb.DEPTH_PNG16)
+    response = ctx.stub.Render(request, metadata=session.metadata())
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "color.png").write_bytes(response.color.data)
+    (out / "depth.png").write_bytes(response.depth.data)
+    depth = decode_depth(response.depth.data, pb.DEPTH_PNG16, response.depth.depth_scale, camera.width, camera.height)
+    color = decode_color(response.color.data, pb.COLOR_PNG, camera.width, camera.height)
+    far = max(float(depth.max()), 1e-3)
+    preview = cv2.applyColorMap((np.clip(depth / far, 0, 1) * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+    side = np.concatenate([cv2.cvtColor((color * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR), preview], 1)
+    cv2.imwrite(str(out / "preview.png"), side)
+    print(f"wrote {out / 'color.png'}, {out / 'depth.png'} (16-bit, millimetres) and {out / 'preview.png'} "
+          f"({camera.width}x{camera.height}, {response.render_seconds * 1000:.0f} ms on the server)")
+    return 0
+
+
+def snapshot(ctx: Context, args: argparse.Namespace) -> int:
+    session = SessionRef.load(args.session)
+    data = snapshot_bytes(ctx.stub, session)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_bytes(data)
+    print(f"wrote {out} ({len(data)} bytes)")
+    return 0
+
+
+def restore(ctx: Context, args: argparse.Namespace) -> int:
+    data = Path(args.snapshot).read_bytes()
+
+    def chunks():
+        for offset in range(0, max(len(data), 1), RESTORE_CHUNK_BYTES):
+            part = data[offset : offset + RESTORE_CHUNK_BYTES]
+            yield pb.RestoreChunk(data=part, label=args.label if offset == 0 else "")
+
+    announce(ctx.stub.RestoreSession(chunks()), args, ctx.server)
+    return 0
+
+
+def stats(ctx: Context, args: argparse.Namespace) -> int:
+    session = SessionRef.load(args.session)
+    response = ctx.stub.GetStats(pb.GetStatsRequest(session_id=session.session_id), metadata=session.metadata())
+    data = {field.name: getattr(response, field.name) for field in response.DESCRIPTOR.fields}
+    data["anchors_per_level"] = list(response.anchors_per_level)
+    data["timings"] = dict(response.timings)
+    data["engine"] = json.loads(data.pop("engine_json") or "{}")
+    data["config"] = json.loads(data.pop("config_json") or "{}")
+    print(json.dumps(data, indent=2))
+    return 0
+
+
+def evaluate_command(ctx: Context, args: argparse.Namespace) -> int:
+    session = SessionRef.load(args.session)
+    results = evaluate(ctx.stub, session, frame_sets.from_args(args), Path(args.out) if args.out else None,
+                       progress=not args.quiet)
+    print(json.dumps(results, indent=2))
+    return 0
+
+
+def list_sessions(ctx: Context, args: argparse.Namespace) -> int:
+    response = ctx.stub.ListSessions(pb.ListSessionsRequest())
+    if not response.sessions:
+        print("no sessions")
+    for info in response.sessions:
+        print(f"{info.session_id}  preset={info.preset or 'restored'} frames={info.frames} anchors={info.anchors} "
+              f"queue={info.queue_depth} streaming={info.streaming} device={info.device} label={info.label!r}")
+    return 0
+
+
+def close(ctx: Context, args: argparse.Namespace) -> int:
+    session = SessionRef.load(args.session)
+    response = ctx.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id),
+                                     metadata=session.metadata())
+    print(f"closed session {session.session_id} after {response.stats.frames} frames; recording {response.recording}"
+          + (f"; snapshot {response.snapshot}" if response.snapshot else ""))
+    return 0

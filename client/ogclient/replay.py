@@ -1,0 +1,45 @@
+"""Stream a session recording into a new session, as fast as possible or at the recorded rate."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import time
+from collections.abc import Iterator
+
+from ogapi.recording import Recording
+from ogapi.v1 import mapping_pb2 as pb
+
+from ogmapping.config import flatten
+
+
+def session_request(config: pb.SessionConfig | None, label: str = "") -> pb.CreateSessionRequest:
+    """The recorded preset and overrides; a restored session's full config when it had no preset."""
+    if config is None:
+        return pb.CreateSessionRequest(label=label)
+    if config.preset:
+        return pb.CreateSessionRequest(preset=config.preset, overrides=dict(config.overrides), label=label)
+    full = flatten(json.loads(config.config_json)) if config.config_json else {}
+    return pb.CreateSessionRequest(
+        preset="dense", overrides={key: str(value) for key, value in full.items()}, label=label
+    )
+
+
+def recorded_times(recording: Recording) -> list[float]:
+    """Seconds from the first frame: sensor timestamps when they increase, else arrival times."""
+    stamps = [frame.timestamp for _, frame in recording.frames]
+    if stamps and all(b > a for a, b in itertools.pairwise(stamps)) and stamps[0] > 0:
+        return [s - stamps[0] for s in stamps]
+    arrivals = [log_ns for log_ns, _ in recording.frames]
+    return [(t - arrivals[0]) / 1e9 for t in arrivals]
+
+
+def frames(recording: Recording, realtime: bool = False) -> Iterator[pb.Frame]:
+    """The recorded Frame messages, unchanged, optionally paced like the original stream."""
+    offsets = recorded_times(recording) if realtime else [0.0] * len(recording.frames)
+    start = time.monotonic()
+    for offset, (_, frame) in zip(offsets, recording.frames, strict=True):
+        delay = offset - (time.monotonic() - start)
+        if delay > 0:
+            time.sleep(delay)
+        yield frame

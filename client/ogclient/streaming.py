@@ -1,0 +1,70 @@
+"""Send frames over StreamFrames and follow the acks: progress bar, live counts, refusals."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+
+from ogapi.v1 import mapping_pb2 as pb
+from ogapi.v1 import mapping_pb2_grpc as pb_grpc
+from tqdm import tqdm
+
+from ogclient.connection import ClientError, SessionRef
+
+
+@dataclass
+class StreamResult:
+    acks: list[pb.FrameAck] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def accepted(self) -> list[pb.FrameAck]:
+        return [ack for ack in self.acks if ack.accepted]
+
+    @property
+    def rejected(self) -> list[pb.FrameAck]:
+        return [ack for ack in self.acks if not ack.accepted]
+
+    def summary(self) -> str:
+        accepted = self.accepted
+        last = accepted[-1] if accepted else pb.FrameAck()
+        fps = len(accepted) / self.seconds if self.seconds > 0 else 0.0
+        keyframes = sum(ack.keyframe for ack in accepted)
+        return (
+            f"{len(accepted)} frames mapped ({keyframes} keyframes), {len(self.rejected)} rejected, "
+            f"{self.seconds:.1f} s ({fps:.2f} frames/s); map: {last.anchors} anchors, {last.gaussians} Gaussians"
+        )
+
+
+def stream_frames(
+    stub: pb_grpc.MappingStub, session: SessionRef, messages: Iterable[pb.Frame], total: int | None = None,
+    progress: bool = True, on_ack: Callable[[pb.FrameAck], None] | None = None,
+) -> StreamResult:
+    """Stream ``messages`` and collect one ack per frame; refusals are printed, not raised."""
+    result = StreamResult()
+    start = time.perf_counter()
+    bar = tqdm(total=total, desc="streaming", unit="frame", disable=not progress)
+    responses = stub.StreamFrames(iter(messages), metadata=session.stream_metadata())
+    keyframes = 0
+    try:
+        for ack in responses:
+            result.acks.append(ack)
+            bar.update(1)
+            if ack.accepted:
+                keyframes += ack.keyframe
+                bar.set_postfix(
+                    anchors=ack.anchors, gaussians=ack.gaussians, keyframes=keyframes,
+                    latency=f"{ack.latency_seconds:.2f}s", queue=ack.queue_depth,
+                )
+            else:
+                bar.write(f"frame {ack.index} rejected: {ack.error.code_name}: {ack.error.message}")
+            if on_ack is not None:
+                on_ack(ack)
+    except KeyboardInterrupt:
+        responses.cancel()
+        raise ClientError("interrupted; frames sent so far stay in the session") from None
+    finally:
+        bar.close()
+    result.seconds = time.perf_counter() - start
+    return result

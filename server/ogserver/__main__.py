@@ -1,0 +1,82 @@
+"""``ogserver``: serve online mapping sessions over gRPC until SIGTERM/SIGINT."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+
+from ogserver import settings as settings_module
+
+READY_PREFIX = "ogserver listening on"
+
+EPILOG = """\
+settings come from defaults, then --config FILE (YAML or JSON with the same names, limits nested
+under "limits:"), then flags. The server prints "ogserver listening on HOST:PORT" once it serves
+(with port 0 the bound port is printed). SIGTERM or SIGINT stops it gracefully: calls in flight get
+--grace seconds, then every session's recording is closed (and with --final-snapshots its map is
+written as RECORD_DIR/<session>.safetensors). See docs/service.md."""
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="ogserver", description=__doc__, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument("--address", help="HOST:PORT to listen on (default 127.0.0.1:50051; port 0 = any free port)")
+    p.add_argument("--record-dir", dest="record_dir", help="where session recordings (.mcap) go (default recordings/)")
+    p.add_argument("--device", help="auto (default: first GPU if any, else CPU), cpu, cuda or cuda:N")
+    p.add_argument("--config", help="YAML or JSON settings file")
+    p.add_argument("--final-snapshots", dest="final_snapshots", action="store_true", default=None,
+                   help="write each session's map into the record dir when it closes")
+    p.add_argument("--torch-threads", dest="torch_threads", type=int, help="torch CPU threads (default min(cores, 8))")
+    p.add_argument("--grace", dest="grace_seconds", type=float, help="shutdown grace for calls in flight, seconds (5)")
+    limits = p.add_argument_group("limits (exceeding one gives RESOURCE_EXHAUSTED)")
+    limits.add_argument("--max-sessions", dest="max_sessions", type=int, help="open sessions at once (4)")
+    limits.add_argument("--queue-depth", dest="queue_depth", type=int,
+                        help="frames read ahead per session before backpressure (8)")
+    limits.add_argument("--max-image-pixels", dest="max_image_pixels", type=int,
+                        help="pixels per frame image or render (12582912)")
+    limits.add_argument("--max-message-bytes", dest="max_message_bytes", type=int,
+                        help="largest gRPC message either way (67108864)")
+    limits.add_argument("--max-anchors", dest="max_anchors", type=int,
+                        help="refuse frames once a map holds this many anchors (0 = no limit)")
+    limits.add_argument("--max-snapshot-bytes", dest="max_snapshot_bytes", type=int,
+                        help="largest snapshot RestoreSession accepts (2 GiB)")
+    p.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING (default INFO)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    flags = {key: value for key, value in vars(args).items() if key not in ("config", "log_level")}
+    try:
+        settings = settings_module.load(args.config, flags)
+    except (OSError, ValueError) as error:
+        print(f"ogserver: {error}", file=sys.stderr)
+        return 2
+    from ogserver.app import build  # torch and the engine load only once the arguments are sound
+
+    try:
+        server = build(settings)
+    except (RuntimeError, ValueError) as error:
+        print(f"ogserver: {error}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    for number in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(number, lambda *_: stop.set())
+    host = settings.address.rsplit(":", 1)[0]
+    print(f"{READY_PREFIX} {host}:{server.port} (device {server.registry.device})", flush=True)
+    while not stop.wait(0.5):
+        pass
+    logging.getLogger("ogserver").info("shutting down")
+    for closed in server.stop(settings.grace_seconds):
+        print(f"closed session {closed.stats.session_id}: recording {closed.recording}"
+              + (f", snapshot {closed.snapshot}" if closed.snapshot else ""), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,78 @@
+"""Assemble the gRPC server: the mapping service, standard health checking and reflection."""
+
+from __future__ import annotations
+
+import logging
+from concurrent import futures
+from dataclasses import dataclass
+
+import grpc
+import torch
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection
+from ogapi import SERVICE_NAME
+from ogapi.v1 import mapping_pb2_grpc as pb_grpc
+
+from ogserver.registry import Closed, Registry
+from ogserver.service import MappingService
+from ogserver.settings import Settings
+
+log = logging.getLogger(__name__)
+
+
+def resolve_device(name: str) -> str:
+    """``auto`` picks the first GPU when there is one; an unusable explicit choice fails now, not per session."""
+    if name == "auto":
+        return "cuda:0" if torch.cuda.is_available() else "cpu"
+    device = torch.device(name)
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {name!r} requested but CUDA is not available")
+        if (device.index or 0) >= torch.cuda.device_count():
+            raise ValueError(f"device {name!r} requested but only {torch.cuda.device_count()} GPU(s) exist")
+        return f"cuda:{device.index or 0}"
+    if device.type != "cpu":
+        raise ValueError(f"device must be auto, cpu, cuda or cuda:N (got {name!r})")
+    return "cpu"
+
+
+@dataclass
+class Server:
+    grpc_server: grpc.Server
+    registry: Registry
+    health: health.HealthServicer
+    port: int
+
+    def stop(self, grace: float) -> list[Closed]:
+        """Report NOT_SERVING, let calls in flight finish (up to ``grace``), then close every session."""
+        self.health.enter_graceful_shutdown()
+        self.grpc_server.stop(grace).wait()
+        return self.registry.close_all()
+
+
+def build(settings: Settings) -> Server:
+    """A started server; ``port`` is the bound one (useful with port 0)."""
+    device = resolve_device(settings.device)
+    torch.set_num_threads(settings.threads())
+    limits = settings.limits
+    workers = 2 * limits.max_sessions + 8  # each frame stream holds a thread for its lifetime
+    options = [
+        ("grpc.max_receive_message_length", limits.max_message_bytes),
+        ("grpc.max_send_message_length", limits.max_message_bytes),
+    ]
+    server = grpc.server(futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="grpc"), options=options)
+    registry = Registry(settings, device)
+    pb_grpc.add_MappingServicer_to_server(MappingService(registry), server)
+    health_servicer = health.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    for name in ("", SERVICE_NAME):
+        health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
+    reflection.enable_server_reflection(
+        (SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME), server
+    )
+    port = server.add_insecure_port(settings.address)
+    if port == 0:
+        raise ValueError(f"could not bind {settings.address}")
+    server.start()
+    log.info("device %s, %d torch threads, record dir %s", device, torch.get_num_threads(), settings.record_dir)
+    return Server(server, registry, health_servicer, port)

@@ -1,0 +1,78 @@
+"""StreamFrames: a reader thread validates and queues frames while the call yields acks.
+
+A frame that fails validation is answered with an error ack (``accepted`` false, ``error`` set)
+and the stream goes on; the response stream ends once the client has half-closed and every
+accepted frame has been acknowledged.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+
+import grpc
+from ogapi.v1 import mapping_pb2 as pb
+
+from ogserver import validation
+from ogserver.errors import ServiceError
+from ogserver.session import Session, error_ack
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ReaderDone:
+    accepted: int
+    error: ServiceError | None = None
+
+
+def _read(session: Session, requests: Iterable[pb.Frame], sink: queue.SimpleQueue, max_pixels: int) -> None:
+    accepted, error = 0, None
+    try:
+        for message in requests:
+            try:
+                session.check_capacity()
+                frame = validation.frame(message, max_pixels)
+            except ServiceError as refusal:
+                session.count_rejected()
+                sink.put(("rejected", error_ack(message.index, refusal)))
+                continue
+            if not session.submit(frame, message, sink):
+                error = ServiceError(grpc.StatusCode.ABORTED, "session_id: the session was closed during the stream")
+                break
+            accepted += 1
+    except Exception as failure:  # a cancelled call ends its request iterator with an error
+        log.debug("session %s: frame stream ended: %s", session.id, failure)
+    finally:
+        sink.put(("done", ReaderDone(accepted, error)))
+
+
+def serve(
+    session: Session, requests: Iterable[pb.Frame], context: grpc.ServicerContext, max_pixels: int
+) -> Iterator[pb.FrameAck]:
+    sink: queue.SimpleQueue = queue.SimpleQueue()
+    with session.stream(sink):
+        context.add_callback(lambda: sink.put(("cancelled", None)))
+        reader = threading.Thread(
+            target=_read, args=(session, requests, sink, max_pixels), name=f"stream-{session.id[:8]}", daemon=True
+        )
+        reader.start()
+        done: ReaderDone | None = None
+        acked = 0
+        while done is None or acked < done.accepted:
+            kind, item = sink.get()
+            if kind == "cancelled":
+                return
+            if kind == "closed":
+                raise ServiceError(grpc.StatusCode.ABORTED, "session_id: the session was closed during the stream")
+            if kind == "done":
+                if item.error is not None:
+                    raise item.error
+                done = item
+                continue
+            if kind == "job":
+                acked += 1
+            yield item

@@ -1,0 +1,143 @@
+"""Turn untrusted messages into engine values, or refuse them naming the field.
+
+Everything a client sends passes through here before it reaches a mapper or a recording, so a
+refused frame leaves its session exactly as it was.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from ogapi.images import COLOR_NAMES, DEFAULT_JPEG_QUALITY, DEPTH_NAMES, decode_color, decode_depth
+from ogapi.v1 import mapping_pb2 as pb
+
+from ogmapping.camera import Intrinsics, validate_pose
+from ogmapping.frame import Frame
+from ogserver.errors import exhausted, invalid
+
+SESSION_ID_PATTERN = re.compile(r"[0-9a-f]{32}")
+
+
+def session_id(value: str) -> str:
+    if not value:
+        raise invalid("session_id", "is required")
+    if not SESSION_ID_PATTERN.fullmatch(value):
+        raise invalid("session_id", f"must be 32 lowercase hex characters (got {value[:40]!r})")
+    return value
+
+
+def pose(values: Sequence[float], field: str) -> np.ndarray:
+    """16 row-major numbers to a checked rigid 4x4 transform."""
+    if len(values) != 16:
+        raise invalid(field, f"must hold 16 numbers (a row-major 4x4 matrix), got {len(values)}")
+    try:
+        return validate_pose(np.asarray(values, dtype=np.float64).reshape(4, 4), field)
+    except ValueError as error:
+        raise invalid(field, str(error).removeprefix(f"{field} ")) from None
+
+
+def intrinsics(message: pb.CameraIntrinsics, field: str, max_pixels: int) -> Intrinsics:
+    """A camera that can exist, of a size within the server's limit."""
+    for name in ("fx", "fy", "cx", "cy"):
+        value = getattr(message, name)
+        if not math.isfinite(value):
+            raise invalid(f"{field}.{name}", f"must be finite (got {value})")
+    for name in ("fx", "fy"):
+        if getattr(message, name) <= 0:
+            raise invalid(f"{field}.{name}", f"must be positive (got {getattr(message, name)})")
+    if message.width == 0 or message.height == 0:
+        raise invalid(field, f"width and height must be positive (got {message.width}x{message.height})")
+    if message.width * message.height > max_pixels:
+        raise exhausted(
+            field, f"{message.width}x{message.height} exceeds the server limit of {max_pixels} pixels"
+        )
+    return Intrinsics(message.fx, message.fy, message.cx, message.cy, message.width, message.height)
+
+
+def color_image(message: pb.ColorImage, camera: Intrinsics, field: str) -> np.ndarray:
+    if message.encoding not in COLOR_NAMES:
+        raise invalid(f"{field}.encoding", f"must be one of {sorted(COLOR_NAMES.values())} (got {message.encoding})")
+    if not message.data:
+        raise invalid(f"{field}.data", "is empty")
+    try:
+        return decode_color(message.data, message.encoding, camera.width, camera.height)
+    except ValueError as error:
+        raise invalid(field, error) from None
+
+
+def depth_image(message: pb.DepthImage, camera: Intrinsics, field: str) -> np.ndarray:
+    if message.encoding not in DEPTH_NAMES:
+        raise invalid(f"{field}.encoding", f"must be one of {sorted(DEPTH_NAMES.values())} (got {message.encoding})")
+    if message.encoding == pb.DEPTH_PNG16 and not (math.isfinite(message.depth_scale) and message.depth_scale > 0):
+        raise invalid(f"{field}.depth_scale", f"must be positive and finite for PNG16 (got {message.depth_scale})")
+    if not message.data:
+        raise invalid(f"{field}.data", "is empty")
+    try:
+        return decode_depth(message.data, message.encoding, message.depth_scale, camera.width, camera.height)
+    except ValueError as error:
+        raise invalid(field, error) from None
+
+
+def frame(message: pb.Frame, max_pixels: int) -> Frame:
+    """A fully checked and decoded engine Frame; cheap checks run before any decoding."""
+    if not math.isfinite(message.timestamp):
+        raise invalid("frame.timestamp", f"must be finite (got {message.timestamp})")
+    c2w = pose(message.c2w, "frame.c2w")
+    if not message.HasField("color_intrinsics"):
+        raise invalid("frame.color_intrinsics", "is required")
+    color_camera = intrinsics(message.color_intrinsics, "frame.color_intrinsics", max_pixels)
+    depth_camera = (
+        intrinsics(message.depth_intrinsics, "frame.depth_intrinsics", max_pixels)
+        if message.HasField("depth_intrinsics") else color_camera
+    )
+    depth_to_color = pose(message.depth_to_color, "frame.depth_to_color") if message.depth_to_color else None
+    if not message.HasField("color"):
+        raise invalid("frame.color", "is required")
+    if not message.HasField("depth"):
+        raise invalid("frame.depth", "is required")
+    rgb = color_image(message.color, color_camera, "frame.color")
+    depth = depth_image(message.depth, depth_camera, "frame.depth")
+    return Frame(
+        index=int(message.index), rgb=rgb, depth=depth, color_intrinsics=color_camera,
+        depth_intrinsics=depth_camera, c2w=c2w, timestamp=float(message.timestamp),
+        depth_to_color=depth_to_color,
+    )
+
+
+@dataclass(frozen=True)
+class RenderSpec:
+    c2w: np.ndarray
+    intrinsics: Intrinsics
+    color: bool
+    depth: bool
+    color_encoding: int
+    depth_encoding: int
+    jpeg_quality: int
+
+
+def render_request(message: pb.RenderRequest, max_pixels: int) -> RenderSpec:
+    c2w = pose(message.c2w, "c2w")
+    if not message.HasField("intrinsics"):
+        raise invalid("intrinsics", "is required")
+    camera = intrinsics(message.intrinsics, "intrinsics", max_pixels)
+    outputs = set(message.outputs) or {pb.RENDER_OUTPUT_COLOR, pb.RENDER_OUTPUT_DEPTH}
+    if not outputs <= {pb.RENDER_OUTPUT_COLOR, pb.RENDER_OUTPUT_DEPTH}:
+        raise invalid("outputs", f"may hold only RENDER_OUTPUT_COLOR and RENDER_OUTPUT_DEPTH (got {sorted(outputs)})")
+    color_encoding = message.color_encoding or pb.COLOR_PNG
+    if color_encoding not in COLOR_NAMES:
+        raise invalid("color_encoding", f"unknown value {color_encoding}")
+    depth_encoding = message.depth_encoding or pb.DEPTH_PNG16
+    if depth_encoding not in DEPTH_NAMES:
+        raise invalid("depth_encoding", f"unknown value {depth_encoding}")
+    if message.jpeg_quality > 100:
+        raise invalid("jpeg_quality", f"must be 1..100 or 0 for the default (got {message.jpeg_quality})")
+    return RenderSpec(
+        c2w=c2w, intrinsics=camera,
+        color=pb.RENDER_OUTPUT_COLOR in outputs, depth=pb.RENDER_OUTPUT_DEPTH in outputs,
+        color_encoding=color_encoding, depth_encoding=depth_encoding,
+        jpeg_quality=message.jpeg_quality or DEFAULT_JPEG_QUALITY,
+    )
