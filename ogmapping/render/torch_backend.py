@@ -95,14 +95,13 @@ def rasterize(
         color[y0:y1, x0:x1] = (c_sum + t_final.unsqueeze(-1) * bg).reshape(*shape, 3)
         accum_depth[y0:y1, x0:x1] = d_sum.reshape(shape)
         transmittance_final[y0:y1, x0:x1] = t_final.reshape(shape)
-    return finish_output(color, accum_depth, transmittance_final, proj)
+    return finish_output(color, accum_depth, 1.0 - transmittance_final, proj)
 
 
 def finish_output(
-    color: torch.Tensor, accum_depth: torch.Tensor, transmittance: torch.Tensor, proj: Projection
+    color: torch.Tensor, accum_depth: torch.Tensor, alpha: torch.Tensor, proj: Projection
 ) -> RenderOutput:
-    """Turn accumulated depth and final transmittance into the shared output (depth = D / alpha)."""
-    alpha = 1.0 - transmittance
+    """Assemble the shared output; expected depth is accumulated depth over alpha, in torch."""
     covered = alpha > 0
     depth = torch.where(covered, accum_depth / torch.where(covered, alpha, torch.ones_like(alpha)), 0.0)
     return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=proj.means2d, visible=proj.radii > 0)

@@ -1,0 +1,87 @@
+"""Compiled CPU rasterizer: torch projection, Numba compositing with a hand-written backward.
+
+Projection stays in torch (``projection.py``) so autograd carries gradients from the screen-space
+quantities back to means, quaternions and scales; compositing is one ``autograd.Function`` whose
+forward and backward run the float32 kernels of ``cpu_kernels``. Results follow exactly the rules
+of the torch reference and come back in the input dtype.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+
+from ogmapping.render import RenderOutput
+from ogmapping.render import cpu_kernels as kernels
+from ogmapping.render.projection import project_gaussians
+from ogmapping.render.torch_backend import finish_output
+
+
+def _f32(t: torch.Tensor) -> np.ndarray:
+    """C-contiguous float32 view for the kernels (one compiled signature for every caller)."""
+    return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
+
+
+class _Composite(torch.autograd.Function):
+    """Screen-space Gaussians -> (colour, accumulated depth, alpha) images."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, depths, background, radii, width, height):
+        arrays = [_f32(t) for t in (means2d, conics, opacities, colors, depths, background)]
+        m2d, con, opa, col, dep, bg = arrays
+        visible = np.flatnonzero(radii.cpu().numpy() > 0)
+        order = visible[np.argsort(dep[visible], kind="stable")].astype(np.int32)
+        n_chunks = numba.get_num_threads()
+        tile_offsets, ids, pair_start, pair_of = kernels.bin_tiles(
+            order, m2d, radii.to(torch.int32).cpu().numpy(), width, height, n_chunks
+        )
+        color, accum_depth, final_t, n_contrib = kernels.render_forward(
+            tile_offsets, ids, m2d, con, opa, col, dep, bg, width, height
+        )
+        ctx.state = (order, tile_offsets, ids, pair_start, pair_of, arrays, final_t, n_contrib, width, height)
+        ctx.dtypes = (means2d.dtype, background.dtype)
+        ctx.device = means2d.device
+        like = {"dtype": means2d.dtype, "device": means2d.device}
+        return (
+            torch.from_numpy(color).to(**like),
+            torch.from_numpy(accum_depth).to(**like),
+            torch.from_numpy(1.0 - final_t).to(**like),
+        )
+
+    @staticmethod
+    def backward(ctx, grad_color, grad_depth, grad_alpha):
+        order, tile_offsets, ids, pair_start, pair_of, arrays, final_t, n_contrib, width, height = ctx.state
+        m2d, con, opa, col, dep, bg = arrays
+        pair_grads, bg_grads = kernels.render_backward(
+            tile_offsets, ids, m2d, con, opa, col, dep, bg, final_t, n_contrib,
+            _f32(grad_color), _f32(grad_depth), _f32(grad_alpha), width, height,
+        )
+        grads = torch.from_numpy(kernels.reduce_pairs(order, pair_start, pair_of, pair_grads, m2d.shape[0]))
+        dtype, bg_dtype = ctx.dtypes
+        grads = grads.to(dtype=dtype, device=ctx.device)
+        grad_bg = torch.from_numpy(bg_grads.sum(axis=0, dtype=np.float64)).to(dtype=bg_dtype, device=ctx.device)
+        return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:9], grads[:, 9], grad_bg, None, None, None
+
+
+def rasterize(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    viewmat: torch.Tensor,
+    K: torch.Tensor,
+    width: int,
+    height: int,
+    background: torch.Tensor | None = None,
+) -> RenderOutput:
+    """Render with the compiled kernels; see ``ogmapping.render.rasterize`` for the arguments."""
+    proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height)
+    if proj.means2d.requires_grad:
+        proj.means2d.retain_grad()
+    bg = torch.zeros(3, dtype=means.dtype, device=means.device) if background is None else background.to(means)
+    color, accum_depth, alpha = _Composite.apply(
+        proj.means2d, proj.conics, opacities, colors, proj.depths, bg, proj.radii, int(width), int(height)
+    )
+    return finish_output(color, accum_depth, alpha, proj)
