@@ -7,6 +7,7 @@ summary section a clean close appends.
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,7 +45,9 @@ def read_messages(path: str | Path, topics: set[str] | None = None) -> Iterator[
         while True:
             try:
                 schema, channel, message = next(messages)
-            except (StopIteration, EndOfFile):
+            except StopIteration:
+                return
+            except (EndOfFile, struct.error):  # the file ends inside a record
                 return
             yield RecordedMessage(channel.topic, schema.name if schema else "", message.log_time, message.data)
 

@@ -58,7 +58,7 @@ def _assign(target: Any, data: dict[str, Any], prefix: str = "") -> None:
     names = {item.name: item for item in dataclasses.fields(target)}
     for key, value in data.items():
         if key not in names:
-            raise ValueError(f"unknown server setting {prefix}{key!r}")
+            raise ValueError(f"unknown server setting '{prefix}{key}'")
         current = getattr(target, key)
         if dataclasses.is_dataclass(current):
             if not isinstance(value, dict):

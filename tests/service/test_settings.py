@@ -1,0 +1,44 @@
+"""Server settings: file then flags, unknown names and bad limits refused."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from ogserver.settings import load
+
+from .scene import TEST_SERVER_CONFIG
+
+
+def test_defaults_then_file_then_flags(tmp_path: Path) -> None:
+    path = tmp_path / "server.json"
+    path.write_text(json.dumps({"device": "cpu", "limits": {"max_sessions": 2, "queue_depth": 3}}))
+    settings = load(path, {"max_sessions": 5, "record_dir": "elsewhere", "device": None})
+    assert settings.device == "cpu"
+    assert settings.limits.max_sessions == 5 and settings.limits.queue_depth == 3
+    assert settings.record_dir == "elsewhere"
+    assert settings.limits.max_anchors == 0
+
+
+def test_the_test_server_config_loads() -> None:
+    assert load(TEST_SERVER_CONFIG).limits.max_image_pixels == 65536
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("colour: blue\n", "unknown server setting 'colour'"),
+        ("limits:\n  max_sesions: 2\n", "unknown server setting 'limits.max_sesions'"),
+        ("limits:\n  max_sessions: 0\n", "limits.max_sessions"),
+        ("limits:\n  queue_depth: two\n", "queue_depth must be int"),
+        ("limits: 3\n", "must be a mapping"),
+        ("address: nowhere\n", "HOST:PORT"),
+        ("- 1\n", "must hold a mapping"),
+    ],
+)
+def test_bad_settings_are_refused(tmp_path: Path, text: str, message: str) -> None:
+    path = tmp_path / "server.yaml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=message):
+        load(path)

@@ -1,0 +1,65 @@
+"""The server process ending: SIGKILL leaves readable recordings, SIGTERM finishes them and the maps."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from mcap.reader import make_reader
+from ogapi import recording
+from ogclient.connection import SessionRef, connect
+from ogclient.streaming import stream_frames
+from ogserver.validation import frame as validate_frame
+
+from ogmapping.mapper import Mapper
+
+from .conftest import start_local
+from .scene import FROZEN, LIMITS, create_request, messages, scene
+
+FOXGLOVE_TOPICS = (recording.TOPIC_COLOR, recording.TOPIC_DEPTH, recording.TOPIC_CALIBRATION,
+                   recording.TOPIC_TRANSFORM)
+
+
+def map_a_little(address: str, frames: str) -> tuple[str, SessionRef, int]:
+    channel, stub = connect(address, timeout=60)
+    with channel:
+        credentials = stub.CreateSession(create_request(FROZEN, "shutdown"))
+        session = SessionRef.from_credentials(credentials)
+        result = stream_frames(stub, session, messages(scene(frames)), progress=False)
+    assert all(ack.accepted for ack in result.acks)
+    return credentials.recording, session, result.acks[-1].anchors
+
+
+def test_sigkill_leaves_every_frame_readable(tmp_path: Path) -> None:
+    server = start_local(tmp_path / "recordings")
+    try:
+        path, _, _ = map_a_little(server.address, "0:4")
+        server.kill()
+    finally:
+        server.stop()
+    topics: dict[str, int] = {}
+    for message in recording.read_messages(path):
+        topics[message.topic] = topics.get(message.topic, 0) + 1
+    assert topics[recording.TOPIC_FRAMES] == 4
+    assert all(topics[topic] == 4 for topic in FOXGLOVE_TOPICS)
+    assert recording.TOPIC_STATS not in topics  # never closed
+    recorded = recording.load(path)
+    assert recorded.config.preset == "sparse-fast"
+    for _, message in recorded.frames:  # what a replay would send is intact
+        validate_frame(message, LIMITS["max_image_pixels"])
+
+
+def test_sigterm_finishes_recordings_and_writes_final_snapshots(tmp_path: Path) -> None:
+    server = start_local(tmp_path / "recordings", "--final-snapshots")
+    try:
+        path, session, anchors = map_a_little(server.address, "0:3")
+    finally:
+        code = server.stop()
+    assert code == 0
+    assert any(line.startswith(f"closed session {session.session_id}") for line in server.output)
+    with open(path, "rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None
+    stats_channel = next(cid for cid, channel in summary.channels.items() if channel.topic == recording.TOPIC_STATS)
+    assert summary.statistics.channel_message_counts[stats_channel] == 1
+    snapshot = Path(path).with_suffix(".safetensors")
+    assert Mapper.restore(snapshot.read_bytes(), "cpu").stats()["anchors"] == anchors

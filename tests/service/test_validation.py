@@ -1,0 +1,81 @@
+"""Server-side validation without a server: each bad field gets its status code and its name."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from ogapi.convert import frame_to_proto
+from ogapi.v1 import mapping_pb2 as pb
+from ogserver import validation
+from ogserver.errors import ServiceError
+
+from .bad_frames import CASES, INVALID, broken
+from .scene import scene
+
+MAX_PIXELS = 65536
+GOOD = frame_to_proto(scene("0:1").load(0))
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_bad_frame_is_refused(case: str) -> None:
+    change, code, field = CASES[case]
+    with pytest.raises(ServiceError) as refusal:
+        validation.frame(broken(GOOD, change), MAX_PIXELS)
+    assert refusal.value.code == code
+    assert field in refusal.value.message
+
+
+def test_good_frame_decodes() -> None:
+    frame = validation.frame(GOOD, MAX_PIXELS)
+    assert frame.rgb.shape == (60, 80, 3) and frame.depth.shape == (60, 80)
+    assert frame.registered and frame.c2w.shape == (4, 4)
+
+
+def test_separate_depth_camera_is_kept() -> None:
+    message = broken(GOOD, lambda m: m.depth_to_color.extend(np.eye(4).reshape(-1).tolist()))
+    frame = validation.frame(message, MAX_PIXELS)
+    assert frame.depth_to_color is not None and not frame.registered
+
+
+@pytest.mark.parametrize(
+    ("value", "code"),
+    [("", INVALID), ("abc", INVALID), ("G" * 32, INVALID), ("0" * 32, None)],
+)
+def test_session_id_format(value: str, code) -> None:
+    if code is None:
+        assert validation.session_id(value) == value
+    else:
+        with pytest.raises(ServiceError) as refusal:
+            validation.session_id(value)
+        assert refusal.value.code == code and "session_id" in refusal.value.message
+
+
+def render_request(**changes) -> pb.RenderRequest:
+    request = pb.RenderRequest(c2w=np.eye(4).reshape(-1).tolist(), intrinsics=GOOD.color_intrinsics)
+    for key, value in changes.items():
+        if isinstance(value, list):
+            getattr(request, key).extend(value)
+        else:
+            setattr(request, key, value)
+    return request
+
+
+def test_render_request_defaults_to_png_colour_and_depth() -> None:
+    spec = validation.render_request(render_request(), MAX_PIXELS)
+    assert spec.color and spec.depth
+    assert (spec.color_encoding, spec.depth_encoding, spec.jpeg_quality) == (pb.COLOR_PNG, pb.DEPTH_PNG16, 90)
+
+
+@pytest.mark.parametrize(
+    ("changes", "code", "field"),
+    [
+        ({"color_encoding": 9}, INVALID, "color_encoding"),
+        ({"depth_encoding": 9}, INVALID, "depth_encoding"),
+        ({"jpeg_quality": 101}, INVALID, "jpeg_quality"),
+        ({"outputs": [7]}, INVALID, "outputs"),
+    ],
+)
+def test_bad_render_request(changes: dict, code, field: str) -> None:
+    with pytest.raises(ServiceError) as refusal:
+        validation.render_request(render_request(**changes), MAX_PIXELS)
+    assert refusal.value.code == code and field in refusal.value.message
