@@ -23,6 +23,7 @@ class LocalServer:
         self.log_path = Path(log_path) if log_path else self.record_dir / "server.log"
         self.start_timeout = start_timeout
         self.address = ""
+        self.ready_line = ""
         self.output: list[str] = []
         self.process: subprocess.Popen | None = None
         self._ready = threading.Event()
@@ -48,6 +49,7 @@ class LocalServer:
             self.output.append(line.rstrip("\n"))
             if line.startswith(READY_PREFIX):
                 self.address = line[len(READY_PREFIX):].split()[0]
+                self.ready_line = line.strip()
                 self._ready.set()
 
     def stop(self, timeout: float = 60.0) -> int | None:
