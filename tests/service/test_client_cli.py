@@ -8,6 +8,7 @@ import sys
 
 import pytest
 from ogclient.__main__ import main, parser
+from ogserver import healthcheck
 
 COMMANDS = ["create", "stream", "replay", "render", "snapshot", "restore", "stats", "eval", "list", "close"]
 
@@ -44,3 +45,7 @@ def test_server_rejects_bad_flags() -> None:
     done = subprocess.run([sys.executable, "-m", "ogserver", "--max-sessions", "0"],
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and "limits.max_sessions" in done.stderr
+
+
+def test_healthcheck_says_no_when_nothing_listens() -> None:
+    assert not healthcheck.check(f"127.0.0.1:{free_port()}", timeout=0.5)

@@ -29,6 +29,7 @@ from ogclient.connection import SessionRef
 from ogclient.evaluation import evaluate, render, snapshot_bytes
 from ogclient.frames import FrameSet
 from ogclient.streaming import StreamResult, stream_frames
+from ogserver import healthcheck
 
 from ogmapping.mapper import Mapper
 from ogmapping.metrics import psnr
@@ -391,3 +392,7 @@ def test_closing_finishes_the_recording(server: ServerHandle, mapped: Mapped, sp
     assert recording.load(path).stats.anchors == closed["main"].stats.anchors
     spare_recorded = recording.load(closed["spare"].recording)
     assert len(spare_recorded.frames) == spare_stats.frames_received  # refused frames were never recorded
+
+
+def test_container_healthcheck_module(server: ServerHandle) -> None:
+    assert healthcheck.check(server.address)

@@ -1,0 +1,64 @@
+"""A session in-process: the anchor limit, and closing with frames still queued."""
+
+from __future__ import annotations
+
+import queue
+from pathlib import Path
+
+import grpc
+import pytest
+from ogapi.convert import frame_to_proto
+from ogapi.v1 import mapping_pb2 as pb
+from ogserver.errors import ServiceError
+from ogserver.recorder import Recorder
+from ogserver.session import Session
+from ogserver.settings import Limits
+from ogserver.validation import frame as validate_frame
+
+from ogmapping.config import build
+from ogmapping.mapper import Mapper
+
+from .scene import FROZEN, PRESET, scene
+
+
+def make_session(tmp_path: Path, limits: Limits) -> Session:
+    config = pb.SessionConfig(session_id="1" * 32, preset=PRESET)
+    recorder = Recorder(tmp_path / "session.mcap", config)
+    return Session("1" * 32, "token", Mapper(build(PRESET, FROZEN)), config, recorder, limits)
+
+
+def submit(session: Session, position: int, sink: queue.SimpleQueue) -> None:
+    message = frame_to_proto(scene("0:8").load(position))
+    assert session.submit(validate_frame(message, 1 << 20), message, sink)
+
+
+def test_anchor_limit_refuses_further_frames(tmp_path: Path) -> None:
+    session = make_session(tmp_path, Limits(max_anchors=10))
+    sink: queue.SimpleQueue = queue.SimpleQueue()
+    try:
+        session.check_capacity()
+        submit(session, 0, sink)
+        kind, ack = sink.get(timeout=60)
+        assert kind == "job" and ack.accepted and ack.anchors > 10
+        with pytest.raises(ServiceError) as refusal:
+            session.check_capacity()
+        assert refusal.value.code == grpc.StatusCode.RESOURCE_EXHAUSTED and "anchors" in refusal.value.message
+    finally:
+        session.close()
+        session.recorder.close()
+
+
+def test_close_drops_queued_frames_and_ends_the_stream(tmp_path: Path) -> None:
+    session = make_session(tmp_path, Limits(queue_depth=8))
+    sink: queue.SimpleQueue = queue.SimpleQueue()
+    with session.stream(sink):
+        for position in range(4):
+            submit(session, position, sink)
+        session.close()
+        kinds = []
+        while not sink.empty():
+            kinds.append(sink.get()[0])
+    assert kinds[-1] == "closed" and kinds.count("job") == session.mapped <= 4
+    assert session.pending == 0
+    assert not session.submit(validate_frame(frame_to_proto(scene("0:1").load(0)), 1 << 20), pb.Frame(), None)
+    session.recorder.close()
