@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 from ogapi.v1 import mapping_pb2 as pb
@@ -39,7 +39,7 @@ class StreamResult:
 
 def stream_frames(
     stub: pb_grpc.MappingStub, session: SessionRef, messages: Iterable[pb.Frame], total: int | None = None,
-    progress: bool = True, on_ack: Callable[[pb.FrameAck], None] | None = None,
+    progress: bool = True,
 ) -> StreamResult:
     """Stream ``messages`` and collect one ack per frame; refusals are printed, not raised."""
     result = StreamResult()
@@ -59,8 +59,6 @@ def stream_frames(
                 )
             else:
                 bar.write(f"frame {ack.index} rejected: {ack.error.code_name}: {ack.error.message}")
-            if on_ack is not None:
-                on_ack(ack)
     except KeyboardInterrupt:
         responses.cancel()
         raise ClientError("interrupted; frames sent so far stay in the session") from None

@@ -29,18 +29,9 @@ def intrinsics_to_proto(intrinsics: Intrinsics) -> pb.CameraIntrinsics:
     )
 
 
-def intrinsics_from_proto(message: pb.CameraIntrinsics) -> Intrinsics:
-    """No checks: the server's validation module is where untrusted intrinsics are vetted."""
-    return Intrinsics(message.fx, message.fy, message.cx, message.cy, message.width, message.height)
-
-
 def matrix_to_list(matrix: np.ndarray) -> list[float]:
     """4x4 matrix as 16 row-major numbers."""
     return [float(v) for v in np.asarray(matrix, dtype=np.float64).reshape(16)]
-
-
-def matrix_from_list(values: list[float] | np.ndarray) -> np.ndarray:
-    return np.asarray(values, dtype=np.float64).reshape(4, 4)
 
 
 def frame_to_proto(frame: Frame, encoding: FrameEncoding = FrameEncoding()) -> pb.Frame:

@@ -367,7 +367,8 @@ def test_too_many_sessions(server: ServerHandle, spare: SessionRef) -> None:
     assert stats(server, spare).frames >= 1
 
 
-def test_closing_finishes_the_recording(server: ServerHandle, mapped: Mapped, spare: SessionRef) -> None:
+def test_closing_finishes_the_recording(server: ServerHandle, mapped: Mapped, spare: SessionRef,
+                                       tmp_path: Path) -> None:
     spare_stats = stats(server, spare)
     closed = {name: close(server, session) for name, session in (("main", mapped.session), ("spare", spare))}
     with pytest.raises(grpc.RpcError) as refusal:
@@ -392,6 +393,12 @@ def test_closing_finishes_the_recording(server: ServerHandle, mapped: Mapped, sp
     assert recording.load(path).stats.anchors == closed["main"].stats.anchors
     spare_recorded = recording.load(closed["spare"].recording)
     assert len(spare_recorded.frames) == spare_stats.frames_received  # refused frames were never recorded
+    session_file = tmp_path / "replayed.json"
+    assert ogclient_main(["--server", server.address, "replay", closed["spare"].recording, "--quiet", "--close",
+                          "--session-out", str(session_file)]) == 0
+    replayed_id = SessionRef.load(session_file).session_id
+    replayed = recording.load(Path(closed["spare"].recording).with_name(f"{replayed_id}.mcap"))
+    assert len(replayed.frames) == spare_stats.frames_received and replayed.stats is not None
 
 
 def test_container_healthcheck_module(server: ServerHandle) -> None:

@@ -1,0 +1,34 @@
+"""Replay pacing and the session a replay asks for."""
+
+from __future__ import annotations
+
+import json
+
+from ogapi.recording import Recording
+from ogapi.v1 import mapping_pb2 as pb
+from ogclient.replay import recorded_times, session_request
+
+
+def recording(stamps: list[float], arrivals_ns: list[int]) -> Recording:
+    frames = [(arrival, pb.Frame(index=i, timestamp=stamp)) for i, (stamp, arrival) in
+              enumerate(zip(stamps, arrivals_ns, strict=True))]
+    return Recording(config=None, frames=frames, acks=[], stats=None)
+
+
+def test_sensor_timestamps_set_the_pace_when_they_increase() -> None:
+    assert recorded_times(recording([10.0, 10.5, 11.0], [0, 5, 9])) == [0.0, 0.5, 1.0]
+
+
+def test_arrival_times_set_the_pace_otherwise() -> None:
+    assert recorded_times(recording([0.0, 0.0, 0.0], [1_000_000_000, 1_500_000_000, 3_000_000_000])) == \
+        [0.0, 0.5, 2.0]
+
+
+def test_session_request_repeats_the_recorded_config() -> None:
+    fresh = pb.SessionConfig(preset="sparse-fast", overrides={"keyframes.iterations": "3"})
+    request = session_request(fresh, "again")
+    assert (request.preset, dict(request.overrides), request.label) == ("sparse-fast", {"keyframes.iterations": "3"},
+                                                                          "again")
+    restored = pb.SessionConfig(config_json=json.dumps({"keyframes": {"iterations": 7}, "seed": 0}))
+    request = session_request(restored)
+    assert request.preset == "dense" and dict(request.overrides) == {"keyframes.iterations": "7", "seed": "0"}
