@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import threading
@@ -57,6 +58,9 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError) as error:
         print(f"ogserver: {error}", file=sys.stderr)
         return 2
+    # Sessions map in parallel threads; numba's default fallback layer (workqueue) aborts the process
+    # on concurrent parallel kernels, so insist on a thread-safe one (OpenMP or TBB).
+    os.environ.setdefault("NUMBA_THREADING_LAYER", "threadsafe")
     from ogserver.app import build  # torch and the engine load only once the arguments are sound
 
     try:
