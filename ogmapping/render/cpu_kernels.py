@@ -27,6 +27,22 @@ _ZERO = np.float32(0.0)
 # Added to the exact log-threshold before skipping a Gaussian without evaluating exp(); far larger
 # than float32 rounding, so the skip never removes a Gaussian the alpha test would keep.
 _POWER_SLACK = np.float32(1e-3)
+# exp(-x) helper: arguments are clamped to [0, _EXP_CLAMP] (thresholds stay below 5.6 for
+# opacities <= 1); Cody-Waite split of ln 2 and Taylor coefficients 1/k!.
+_EXP_CLAMP = np.float32(10.0)
+_LOG2E = np.float32(1.4426950408889634)
+_LN2_HI = np.float32(0.693359375)
+_LN2_LO = np.float32(-2.1219444005469057e-4)
+_C2 = np.float32(1.0 / 2.0)
+_C3 = np.float32(1.0 / 6.0)
+_C4 = np.float32(1.0 / 24.0)
+_C5 = np.float32(1.0 / 120.0)
+_C6 = np.float32(1.0 / 720.0)
+_C7 = np.float32(1.0 / 5040.0)
+# How often (in Gaussians) a tile rechecks which of its rows still have compositing pixels.
+_OPEN_CHECK_EVERY = 8
+# Pixels per block of a tile row processed together (one AVX2 register of float32).
+_LANES = 8
 
 
 @njit(parallel=True, cache=True)
@@ -97,60 +113,212 @@ def bin_tiles(order, means2d, radii, width, height, n_chunks):
     return tile_offsets, ids, pair_start, pair_of
 
 
-@njit(cache=True)
-def _gather(ids, start, end, means2d, conics, opacities, x0, y0, tile_w, tile_h):
-    """One tile's Gaussians, front to back, as contiguous rows with their pixel rectangles.
+@njit(inline="always", cache=True)
+def _exp_neg(x):
+    """exp(-x) for 0 <= x <= _EXP_CLAMP, within 1e-7 relative, in plain vectorisable arithmetic.
 
-    Row k: mean x, mean y, conic a, b, c, opacity, skip threshold on ``power``. ``rects[k]`` is
-    the inclusive local pixel range (x0, x1, y0, y1) whose centres lie within the bounding box of
-    the ellipse ``power <= threshold``, padded by half a pixel; an empty range has x1 < x0.
+    libm's expf is an opaque call that stops LLVM from vectorising the pixel loops. Here
+    exp(-x) = 2^-n exp(r) with r = n ln2 - x in [-ln2/2, ln2/2] (ln2 split so n * _LN2_HI is
+    exact), exp(r) from its degree-7 Taylor polynomial (remainder below 6e-9) evaluated in
+    Estrin's scheme for a short dependency chain, and 2^-n assembled from the bits of n.
+    """
+    n = np.int32(x * _LOG2E + _HALF)
+    nf = np.float32(n)
+    r = (nf * _LN2_HI - x) + nf * _LN2_LO
+    r2 = r * r
+    high = (_C4 + _C5 * r) + r2 * (_C6 + _C7 * r)
+    p = (_ONE + r) + r2 * ((_C2 + _C3 * r) + r2 * high)
+    s1 = np.float32(0.5) if (n & 1) != 0 else _ONE
+    s2 = np.float32(0.25) if (n & 2) != 0 else _ONE
+    s4 = np.float32(0.0625) if (n & 4) != 0 else _ONE
+    s8 = np.float32(0.00390625) if (n & 8) != 0 else _ONE
+    return p * ((s1 * s2) * (s4 * s8))
+
+
+@njit(cache=True)
+def _gather(ids, start, end, means2d, conics, opacities, colors, depths, y0, tile_h):
+    """One tile's Gaussians, front to back, as contiguous rows plus the tile rows each one spans.
+
+    Row k: mean x, mean y, conic a, b, c, opacity, power threshold, colour r, g, b, depth.
+    ``spans[k]`` is the inclusive local row range whose pixel centres lie within the vertical
+    extent of the ellipse ``power <= threshold``, padded by half a pixel (empty when y1 < y0).
     """
     g = end - start
-    feats = np.empty((g, 7), np.float32)
-    rects = np.empty((g, 4), np.int32)
+    feats = np.empty((g, 11), np.float32)
+    spans = np.empty((g, 2), np.int64)
     for k in range(g):
         idx = ids[start + k]
         o = opacities[idx]
-        mx = means2d[idx, 0]
-        my = means2d[idx, 1]
         a = conics[idx, 0]
         b = conics[idx, 1]
         c = conics[idx, 2]
         limit = np.log(o / _ALPHA_MIN) + _POWER_SLACK
-        feats[k, 0] = mx
-        feats[k, 1] = my
+        feats[k, 0] = means2d[idx, 0]
+        feats[k, 1] = means2d[idx, 1]
         feats[k, 2] = a
         feats[k, 3] = b
         feats[k, 4] = c
         feats[k, 5] = o
         feats[k, 6] = limit
+        feats[k, 7] = colors[idx, 0]
+        feats[k, 8] = colors[idx, 1]
+        feats[k, 9] = colors[idx, 2]
+        feats[k, 10] = depths[idx]
         det = np.float64(a) * np.float64(c) - np.float64(b) * np.float64(b)
-        lo_x, hi_x, lo_y, hi_y = 0, tile_w - 1, 0, tile_h - 1
+        lo_y, hi_y = 0, tile_h - 1
         if det > 0.0 and limit > 0.0:
-            ex = np.sqrt(2.0 * np.float64(limit) * np.float64(c) / det) + 0.5
             ey = np.sqrt(2.0 * np.float64(limit) * np.float64(a) / det) + 0.5
-            lo_x = max(lo_x, np.int64(max(np.ceil(mx - ex - 0.5) - x0, -1.0)))
-            hi_x = min(hi_x, np.int64(min(np.floor(mx + ex - 0.5) - x0, tile_w + 0.0)))
+            my = np.float64(means2d[idx, 1])
             lo_y = max(lo_y, np.int64(max(np.ceil(my - ey - 0.5) - y0, -1.0)))
             hi_y = min(hi_y, np.int64(min(np.floor(my + ey - 0.5) - y0, tile_h + 0.0)))
         elif limit <= 0.0:
-            hi_x = -1
-        rects[k, 0] = lo_x
-        rects[k, 1] = hi_x
-        rects[k, 2] = lo_y
-        rects[k, 3] = hi_y
-    return feats, rects
+            hi_y = -1
+        spans[k, 0] = lo_y
+        spans[k, 1] = hi_y
+    return feats, spans
+
+
+@njit(inline="always", cache=True)
+def _row_lanes(f, dy, x0, tile_w):
+    """Lanes [lo, hi) of one tile row, in blocks of _LANES, that can hold pixels of ellipse ``f``.
+
+    Solves ``power(dx, dy) <= threshold`` for dx in float64 and pads by half a pixel, so only
+    pixels the exact per-pixel test rejects are ever left out; returns (0, 0) for a miss.
+    """
+    a = np.float64(f[2])
+    b = np.float64(f[3])
+    c = np.float64(f[4])
+    d = np.float64(dy)
+    disc = 2.0 * a * np.float64(f[6]) - (a * c - b * b) * d * d
+    if disc < 0.0 or a <= 0.0:
+        return 0, 0
+    half = np.sqrt(disc) / a
+    centre = np.float64(f[0]) - b * d / a - x0 - 0.5
+    lo = max(np.ceil(centre - half - 0.5), 0.0)
+    hi = min(np.floor(centre + half + 0.5), tile_w - 1.0)
+    if hi < lo:
+        return 0, 0
+    return (np.int64(lo) // _LANES) * _LANES, (np.int64(hi) // _LANES + 1) * _LANES
+
+
+@njit(inline="always", cache=True)
+def _forward_run(p0, n, xs, ys, f, k_next, st, last):
+    """Composite Gaussian ``f`` over the ``n`` tile pixels from flat index ``p0``.
+
+    ``st`` (5, TILE^2) holds transmittance and colour/depth sums, ``last`` the list length
+    composited so far. A pixel that has stopped keeps its transmittance negated. Branch-free with
+    unsigned indices (no negative-index wraparound) so LLVM vectorises it, and every state update
+    is an exact arithmetic blend with m in {0, 1}: a "x if c else old" store would become a masked
+    store, which is very slow on some CPUs (AMD Zen).
+    """
+    mx, my, ca, cb, cc, o, limit = f[0], f[1], f[2], f[3], f[4], f[5], f[6]
+    c0, c1, c2, z = f[7], f[8], f[9], f[10]
+    base = np.uint64(p0)
+    for j in range(n):
+        p = base + np.uint64(j)
+        dx = xs[p] - mx
+        dy = ys[p] - my
+        power = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+        alpha = min(_ALPHA_MAX, o * _exp_neg(min(max(power, _ZERO), _EXP_CLAMP)))
+        t = st[0, p]
+        next_t = t * (_ONE - alpha)
+        hit = (power <= limit) & (alpha >= _ALPHA_MIN) & (t > _ZERO)
+        m = _ONE if (hit & (next_t >= _T_MIN)) else _ZERO
+        stop = _ONE if (hit & (next_t < _T_MIN)) else _ZERO
+        w = alpha * t * m
+        st[0, p] = next_t * m - t * stop + t * (_ONE - m - stop)
+        st[1, p] += w * c0
+        st[2, p] += w * c1
+        st[3, p] += w * c2
+        st[4, p] += w * z
+        mi = np.int32(m)
+        last[p] = k_next * mi + last[p] * (np.int32(1) - mi)
+
+
+@njit(inline="always", cache=True)
+def _refresh_open_rows(st, open_rows):
+    """Mark rows with a pixel still compositing; returns whether any row is open."""
+    any_open = False
+    for ly in range(TILE):
+        row_open = False
+        for lx in range(TILE):
+            if st[0, ly * TILE + lx] > _ZERO:
+                row_open = True
+                break
+        open_rows[ly] = row_open
+        any_open = any_open or row_open
+    return any_open
+
+
+@njit(inline="always", cache=True)
+def _pixel_centres(x0, y0):
+    """Flat (TILE^2) x and y pixel-centre coordinates of a tile, row-major."""
+    xs = np.empty(TILE * TILE, np.float32)
+    ys = np.empty(TILE * TILE, np.float32)
+    for ly in range(TILE):
+        for lx in range(TILE):
+            xs[ly * TILE + lx] = np.float32(x0 + lx) + _HALF
+            ys[ly * TILE + lx] = np.float32(y0 + ly) + _HALF
+    return xs, ys
+
+
+@njit(cache=True)
+def _forward_tile(
+    t, n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, background, width, height,
+    out_color, out_depth, out_t, n_contrib,
+):
+    """Forward of one tile: Gaussians front to back, each over the row blocks its ellipse reaches.
+
+    Rows whose pixels have all stopped are skipped (rechecked every _OPEN_CHECK_EVERY Gaussians)
+    and the tile ends when none is left; the per-pixel order and rules are the reference's.
+    """
+    ty = t // n_x
+    x0 = (t - ty * n_x) * TILE
+    y0 = ty * TILE
+    tile_w = min(TILE, width - x0)
+    tile_h = min(TILE, height - y0)
+    start = tile_offsets[t]
+    feats, spans = _gather(ids, start, tile_offsets[t + 1], means2d, conics, opacities, colors, depths, y0, tile_h)
+    xs, ys = _pixel_centres(x0, y0)
+    st = np.zeros((5, TILE * TILE), np.float32)
+    st[0] = -_ONE  # pixels outside the image start (and stay) stopped
+    for ly in range(tile_h):
+        st[0, ly * TILE:ly * TILE + tile_w] = _ONE
+    last = np.zeros(TILE * TILE, np.int32)
+    open_rows = np.ones(TILE, np.bool_)
+    for k in range(feats.shape[0]):
+        if k % _OPEN_CHECK_EVERY == 0 and not _refresh_open_rows(st, open_rows):
+            break
+        f = feats[k]
+        ly = spans[k, 0]
+        while ly <= spans[k, 1]:
+            if not open_rows[ly]:
+                ly += 1
+                continue
+            first = ly
+            while ly <= spans[k, 1] and open_rows[ly]:
+                ly += 1
+            _forward_run(first * TILE, (ly - first) * TILE, xs, ys, f, np.int32(k + 1), st, last)
+    for ly in range(tile_h):
+        for lx in range(tile_w):
+            p = ly * TILE + lx
+            py = y0 + ly
+            px = x0 + lx
+            t_end = abs(st[0, p])
+            out_color[py, px, 0] = st[1, p] + t_end * background[0]
+            out_color[py, px, 1] = st[2, p] + t_end * background[1]
+            out_color[py, px, 2] = st[3, p] + t_end * background[2]
+            out_depth[py, px] = st[4, p]
+            out_t[py, px] = t_end
+            n_contrib[py, px] = last[p]
 
 
 @njit(parallel=True, cache=True)
 def render_forward(tile_offsets, ids, means2d, conics, opacities, colors, depths, background, width, height):
-    """Composite every pixel front to back.
+    """Composite every pixel front to back, one tile per task.
 
-    Each tile walks its Gaussians in depth order and updates only the pixels inside each one's
-    rectangle, keeping per-pixel state; this visits far fewer (pixel, Gaussian) pairs than a
-    per-pixel scan of the whole tile list and gives the same per-pixel order. Returns colour over
-    ``background`` (H, W, 3), accumulated depth (H, W), final transmittance (H, W) and, per pixel,
-    the length of the tile-list prefix the backward has to revisit.
+    Returns colour over ``background`` (H, W, 3), accumulated depth (H, W), final transmittance
+    (H, W) and, per pixel, the length of the tile-list prefix the backward has to revisit.
     """
     n_x = (width + TILE - 1) // TILE
     n_tiles = n_x * ((height + TILE - 1) // TILE)
@@ -159,73 +327,132 @@ def render_forward(tile_offsets, ids, means2d, conics, opacities, colors, depths
     out_t = np.empty((height, width), np.float32)
     n_contrib = np.empty((height, width), np.int32)
     for t in prange(n_tiles):
-        ty = t // n_x
-        x0 = (t - ty * n_x) * TILE
-        y0 = ty * TILE
-        tile_w = min(TILE, width - x0)
-        tile_h = min(TILE, height - y0)
-        start = tile_offsets[t]
-        feats, rects = _gather(ids, start, tile_offsets[t + 1], means2d, conics, opacities, x0, y0, tile_w, tile_h)
-        trans = np.ones(TILE * TILE, np.float32)
-        acc = np.zeros((TILE * TILE, 4), np.float32)
-        last = np.zeros(TILE * TILE, np.int32)
-        done = np.zeros(TILE * TILE, np.bool_)
-        n_open = tile_w * tile_h
-        for k in range(feats.shape[0]):
-            if n_open == 0:
-                break
-            if rects[k, 1] < rects[k, 0] or rects[k, 3] < rects[k, 2]:
-                continue
-            mx = feats[k, 0]
-            my = feats[k, 1]
-            ca = feats[k, 2]
-            cb = feats[k, 3]
-            cc = feats[k, 4]
-            o = feats[k, 5]
-            limit = feats[k, 6]
-            idx = ids[start + k]
-            col0 = colors[idx, 0]
-            col1 = colors[idx, 1]
-            col2 = colors[idx, 2]
-            z = depths[idx]
-            for ly in range(rects[k, 2], rects[k, 3] + 1):
-                dy = np.float32(y0 + ly) + _HALF - my
-                for lx in range(rects[k, 0], rects[k, 1] + 1):
-                    p = ly * TILE + lx
-                    if done[p]:
-                        continue
-                    dx = np.float32(x0 + lx) + _HALF - mx
-                    power = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                    if power > limit:
-                        continue
-                    alpha = min(_ALPHA_MAX, o * np.exp(-power))
-                    if alpha < _ALPHA_MIN:
-                        continue
-                    t_now = trans[p]
-                    next_t = t_now * (_ONE - alpha)
-                    if next_t < _T_MIN:
-                        done[p] = True
-                        n_open -= 1
-                        continue
-                    w = alpha * t_now
-                    acc[p, 0] += w * col0
-                    acc[p, 1] += w * col1
-                    acc[p, 2] += w * col2
-                    acc[p, 3] += w * z
-                    trans[p] = next_t
-                    last[p] = k + 1
-        for ly in range(tile_h):
-            for lx in range(tile_w):
-                p = ly * TILE + lx
-                py = y0 + ly
-                px = x0 + lx
-                out_color[py, px, 0] = acc[p, 0] + trans[p] * background[0]
-                out_color[py, px, 1] = acc[p, 1] + trans[p] * background[1]
-                out_color[py, px, 2] = acc[p, 2] + trans[p] * background[2]
-                out_depth[py, px] = acc[p, 3]
-                out_t[py, px] = trans[p]
-                n_contrib[py, px] = last[p]
+        _forward_tile(
+            t, n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, background, width, height,
+            out_color, out_depth, out_t, n_contrib,
+        )
     return out_color, out_depth, out_t, n_contrib
+
+
+@njit(inline="always", cache=True)
+def _backward_run(p0, lane0, n, xs, ys, f, k, count, st, lanes):
+    """Undo Gaussian ``f`` over ``n`` tile pixels from flat index ``p0`` and add its gradients.
+
+    ``st`` (10, TILE^2) holds per pixel the transmittance, colour/depth behind (4), upstream
+    colour/depth gradients (4) and the T_final term; per-pixel gradient terms are added to
+    ``lanes`` (N_GRAD, TILE) from lane ``lane0`` and summed by the caller. Branch-free.
+    """
+    mx, my, ca, cb, cc, o, limit = f[0], f[1], f[2], f[3], f[4], f[5], f[6]
+    c0, c1, c2, z = f[7], f[8], f[9], f[10]
+    base = np.uint64(p0)
+    lane_base = np.uint64(lane0)
+    for j in range(n):
+        p = base + np.uint64(j)
+        q = lane_base + np.uint64(j)
+        dx = xs[p] - mx
+        dy = ys[p] - my
+        power = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+        gauss = _exp_neg(min(max(power, _ZERO), _EXP_CLAMP))
+        raw = o * gauss
+        alpha = min(_ALPHA_MAX, raw)
+        active = (k < count[p]) & (power <= limit) & (alpha >= _ALPHA_MIN)
+        one_minus = _ONE - alpha
+        t_after = st[0, p]
+        t_before = t_after / one_minus
+        r0 = st[1, p]
+        r1 = st[2, p]
+        r2 = st[3, p]
+        rd = st[4, p]
+        u0 = st[5, p]
+        u1 = st[6, p]
+        u2 = st[7, p]
+        ud = st[8, p]
+        w = alpha * t_before if active else _ZERO
+        lanes[6, q] += w * u0
+        lanes[7, q] += w * u1
+        lanes[8, q] += w * u2
+        lanes[9, q] += w * ud
+        g_alpha = t_before * ((c0 - r0) * u0 + (c1 - r1) * u1 + (c2 - r2) * u2 + (z - rd) * ud) + (
+            st[9, p] / one_minus
+        )
+        differentiable = active & (raw <= _ALPHA_MAX)
+        g_power = -alpha * g_alpha if differentiable else _ZERO
+        lanes[0, q] -= g_power * (ca * dx + cb * dy)
+        lanes[1, q] -= g_power * (cb * dx + cc * dy)
+        lanes[2, q] += g_power * _HALF * dx * dx
+        lanes[3, q] += g_power * dx * dy
+        lanes[4, q] += g_power * _HALF * dy * dy
+        lanes[5, q] += gauss * g_alpha if differentiable else _ZERO
+        # Exact arithmetic blends (m is 0 or 1), see _forward_run.
+        m = _ONE if active else _ZERO
+        keep = _ONE - m
+        st[0, p] = t_before * m + t_after * keep
+        st[1, p] = (alpha * c0 + one_minus * r0) * m + r0 * keep
+        st[2, p] = (alpha * c1 + one_minus * r1) * m + r1 * keep
+        st[3, p] = (alpha * c2 + one_minus * r2) * m + r2 * keep
+        st[4, p] = (alpha * z + one_minus * rd) * m + rd * keep
+
+
+@njit(cache=True)
+def _backward_tile(
+    t, n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, background,
+    final_t, n_contrib, grad_color, grad_depth, grad_alpha, width, height, pair_grads, bg_grads,
+):
+    """Backward of one tile: Gaussians back to front over the same row blocks as the forward."""
+    ty = t // n_x
+    x0 = (t - ty * n_x) * TILE
+    y0 = ty * TILE
+    tile_w = min(TILE, width - x0)
+    tile_h = min(TILE, height - y0)
+    start = tile_offsets[t]
+    feats, spans = _gather(ids, start, tile_offsets[t + 1], means2d, conics, opacities, colors, depths, y0, tile_h)
+    xs, ys = _pixel_centres(x0, y0)
+    st = np.zeros((10, TILE * TILE), np.float32)
+    count = np.zeros(TILE * TILE, np.int32)
+    row_count = np.zeros(TILE, np.int64)
+    lanes = np.zeros((N_GRAD, TILE), np.float32)
+    for ly in range(tile_h):
+        for lx in range(tile_w):
+            p = ly * TILE + lx
+            py = y0 + ly
+            px = x0 + lx
+            t_end = final_t[py, px]
+            gc0 = grad_color[py, px, 0]
+            gc1 = grad_color[py, px, 1]
+            gc2 = grad_color[py, px, 2]
+            bg_grads[t, 0] += t_end * gc0
+            bg_grads[t, 1] += t_end * gc1
+            bg_grads[t, 2] += t_end * gc2
+            st[0, p] = t_end
+            st[5, p] = gc0
+            st[6, p] = gc1
+            st[7, p] = gc2
+            st[8, p] = grad_depth[py, px]
+            # d(loss)/d(alpha_k) through T_final (which scales the background and sets the
+            # alpha output) is this term over (1 - alpha_k).
+            bg_dot = background[0] * gc0 + background[1] * gc1 + background[2] * gc2
+            st[9, p] = t_end * (grad_alpha[py, px] - bg_dot)
+            count[p] = n_contrib[py, px]
+            row_count[ly] = max(row_count[ly], n_contrib[py, px])
+    k_end = 0
+    for ly in range(tile_h):
+        k_end = max(k_end, row_count[ly])
+    for k in range(k_end - 1, -1, -1):
+        f = feats[k]
+        touched = False
+        for ly in range(spans[k, 0], spans[k, 1] + 1):
+            if k >= row_count[ly]:
+                continue
+            _backward_run(ly * TILE, 0, tile_w, xs, ys, f, np.int32(k), count, st, lanes)
+            touched = True
+        if touched:
+            row = start + k
+            for j in range(N_GRAD):
+                total = _ZERO
+                for lx in range(TILE):
+                    total += lanes[j, lx]
+                    lanes[j, lx] = _ZERO
+                pair_grads[row, j] = total
 
 
 @njit(parallel=True, cache=True)
@@ -235,134 +462,20 @@ def render_backward(
 ):
     """Gradients per tile entry (pairs, N_GRAD) and per tile for the background (n_tiles, 3).
 
-    Walks each tile's Gaussians back to front over their rectangles; every pixel recovers the
-    transmittance before each contributor as ``T / (1 - alpha)`` and keeps the colour and depth
-    composited behind it as running sums. A Gaussian's gradient is summed over its pixels in
-    registers and written once to its own tile entry.
+    Walks each tile's Gaussians back to front; every pixel recovers the transmittance before each
+    contributor as ``T / (1 - alpha)`` and keeps the colour and depth composited behind it as
+    running sums. A Gaussian's gradient is summed over per-lane partial sums and written once,
+    to its own tile entry, so tiles never write to shared memory.
     """
     n_x = (width + TILE - 1) // TILE
     n_tiles = n_x * ((height + TILE - 1) // TILE)
     pair_grads = np.zeros((tile_offsets[n_tiles], N_GRAD), np.float32)
     bg_grads = np.zeros((n_tiles, 3), np.float32)
     for t in prange(n_tiles):
-        ty = t // n_x
-        x0 = (t - ty * n_x) * TILE
-        y0 = ty * TILE
-        tile_w = min(TILE, width - x0)
-        tile_h = min(TILE, height - y0)
-        start = tile_offsets[t]
-        feats, rects = _gather(ids, start, tile_offsets[t + 1], means2d, conics, opacities, x0, y0, tile_w, tile_h)
-        # Per pixel: T, colour/depth behind (4), upstream colour/depth grads (4), T_final term, count.
-        trans = np.zeros(TILE * TILE, np.float32)
-        rest = np.zeros((TILE * TILE, 4), np.float32)
-        up = np.zeros((TILE * TILE, 4), np.float32)
-        g_final = np.zeros(TILE * TILE, np.float32)
-        count = np.zeros(TILE * TILE, np.int32)
-        k_end = 0
-        for ly in range(tile_h):
-            for lx in range(tile_w):
-                p = ly * TILE + lx
-                py = y0 + ly
-                px = x0 + lx
-                t_fin = final_t[py, px]
-                gc0 = grad_color[py, px, 0]
-                gc1 = grad_color[py, px, 1]
-                gc2 = grad_color[py, px, 2]
-                bg_grads[t, 0] += t_fin * gc0
-                bg_grads[t, 1] += t_fin * gc1
-                bg_grads[t, 2] += t_fin * gc2
-                # d(loss)/d(alpha_k) through T_final (which scales the background and sets alpha)
-                # is g_final / (1 - alpha_k).
-                bg_dot = background[0] * gc0 + background[1] * gc1 + background[2] * gc2
-                g_final[p] = t_fin * (grad_alpha[py, px] - bg_dot)
-                trans[p] = t_fin
-                up[p, 0] = gc0
-                up[p, 1] = gc1
-                up[p, 2] = gc2
-                up[p, 3] = grad_depth[py, px]
-                count[p] = n_contrib[py, px]
-                k_end = max(k_end, count[p])
-        for k in range(k_end - 1, -1, -1):
-            if rects[k, 1] < rects[k, 0] or rects[k, 3] < rects[k, 2]:
-                continue
-            mx = feats[k, 0]
-            my = feats[k, 1]
-            ca = feats[k, 2]
-            cb = feats[k, 3]
-            cc = feats[k, 4]
-            o = feats[k, 5]
-            limit = feats[k, 6]
-            idx = ids[start + k]
-            col0 = colors[idx, 0]
-            col1 = colors[idx, 1]
-            col2 = colors[idx, 2]
-            z = depths[idx]
-            g_mx = _ZERO
-            g_my = _ZERO
-            g_a = _ZERO
-            g_b = _ZERO
-            g_c = _ZERO
-            g_o = _ZERO
-            g_c0 = _ZERO
-            g_c1 = _ZERO
-            g_c2 = _ZERO
-            g_z = _ZERO
-            for ly in range(rects[k, 2], rects[k, 3] + 1):
-                dy = np.float32(y0 + ly) + _HALF - my
-                for lx in range(rects[k, 0], rects[k, 1] + 1):
-                    p = ly * TILE + lx
-                    if k >= count[p]:
-                        continue
-                    dx = np.float32(x0 + lx) + _HALF - mx
-                    power = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                    if power > limit:
-                        continue
-                    gauss = np.exp(-power)
-                    raw = o * gauss
-                    alpha = min(_ALPHA_MAX, raw)
-                    if alpha < _ALPHA_MIN:
-                        continue
-                    one_minus = _ONE - alpha
-                    t_before = trans[p] / one_minus
-                    trans[p] = t_before
-                    w = alpha * t_before
-                    u0 = up[p, 0]
-                    u1 = up[p, 1]
-                    u2 = up[p, 2]
-                    ud = up[p, 3]
-                    g_c0 += w * u0
-                    g_c1 += w * u1
-                    g_c2 += w * u2
-                    g_z += w * ud
-                    r0 = rest[p, 0]
-                    r1 = rest[p, 1]
-                    r2 = rest[p, 2]
-                    rd = rest[p, 3]
-                    g_alpha = t_before * ((col0 - r0) * u0 + (col1 - r1) * u1 + (col2 - r2) * u2
-                                          + (z - rd) * ud) + g_final[p] / one_minus
-                    rest[p, 0] = alpha * col0 + one_minus * r0
-                    rest[p, 1] = alpha * col1 + one_minus * r1
-                    rest[p, 2] = alpha * col2 + one_minus * r2
-                    rest[p, 3] = alpha * z + one_minus * rd
-                    if raw <= _ALPHA_MAX:
-                        g_power = -alpha * g_alpha
-                        g_o += gauss * g_alpha
-                        g_mx -= g_power * (ca * dx + cb * dy)
-                        g_my -= g_power * (cb * dx + cc * dy)
-                        g_a += g_power * _HALF * dx * dx
-                        g_b += g_power * dx * dy
-                        g_c += g_power * _HALF * dy * dy
-            row = start + k
-            pair_grads[row, 0] = g_mx
-            pair_grads[row, 1] = g_my
-            pair_grads[row, 2] = g_a
-            pair_grads[row, 3] = g_b
-            pair_grads[row, 4] = g_c
-            pair_grads[row, 5] = g_o
-            pair_grads[row, 6] = g_c0
-            pair_grads[row, 7] = g_c1
-            pair_grads[row, 8] = g_c2
-            pair_grads[row, 9] = g_z
+        _backward_tile(
+            t, n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, background,
+            final_t, n_contrib, grad_color, grad_depth, grad_alpha, width, height, pair_grads, bg_grads,
+        )
     return pair_grads, bg_grads
 
 

@@ -30,16 +30,24 @@ class Projection:
     radii: torch.Tensor  # (N,) int32, 0 = culled
 
 
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices (N, 3, 3) of (w, x, y, z) quaternions, normalised here."""
+def rotation_entries(quats: torch.Tensor) -> list[list[torch.Tensor]]:
+    """Rotation matrix of (w, x, y, z) quaternions (normalised here) as 3x3 nested lists of (N,)."""
     q = torch.nn.functional.normalize(quats, dim=-1)
     w, x, y, z = q.unbind(-1)
-    rows = (
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    )
-    return torch.stack(rows, dim=-1).reshape(*quats.shape[:-1], 3, 3)
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    return [
+        [1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)],
+        [2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)],
+        [2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)],
+    ]
+
+
+def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices (N, 3, 3) of (w, x, y, z) quaternions, normalised here."""
+    rows = [torch.stack(row, dim=-1) for row in rotation_entries(quats)]
+    return torch.stack(rows, dim=-2)
 
 
 def alpha_extent(opacities: torch.Tensor) -> torch.Tensor:
@@ -66,36 +74,41 @@ def project_gaussians(
     """
     viewmat = viewmat.to(means)
     K = K.to(means)
-    rotation_cw = viewmat[:3, :3]
-    p_cam = means @ rotation_cw.T + viewmat[:3, 3]
-    x, y, z = p_cam.unbind(-1)
+    x, y, z = (means @ viewmat[:3, :3].T + viewmat[:3, 3]).unbind(-1)
     in_front = z >= NEAR_PLANE
     z_safe = torch.where(in_front, z, torch.ones_like(z))
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    u = fx * x / z_safe + cx
-    v = fy * y / z_safe + cy
-    means2d = torch.stack([u, v], dim=-1)
+    x_z = x / z_safe
+    y_z = y / z_safe
+    means2d = torch.stack([fx * x_z + cx, fy * y_z + cy], dim=-1)
 
+    # Everything below is written per component on (N,) tensors: batched 3x3 matmuls and
+    # broadcasts over small trailing dimensions are several times slower in torch, forward and
+    # backward, and this is on the mapper's hot path.
     half_tan_x = 0.5 * width / fx
     half_tan_y = 0.5 * height / fy
-    tx = torch.clamp(x / z_safe, -(cx / fx + FOV_MARGIN * half_tan_x), (width - cx) / fx + FOV_MARGIN * half_tan_x)
-    ty = torch.clamp(y / z_safe, -(cy / fy + FOV_MARGIN * half_tan_y), (height - cy) / fy + FOV_MARGIN * half_tan_y)
-    zeros = torch.zeros_like(z)
-    jacobian = torch.stack(
-        [fx / z_safe, zeros, -fx * tx / z_safe, zeros, fy / z_safe, -fy * ty / z_safe], dim=-1
-    ).reshape(-1, 2, 3)
-
-    m = quat_to_rotmat(quats) * scales.unsqueeze(-2)
-    cov_world = m @ m.transpose(-1, -2)
-    cov_cam = rotation_cw @ cov_world @ rotation_cw.T
-    cov2d = jacobian @ cov_cam @ jacobian.transpose(-1, -2)
-    a = cov2d[:, 0, 0] + COVARIANCE_BLUR
-    b = cov2d[:, 0, 1]
-    c = cov2d[:, 1, 1] + COVARIANCE_BLUR
+    tx = torch.clamp(x_z, -(cx / fx + FOV_MARGIN * half_tan_x), (width - cx) / fx + FOV_MARGIN * half_tan_x)
+    ty = torch.clamp(y_z, -(cy / fy + FOV_MARGIN * half_tan_y), (height - cy) / fy + FOV_MARGIN * half_tan_y)
+    w = [[viewmat[i, j] for j in range(3)] for i in range(3)]
+    # Rows of J @ W: perspective Jacobian times the world-to-camera rotation.
+    gx = fx / z_safe
+    gy = fy / z_safe
+    jw0 = [gx * (w[0][k] - tx * w[2][k]) for k in range(3)]
+    jw1 = [gy * (w[1][k] - ty * w[2][k]) for k in range(3)]
+    # T = J W R S, R S being the Gaussian's axes scaled by its standard deviations.
+    rot = rotation_entries(quats)
+    s = scales.unbind(-1)
+    t0 = [s[j] * (jw0[0] * rot[0][j] + jw0[1] * rot[1][j] + jw0[2] * rot[2][j]) for j in range(3)]
+    t1 = [s[j] * (jw1[0] * rot[0][j] + jw1[1] * rot[1][j] + jw1[2] * rot[2][j]) for j in range(3)]
+    # 2D covariance T T^T plus the blur that keeps sub-pixel Gaussians at least a pixel wide.
+    a = t0[0] * t0[0] + t0[1] * t0[1] + t0[2] * t0[2] + COVARIANCE_BLUR
+    b = t0[0] * t1[0] + t0[1] * t1[1] + t0[2] * t1[2]
+    c = t1[0] * t1[0] + t1[1] * t1[1] + t1[2] * t1[2] + COVARIANCE_BLUR
     det = a * c - b * b
     valid = in_front & (det > 0) & (opacities >= ALPHA_MIN)
     det_safe = torch.where(valid, det, torch.ones_like(det))
-    conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], dim=-1)
+    inv_det = 1.0 / det_safe
+    conics = torch.stack([c * inv_det, -b * inv_det, a * inv_det], dim=-1)
 
     radii = _radii(means2d.detach(), a.detach(), b.detach(), c.detach(), opacities.detach(), valid, width, height)
     return Projection(means2d, conics, z, radii)
