@@ -32,12 +32,12 @@ class _Composite(torch.autograd.Function):
         m2d, con, opa, col, dep, bg = arrays
         visible = np.flatnonzero(radii.cpu().numpy() > 0)
         order = visible[np.argsort(dep[visible], kind="stable")].astype(np.int32)
-        n_chunks = numba.get_num_threads()
+        n_threads = numba.get_num_threads()
         tile_offsets, ids, pair_start, pair_of = kernels.bin_tiles(
-            order, m2d, radii.to(torch.int32).cpu().numpy(), width, height, n_chunks
+            order, m2d, radii.to(torch.int32).cpu().numpy(), width, height, n_threads
         )
         color, accum_depth, final_t, n_contrib = kernels.render_forward(
-            tile_offsets, ids, m2d, con, opa, col, dep, bg, width, height
+            tile_offsets, ids, m2d, con, opa, col, dep, bg, width, height, n_threads
         )
         ctx.state = (order, tile_offsets, ids, pair_start, pair_of, arrays, final_t, n_contrib, width, height)
         ctx.dtypes = (means2d.dtype, background.dtype)
@@ -55,7 +55,7 @@ class _Composite(torch.autograd.Function):
         m2d, con, opa, col, dep, bg = arrays
         pair_grads, bg_grads = kernels.render_backward(
             tile_offsets, ids, m2d, con, opa, col, dep, bg, final_t, n_contrib,
-            _f32(grad_color), _f32(grad_depth), _f32(grad_alpha), width, height,
+            _f32(grad_color), _f32(grad_depth), _f32(grad_alpha), width, height, numba.get_num_threads(),
         )
         grads = torch.from_numpy(kernels.reduce_pairs(order, pair_start, pair_of, pair_grads, m2d.shape[0]))
         dtype, bg_dtype = ctx.dtypes

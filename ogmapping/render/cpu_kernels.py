@@ -45,7 +45,7 @@ _OPEN_CHECK_EVERY = 8
 _LANES = 8
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def bin_tiles(order, means2d, radii, width, height, n_chunks):
     """Tile lists of the Gaussians ``order`` (visible ones, front to back) as CSR arrays.
 
@@ -113,7 +113,7 @@ def bin_tiles(order, means2d, radii, width, height, n_chunks):
     return tile_offsets, ids, pair_start, pair_of
 
 
-@njit(inline="always", cache=True)
+@njit(inline="always", cache=True, error_model="numpy")
 def _exp_neg(x):
     """exp(-x) for 0 <= x <= _EXP_CLAMP, within 1e-7 relative, in plain vectorisable arithmetic.
 
@@ -135,7 +135,7 @@ def _exp_neg(x):
     return p * ((s1 * s2) * (s4 * s8))
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _gather(ids, start, end, means2d, conics, opacities, colors, depths, y0, tile_h):
     """One tile's Gaussians, front to back, as contiguous rows plus the tile rows each one spans.
 
@@ -178,7 +178,7 @@ def _gather(ids, start, end, means2d, conics, opacities, colors, depths, y0, til
     return feats, spans
 
 
-@njit(inline="always", cache=True)
+@njit(inline="always", cache=True, error_model="numpy")
 def _row_lanes(f, dy, x0, tile_w):
     """Lanes [lo, hi) of one tile row, in blocks of _LANES, that can hold pixels of ellipse ``f``.
 
@@ -201,7 +201,7 @@ def _row_lanes(f, dy, x0, tile_w):
     return (np.int64(lo) // _LANES) * _LANES, (np.int64(hi) // _LANES + 1) * _LANES
 
 
-@njit(inline="always", cache=True)
+@njit(inline="always", cache=True, error_model="numpy")
 def _forward_run(p0, n, xs, ys, f, k_next, st, last):
     """Composite Gaussian ``f`` over the ``n`` tile pixels from flat index ``p0``.
 
@@ -235,7 +235,7 @@ def _forward_run(p0, n, xs, ys, f, k_next, st, last):
         last[p] = k_next * mi + last[p] * (np.int32(1) - mi)
 
 
-@njit(inline="always", cache=True)
+@njit(inline="always", cache=True, error_model="numpy")
 def _refresh_open_rows(st, open_rows):
     """Mark rows with a pixel still compositing; returns whether any row is open."""
     any_open = False
@@ -250,7 +250,7 @@ def _refresh_open_rows(st, open_rows):
     return any_open
 
 
-@njit(inline="always", cache=True)
+@njit(inline="always", cache=True, error_model="numpy")
 def _pixel_centres(x0, y0):
     """Flat (TILE^2) x and y pixel-centre coordinates of a tile, row-major."""
     xs = np.empty(TILE * TILE, np.float32)
@@ -262,7 +262,7 @@ def _pixel_centres(x0, y0):
     return xs, ys
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _forward_tile(
     t, n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, background, width, height,
     out_color, out_depth, out_t, n_contrib,
@@ -313,8 +313,42 @@ def _forward_tile(
             n_contrib[py, px] = last[p]
 
 
-@njit(parallel=True, cache=True)
-def render_forward(tile_offsets, ids, means2d, conics, opacities, colors, depths, background, width, height):
+@njit(cache=True, error_model="numpy")
+def _balanced_schedule(tile_offsets, n_threads):
+    """Tile order whose equal contiguous chunks (prange's static split) carry similar work.
+
+    Tiles sorted by list length, the cost proxy, are dealt to the chunks in a snake pattern so
+    every thread gets a share of the busiest tiles, whatever the scene's layout on screen.
+    """
+    n_tiles = tile_offsets.shape[0] - 1
+    by_cost = np.argsort(-(tile_offsets[1:] - tile_offsets[:-1]), kind="mergesort")
+    bounds = np.empty(n_threads + 1, np.int64)
+    for c in range(n_threads + 1):
+        bounds[c] = c * n_tiles // n_threads
+    fill = bounds[:-1].copy()
+    schedule = np.empty(n_tiles, np.int64)
+    c, step = 0, 1
+    for t in by_cost:
+        while fill[c] == bounds[c + 1]:
+            c, step = _next_chunk(c, step, n_threads)
+        schedule[fill[c]] = t
+        fill[c] += 1
+        c, step = _next_chunk(c, step, n_threads)
+    return schedule
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def _next_chunk(c, step, n_chunks):
+    """Next chunk of a snake walk 0, 1, .., n-1, n-1, .., 0, 0, 1, .."""
+    if 0 <= c + step < n_chunks:
+        return c + step, step
+    return c, -step
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def render_forward(
+    tile_offsets, ids, means2d, conics, opacities, colors, depths, background, width, height, n_threads
+):
     """Composite every pixel front to back, one tile per task.
 
     Returns colour over ``background`` (H, W, 3), accumulated depth (H, W), final transmittance
@@ -326,15 +360,16 @@ def render_forward(tile_offsets, ids, means2d, conics, opacities, colors, depths
     out_depth = np.empty((height, width), np.float32)
     out_t = np.empty((height, width), np.float32)
     n_contrib = np.empty((height, width), np.int32)
-    for t in prange(n_tiles):
+    schedule = _balanced_schedule(tile_offsets, n_threads)
+    for i in prange(n_tiles):
         _forward_tile(
-            t, n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, background, width, height,
+            schedule[i], n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, background, width, height,
             out_color, out_depth, out_t, n_contrib,
         )
     return out_color, out_depth, out_t, n_contrib
 
 
-@njit(inline="always", cache=True)
+@njit(inline="always", cache=True, error_model="numpy")
 def _backward_run(p0, lane0, n, xs, ys, f, k, count, st, lanes):
     """Undo Gaussian ``f`` over ``n`` tile pixels from flat index ``p0`` and add its gradients.
 
@@ -393,7 +428,7 @@ def _backward_run(p0, lane0, n, xs, ys, f, k, count, st, lanes):
         st[4, p] = (alpha * z + one_minus * rd) * m + rd * keep
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _backward_tile(
     t, n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, background,
     final_t, n_contrib, grad_color, grad_depth, grad_alpha, width, height, pair_grads, bg_grads,
@@ -411,6 +446,9 @@ def _backward_tile(
     count = np.zeros(TILE * TILE, np.int32)
     row_count = np.zeros(TILE, np.int64)
     lanes = np.zeros((N_GRAD, TILE), np.float32)
+    bg0 = _ZERO
+    bg1 = _ZERO
+    bg2 = _ZERO
     for ly in range(tile_h):
         for lx in range(tile_w):
             p = ly * TILE + lx
@@ -420,9 +458,9 @@ def _backward_tile(
             gc0 = grad_color[py, px, 0]
             gc1 = grad_color[py, px, 1]
             gc2 = grad_color[py, px, 2]
-            bg_grads[t, 0] += t_end * gc0
-            bg_grads[t, 1] += t_end * gc1
-            bg_grads[t, 2] += t_end * gc2
+            bg0 += t_end * gc0
+            bg1 += t_end * gc1
+            bg2 += t_end * gc2
             st[0, p] = t_end
             st[5, p] = gc0
             st[6, p] = gc1
@@ -434,6 +472,10 @@ def _backward_tile(
             st[9, p] = t_end * (grad_alpha[py, px] - bg_dot)
             count[p] = n_contrib[py, px]
             row_count[ly] = max(row_count[ly], n_contrib[py, px])
+    # Written once: neighbouring tiles' rows share cache lines and may run on other threads.
+    bg_grads[t, 0] = bg0
+    bg_grads[t, 1] = bg1
+    bg_grads[t, 2] = bg2
     k_end = 0
     for ly in range(tile_h):
         k_end = max(k_end, row_count[ly])
@@ -443,8 +485,11 @@ def _backward_tile(
         for ly in range(spans[k, 0], spans[k, 1] + 1):
             if k >= row_count[ly]:
                 continue
-            _backward_run(ly * TILE, 0, tile_w, xs, ys, f, np.int32(k), count, st, lanes)
-            touched = True
+            dy = np.float32(y0 + ly) + _HALF - f[1]
+            lo, hi = _row_lanes(f, dy, x0, tile_w)
+            if hi > lo:
+                _backward_run(ly * TILE + lo, lo, hi - lo, xs, ys, f, np.int32(k), count, st, lanes)
+                touched = True
         if touched:
             row = start + k
             for j in range(N_GRAD):
@@ -455,10 +500,10 @@ def _backward_tile(
                 pair_grads[row, j] = total
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def render_backward(
     tile_offsets, ids, means2d, conics, opacities, colors, depths, background,
-    final_t, n_contrib, grad_color, grad_depth, grad_alpha, width, height,
+    final_t, n_contrib, grad_color, grad_depth, grad_alpha, width, height, n_threads,
 ):
     """Gradients per tile entry (pairs, N_GRAD) and per tile for the background (n_tiles, 3).
 
@@ -471,15 +516,16 @@ def render_backward(
     n_tiles = n_x * ((height + TILE - 1) // TILE)
     pair_grads = np.zeros((tile_offsets[n_tiles], N_GRAD), np.float32)
     bg_grads = np.zeros((n_tiles, 3), np.float32)
-    for t in prange(n_tiles):
+    schedule = _balanced_schedule(tile_offsets, n_threads)
+    for i in prange(n_tiles):
         _backward_tile(
-            t, n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, background,
+            schedule[i], n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, background,
             final_t, n_contrib, grad_color, grad_depth, grad_alpha, width, height, pair_grads, bg_grads,
         )
     return pair_grads, bg_grads
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def reduce_pairs(order, pair_start, pair_of, pair_grads, n):
     """Sum each Gaussian's per-tile gradients into (n, N_GRAD); one writer per Gaussian."""
     out = np.zeros((n, N_GRAD), np.float32)
