@@ -5,6 +5,9 @@ from __future__ import annotations
 import json
 import resource
 import time
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -71,6 +74,25 @@ def side_by_side(rendered: Rendered, truth: Frame) -> np.ndarray:
     return np.concatenate([top_bgr, bottom], axis=0)
 
 
+def spread(items: list[int], count: int) -> list[int]:
+    """Up to ``count`` items evenly spaced over the list, first and last included."""
+    if len(items) <= count:
+        return list(items)
+    return [items[round(i * (len(items) - 1) / (count - 1))] for i in range(count)]
+
+
+def prefetched(load: Callable[[int], Frame], positions: Iterable[int], depth: int = 4) -> Iterator[Frame]:
+    """Frames in order, decoded by a background thread (image decoding releases the GIL)."""
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="prefetch") as pool:
+        pending: deque[Future[Frame]] = deque()
+        for position in positions:
+            pending.append(pool.submit(load, position))
+            if len(pending) > depth:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+
+
 def run(options: RunOptions, config: MapperConfig) -> dict:
     """Map, evaluate and write results.json, previews and the snapshot into ``options.out``."""
     device = pick_device(options.device)
@@ -90,19 +112,20 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
 
     keyframes = 0
     start = time.perf_counter()
-    progress = tqdm(selection.streamed, desc="mapping", unit="frame", disable=not options.progress)
-    for position in progress:
-        result = mapper.process(load(position))
+    progress = tqdm(total=len(selection.streamed), desc="mapping", unit="frame", disable=not options.progress)
+    for frame in prefetched(load, selection.streamed):
+        result = mapper.process(frame)
         keyframes += result.keyframe
-        progress.set_postfix(anchors=result.anchors, keyframes=keyframes)
+        progress.set_postfix(anchors=result.anchors, keyframes=keyframes, refresh=False)
+        progress.update()
+    progress.close()
     mapping_seconds = time.perf_counter() - start
 
     snapshot = mapper.snapshot()
     (out / "map.safetensors").write_bytes(snapshot)
     evaluation = {}
     render_seconds, renders = 0.0, 0
-    previews = set(selection.streamed[:: max(1, len(selection.streamed) // PREVIEW_COUNT)][:PREVIEW_COUNT])
-    previews |= set(selection.heldout[:PREVIEW_COUNT])
+    previews = set(spread(selection.streamed, PREVIEW_COUNT)) | set(spread(selection.heldout, PREVIEW_COUNT))
     for split, positions in (("streamed", selection.streamed), ("heldout", selection.heldout)):
         per_frame = []
         for position in tqdm(positions, desc=f"evaluating {split}", unit="frame", disable=not options.progress):
