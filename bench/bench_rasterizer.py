@@ -14,11 +14,15 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import platform
 import statistics
 import time
 from pathlib import Path
 
+import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts its thread pool)
+
+# isort: split
 import numba
 import torch
 
@@ -116,7 +120,8 @@ def main() -> None:
     env = (
         f"torch {torch.__version__} ({torch.get_num_threads()} threads), numba {numba.__version__} "
         f"({numba.get_num_threads()} threads, {numba.threading_layer()} layer), "
-        f"{platform.processor() or platform.machine()}"
+        f"{platform.processor() or platform.machine()}, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, "
+        f"load average {os.getloadavg()[0]:.1f} at the end"
     )
     print()
     print(markdown(rows))

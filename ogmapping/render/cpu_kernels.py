@@ -41,8 +41,8 @@ _C6 = np.float32(1.0 / 720.0)
 _C7 = np.float32(1.0 / 5040.0)
 # How often (in Gaussians) a tile rechecks which of its rows still have compositing pixels.
 _OPEN_CHECK_EVERY = 8
-# Pixels per block of a tile row processed together (one AVX2 register of float32).
-_LANES = 8
+# Tile-list entries the forward gathers at a time.
+_GATHER_BLOCK = 64
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -136,17 +136,15 @@ def _exp_neg(x):
 
 
 @njit(cache=True, error_model="numpy")
-def _gather(ids, start, end, means2d, conics, opacities, colors, depths, y0, tile_h):
-    """One tile's Gaussians, front to back, as contiguous rows plus the tile rows each one spans.
+def _gather(ids, start, k0, k1, means2d, conics, opacities, colors, depths, y0, tile_h, feats, spans):
+    """Copy entries [k0, k1) of one tile's list (front to back) into contiguous rows.
 
-    Row k: mean x, mean y, conic a, b, c, opacity, power threshold, colour r, g, b, depth.
-    ``spans[k]`` is the inclusive local row range whose pixel centres lie within the vertical
-    extent of the ellipse ``power <= threshold``, padded by half a pixel (empty when y1 < y0).
+    Row k of ``feats``: mean x, mean y, conic a, b, c, opacity, power threshold, colour r, g, b,
+    depth. ``spans[k]`` is the inclusive local row range whose pixel centres lie within the
+    vertical extent of the ellipse ``power <= threshold``, padded by half a pixel (empty when
+    y1 < y0).
     """
-    g = end - start
-    feats = np.empty((g, 11), np.float32)
-    spans = np.empty((g, 2), np.int64)
-    for k in range(g):
+    for k in range(k0, k1):
         idx = ids[start + k]
         o = opacities[idx]
         a = conics[idx, 0]
@@ -175,30 +173,6 @@ def _gather(ids, start, end, means2d, conics, opacities, colors, depths, y0, til
             hi_y = -1
         spans[k, 0] = lo_y
         spans[k, 1] = hi_y
-    return feats, spans
-
-
-@njit(inline="always", cache=True, error_model="numpy")
-def _row_lanes(f, dy, x0, tile_w):
-    """Lanes [lo, hi) of one tile row, in blocks of _LANES, that can hold pixels of ellipse ``f``.
-
-    Solves ``power(dx, dy) <= threshold`` for dx in float64 and pads by half a pixel, so only
-    pixels the exact per-pixel test rejects are ever left out; returns (0, 0) for a miss.
-    """
-    a = np.float64(f[2])
-    b = np.float64(f[3])
-    c = np.float64(f[4])
-    d = np.float64(dy)
-    disc = 2.0 * a * np.float64(f[6]) - (a * c - b * b) * d * d
-    if disc < 0.0 or a <= 0.0:
-        return 0, 0
-    half = np.sqrt(disc) / a
-    centre = np.float64(f[0]) - b * d / a - x0 - 0.5
-    lo = max(np.ceil(centre - half - 0.5), 0.0)
-    hi = min(np.floor(centre + half + 0.5), tile_w - 1.0)
-    if hi < lo:
-        return 0, 0
-    return (np.int64(lo) // _LANES) * _LANES, (np.int64(hi) // _LANES + 1) * _LANES
 
 
 @njit(inline="always", cache=True, error_model="numpy")
@@ -267,7 +241,7 @@ def _forward_tile(
     t, n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, background, width, height,
     out_color, out_depth, out_t, n_contrib,
 ):
-    """Forward of one tile: Gaussians front to back, each over the row blocks its ellipse reaches.
+    """Forward of one tile: Gaussians front to back, each over the tile rows its ellipse spans.
 
     Rows whose pixels have all stopped are skipped (rechecked every _OPEN_CHECK_EVERY Gaussians)
     and the tile ends when none is left; the per-pixel order and rules are the reference's.
@@ -278,7 +252,11 @@ def _forward_tile(
     tile_w = min(TILE, width - x0)
     tile_h = min(TILE, height - y0)
     start = tile_offsets[t]
-    feats, spans = _gather(ids, start, tile_offsets[t + 1], means2d, conics, opacities, colors, depths, y0, tile_h)
+    g = tile_offsets[t + 1] - start
+    # Gathered in blocks as compositing advances: most tiles saturate long before their list ends.
+    feats = np.empty((g, 11), np.float32)
+    spans = np.empty((g, 2), np.int64)
+    gathered = 0
     xs, ys = _pixel_centres(x0, y0)
     st = np.zeros((5, TILE * TILE), np.float32)
     st[0] = -_ONE  # pixels outside the image start (and stay) stopped
@@ -286,9 +264,12 @@ def _forward_tile(
         st[0, ly * TILE:ly * TILE + tile_w] = _ONE
     last = np.zeros(TILE * TILE, np.int32)
     open_rows = np.ones(TILE, np.bool_)
-    for k in range(feats.shape[0]):
+    for k in range(g):
         if k % _OPEN_CHECK_EVERY == 0 and not _refresh_open_rows(st, open_rows):
             break
+        if k == gathered:
+            gathered = min(g, gathered + _GATHER_BLOCK)
+            _gather(ids, start, k, gathered, means2d, conics, opacities, colors, depths, y0, tile_h, feats, spans)
         f = feats[k]
         ly = spans[k, 0]
         while ly <= spans[k, 1]:
@@ -370,20 +351,20 @@ def render_forward(
 
 
 @njit(inline="always", cache=True, error_model="numpy")
-def _backward_run(p0, lane0, n, xs, ys, f, k, count, st, lanes):
-    """Undo Gaussian ``f`` over ``n`` tile pixels from flat index ``p0`` and add its gradients.
+def _backward_run(p0, n, xs, ys, f, k, count, st, lanes):
+    """Undo Gaussian ``f`` over the first ``n`` pixels of the tile row starting at ``p0``.
 
     ``st`` (10, TILE^2) holds per pixel the transmittance, colour/depth behind (4), upstream
-    colour/depth gradients (4) and the T_final term; per-pixel gradient terms are added to
-    ``lanes`` (N_GRAD, TILE) from lane ``lane0`` and summed by the caller. Branch-free.
+    colour/depth gradients (4) and the T_final term; the pixels' gradient terms are added to
+    ``lanes`` (N_GRAD, TILE), one lane per column, which the caller sums. Branch-free and with
+    exact arithmetic blends, like ``_forward_run``, so LLVM vectorises it.
     """
     mx, my, ca, cb, cc, o, limit = f[0], f[1], f[2], f[3], f[4], f[5], f[6]
     c0, c1, c2, z = f[7], f[8], f[9], f[10]
     base = np.uint64(p0)
-    lane_base = np.uint64(lane0)
     for j in range(n):
         p = base + np.uint64(j)
-        q = lane_base + np.uint64(j)
+        q = np.uint64(j)
         dx = xs[p] - mx
         dy = ys[p] - my
         power = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
@@ -392,8 +373,9 @@ def _backward_run(p0, lane0, n, xs, ys, f, k, count, st, lanes):
         alpha = min(_ALPHA_MAX, raw)
         active = (k < count[p]) & (power <= limit) & (alpha >= _ALPHA_MIN)
         one_minus = _ONE - alpha
+        inv_one_minus = _ONE / one_minus
         t_after = st[0, p]
-        t_before = t_after / one_minus
+        t_before = t_after * inv_one_minus
         r0 = st[1, p]
         r1 = st[2, p]
         r2 = st[3, p]
@@ -408,7 +390,7 @@ def _backward_run(p0, lane0, n, xs, ys, f, k, count, st, lanes):
         lanes[8, q] += w * u2
         lanes[9, q] += w * ud
         g_alpha = t_before * ((c0 - r0) * u0 + (c1 - r1) * u1 + (c2 - r2) * u2 + (z - rd) * ud) + (
-            st[9, p] / one_minus
+            st[9, p] * inv_one_minus
         )
         differentiable = active & (raw <= _ALPHA_MAX)
         g_power = -alpha * g_alpha if differentiable else _ZERO
@@ -418,7 +400,6 @@ def _backward_run(p0, lane0, n, xs, ys, f, k, count, st, lanes):
         lanes[3, q] += g_power * dx * dy
         lanes[4, q] += g_power * _HALF * dy * dy
         lanes[5, q] += gauss * g_alpha if differentiable else _ZERO
-        # Exact arithmetic blends (m is 0 or 1), see _forward_run.
         m = _ONE if active else _ZERO
         keep = _ONE - m
         st[0, p] = t_before * m + t_after * keep
@@ -433,14 +414,17 @@ def _backward_tile(
     t, n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, background,
     final_t, n_contrib, grad_color, grad_depth, grad_alpha, width, height, pair_grads, bg_grads,
 ):
-    """Backward of one tile: Gaussians back to front over the same row blocks as the forward."""
+    """Backward of one tile: Gaussians back to front over the rows they span, as in the forward.
+
+    Both passes visit exactly the same pixels for a Gaussian (its span rows, whole) and apply the
+    same float32 per-pixel test, so the backward re-finds precisely the forward's contributors.
+    """
     ty = t // n_x
     x0 = (t - ty * n_x) * TILE
     y0 = ty * TILE
     tile_w = min(TILE, width - x0)
     tile_h = min(TILE, height - y0)
     start = tile_offsets[t]
-    feats, spans = _gather(ids, start, tile_offsets[t + 1], means2d, conics, opacities, colors, depths, y0, tile_h)
     xs, ys = _pixel_centres(x0, y0)
     st = np.zeros((10, TILE * TILE), np.float32)
     count = np.zeros(TILE * TILE, np.int32)
@@ -479,17 +463,17 @@ def _backward_tile(
     k_end = 0
     for ly in range(tile_h):
         k_end = max(k_end, row_count[ly])
+    feats = np.empty((k_end, 11), np.float32)
+    spans = np.empty((k_end, 2), np.int64)
+    _gather(ids, start, 0, k_end, means2d, conics, opacities, colors, depths, y0, tile_h, feats, spans)
     for k in range(k_end - 1, -1, -1):
         f = feats[k]
         touched = False
         for ly in range(spans[k, 0], spans[k, 1] + 1):
             if k >= row_count[ly]:
                 continue
-            dy = np.float32(y0 + ly) + _HALF - f[1]
-            lo, hi = _row_lanes(f, dy, x0, tile_w)
-            if hi > lo:
-                _backward_run(ly * TILE + lo, lo, hi - lo, xs, ys, f, np.int32(k), count, st, lanes)
-                touched = True
+            _backward_run(ly * TILE, tile_w, xs, ys, f, np.int32(k), count, st, lanes)
+            touched = True
         if touched:
             row = start + k
             for j in range(N_GRAD):
