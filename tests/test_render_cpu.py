@@ -12,6 +12,9 @@ from __future__ import annotations
 
 import math
 
+import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts its thread pool)
+
+# isort: split
 import pytest
 import torch
 
