@@ -30,12 +30,12 @@ class _Composite(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, colors, depths, background, radii, width, height):
         arrays = [_f32(t) for t in (means2d, conics, opacities, colors, depths, background)]
         m2d, con, opa, col, dep, bg = arrays
-        visible = np.flatnonzero(radii.cpu().numpy() > 0)
+        radii_np = np.ascontiguousarray(radii.to("cpu", torch.int32).numpy())
+        visible = np.flatnonzero(radii_np > 0)
+        # Stable, so equal depths keep index order, as in the reference.
         order = visible[np.argsort(dep[visible], kind="stable")].astype(np.int32)
         n_threads = numba.get_num_threads()
-        tile_offsets, ids, pair_start, pair_of = kernels.bin_tiles(
-            order, m2d, radii.to(torch.int32).cpu().numpy(), width, height, n_threads
-        )
+        tile_offsets, ids, pair_start, pair_of = kernels.bin_tiles(order, m2d, radii_np, width, height, n_threads)
         color, accum_depth, final_t, n_contrib = kernels.render_forward(
             tile_offsets, ids, m2d, con, opa, col, dep, bg, width, height, n_threads
         )

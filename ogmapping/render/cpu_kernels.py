@@ -43,6 +43,8 @@ _C7 = np.float32(1.0 / 5040.0)
 _OPEN_CHECK_EVERY = 8
 # Tile-list entries the forward gathers at a time.
 _GATHER_BLOCK = 64
+# The backward skips either half of a tile row (one 8-float AVX2 register each) that it cannot touch.
+_HALF_ROW = 8
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -351,8 +353,8 @@ def render_forward(
 
 
 @njit(inline="always", cache=True, error_model="numpy")
-def _backward_run(p0, n, xs, ys, f, k, count, st, lanes):
-    """Undo Gaussian ``f`` over the first ``n`` pixels of the tile row starting at ``p0``.
+def _backward_run(p0, lane0, n, xs, ys, f, k, count, st, lanes):
+    """Undo Gaussian ``f`` over ``n`` pixels of a tile row from flat index ``p0`` (column ``lane0``).
 
     ``st`` (10, TILE^2) holds per pixel the transmittance, colour/depth behind (4), upstream
     colour/depth gradients (4) and the T_final term; the pixels' gradient terms are added to
@@ -362,9 +364,10 @@ def _backward_run(p0, n, xs, ys, f, k, count, st, lanes):
     mx, my, ca, cb, cc, o, limit = f[0], f[1], f[2], f[3], f[4], f[5], f[6]
     c0, c1, c2, z = f[7], f[8], f[9], f[10]
     base = np.uint64(p0)
+    lane_base = np.uint64(lane0)
     for j in range(n):
         p = base + np.uint64(j)
-        q = np.uint64(j)
+        q = lane_base + np.uint64(j)
         dx = xs[p] - mx
         dy = ys[p] - my
         power = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
@@ -407,6 +410,27 @@ def _backward_run(p0, n, xs, ys, f, k, count, st, lanes):
         st[2, p] = (alpha * c1 + one_minus * r1) * m + r1 * keep
         st[3, p] = (alpha * c2 + one_minus * r2) * m + r2 * keep
         st[4, p] = (alpha * z + one_minus * rd) * m + rd * keep
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def _halves_in_reach(p0, n, xs, ys, f, k, count):
+    """Whether columns [0, _HALF_ROW) and [_HALF_ROW, n) of a row hold a pixel that Gaussian ``f``
+    (list entry ``k``) can reach: inside its threshold ellipse and not yet past its stop."""
+    mx, my, ca, cb, cc, limit = f[0], f[1], f[2], f[3], f[4], f[6]
+    base = np.uint64(p0)
+    left = 0
+    right = 0
+    for j in range(n):
+        p = base + np.uint64(j)
+        dx = xs[p] - mx
+        dy = ys[p] - my
+        power = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+        reach = 1 if ((k < count[p]) & (power <= limit)) else 0
+        if j < _HALF_ROW:
+            left |= reach
+        else:
+            right |= reach
+    return left != 0, right != 0
 
 
 @njit(cache=True, error_model="numpy")
@@ -472,8 +496,15 @@ def _backward_tile(
         for ly in range(spans[k, 0], spans[k, 1] + 1):
             if k >= row_count[ly]:
                 continue
-            _backward_run(ly * TILE, tile_w, xs, ys, f, np.int32(k), count, st, lanes)
-            touched = True
+            # Columns [0, 8) and [8, tile_w) where some pixel may be active; the test is the run's
+            # own float32 test, so skipping a half never drops a contributor.
+            p0 = ly * TILE
+            left, right = _halves_in_reach(p0, tile_w, xs, ys, f, np.int32(k), count)
+            if left or right:
+                lane0 = 0 if left else _HALF_ROW
+                lane1 = tile_w if right else min(_HALF_ROW, tile_w)
+                _backward_run(p0 + lane0, lane0, lane1 - lane0, xs, ys, f, np.int32(k), count, st, lanes)
+                touched = True
         if touched:
             row = start + k
             for j in range(N_GRAD):
