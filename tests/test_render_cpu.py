@@ -112,6 +112,14 @@ def test_parity_opaque_stack() -> None:
     assert_parity(scene, 64, 48)
 
 
+def test_parity_equal_depths() -> None:
+    """Overlapping Gaussians at exactly the same depth composite in index order in both backends."""
+    scene = mixed_scene(9, 50, 64, 48)
+    scene["means"][:, 2] = 2.0
+    scene["means"][:, :2] *= 0.2
+    assert_parity(scene, 64, 48, torch.tensor([0.1, 0.1, 0.1]))
+
+
 def test_empty_scene() -> None:
     scene = {k: v[:0] for k, v in mixed_scene(5, 4, 64, 48).items()}
     background = torch.tensor([0.2, 0.4, 0.6])

@@ -23,6 +23,20 @@ def _f32(t: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
 
 
+def _depth_order(depths: np.ndarray, visible: np.ndarray) -> np.ndarray:
+    """Visible indices front to back, equal depths in index order (the reference's stable sort).
+
+    numpy's default sort is several times faster than its stable one; exact ties are rare, and
+    only then is the stable sort needed.
+    """
+    keys = depths[visible]
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    if np.any(sorted_keys[1:] == sorted_keys[:-1]):
+        order = np.argsort(keys, kind="stable")
+    return visible[order].astype(np.int32)
+
+
 class _Composite(torch.autograd.Function):
     """Screen-space Gaussians -> (colour, accumulated depth, alpha) images."""
 
@@ -31,9 +45,7 @@ class _Composite(torch.autograd.Function):
         arrays = [_f32(t) for t in (means2d, conics, opacities, colors, depths, background)]
         m2d, con, opa, col, dep, bg = arrays
         radii_np = np.ascontiguousarray(radii.to("cpu", torch.int32).numpy())
-        visible = np.flatnonzero(radii_np > 0)
-        # Stable, so equal depths keep index order, as in the reference.
-        order = visible[np.argsort(dep[visible], kind="stable")].astype(np.int32)
+        order = _depth_order(dep, np.flatnonzero(radii_np > 0))
         n_threads = numba.get_num_threads()
         tile_offsets, ids, pair_start, pair_of = kernels.bin_tiles(order, m2d, radii_np, width, height, n_threads)
         color, accum_depth, final_t, n_contrib = kernels.render_forward(
