@@ -93,9 +93,10 @@ def assert_parity(scene, width, height, background=None) -> dict[str, float]:
 
 @pytest.mark.parametrize(
     ("seed", "n", "width", "height"),
-    [(0, 200, 64, 48), (1, 800, 64, 48), (2, 2000, 64, 48), (3, 1500, 160, 120)],
+    [(0, 200, 64, 48), (1, 800, 64, 48), (2, 2000, 64, 48), (3, 1500, 160, 120), (10, 600, 53, 37)],
 )
 def test_parity_mixed_scenes(seed: int, n: int, width: int, height: int) -> None:
+    """Several seeds and sizes, including partial edge tiles (53x37)."""
     scene = mixed_scene(seed, n, width, height)
     assert_parity(scene, width, height, torch.tensor([0.3, 0.6, 0.1]))
 
