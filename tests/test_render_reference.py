@@ -102,6 +102,51 @@ def test_stop_and_clamp_rules_are_exercised() -> None:
     torch.testing.assert_close(out.alpha, alpha, rtol=1e-10, atol=1e-12)
 
 
+def test_projection_matches_matrix_form() -> None:
+    """Means, depths and 2D covariances against the textbook EWA formulas with explicit matrices."""
+    scene = random_scene(5, 12)
+    angle = torch.tensor(0.3, dtype=torch.float64)
+    viewmat = torch.eye(4, dtype=torch.float64)
+    viewmat[:3, :3] = torch.tensor(
+        [[torch.cos(angle), 0.0, torch.sin(angle)], [0.0, 1.0, 0.0], [-torch.sin(angle), 0.0, torch.cos(angle)]]
+    )
+    viewmat[:3, 3] = torch.tensor([0.1, -0.2, 0.3])
+    _, K = camera()
+    proj = project_gaussians(
+        scene["means"], scene["quats"], scene["scales"], scene["opacities"], viewmat, K, WIDTH, HEIGHT
+    )
+    p_cam = scene["means"] @ viewmat[:3, :3].T + viewmat[:3, 3]
+    assert bool((p_cam[:, 2] > 0.5).all())
+    x, y, z = p_cam.unbind(-1)
+    torch.testing.assert_close(proj.depths, z)
+    torch.testing.assert_close(proj.means2d[:, 0], K[0, 0] * x / z + K[0, 2])
+    torch.testing.assert_close(proj.means2d[:, 1], K[1, 1] * y / z + K[1, 2])
+
+    q = torch.nn.functional.normalize(scene["quats"], dim=-1)
+    w, qx, qy, qz = q.unbind(-1)
+    rot = torch.stack([
+        1 - 2 * (qy**2 + qz**2), 2 * (qx * qy - w * qz), 2 * (qx * qz + w * qy),
+        2 * (qx * qy + w * qz), 1 - 2 * (qx**2 + qz**2), 2 * (qy * qz - w * qx),
+        2 * (qx * qz - w * qy), 2 * (qy * qz + w * qx), 1 - 2 * (qx**2 + qy**2),
+    ], dim=-1).reshape(-1, 3, 3)
+    cov3d = rot @ torch.diag_embed(scene["scales"] ** 2) @ rot.transpose(1, 2)
+    # The principal point is the image centre, so the Jacobian limits are 3DGS's symmetric 1.3x FOV.
+    lim_x = 1.3 * 0.5 * WIDTH / K[0, 0]
+    lim_y = 1.3 * 0.5 * HEIGHT / K[1, 1]
+    tx = (x / z).clamp(-lim_x, lim_x)
+    ty = (y / z).clamp(-lim_y, lim_y)
+    jac = torch.zeros(len(z), 2, 3, dtype=torch.float64)
+    jac[:, 0, 0] = K[0, 0] / z
+    jac[:, 0, 2] = -K[0, 0] * tx / z
+    jac[:, 1, 1] = K[1, 1] / z
+    jac[:, 1, 2] = -K[1, 1] * ty / z
+    w_rot = viewmat[:3, :3]
+    cov2d = jac @ w_rot @ cov3d @ w_rot.T @ jac.transpose(1, 2) + 0.3 * torch.eye(2, dtype=torch.float64)
+    a, b, c = proj.conics.unbind(-1)
+    inverse = torch.stack([torch.stack([a, b], -1), torch.stack([b, c], -1)], -2)
+    torch.testing.assert_close(inverse @ cov2d, torch.eye(2, dtype=torch.float64).expand(len(z), 2, 2))
+
+
 def smooth_scene() -> dict[str, torch.Tensor]:
     """Three large, half-transparent Gaussians near the image centre.
 

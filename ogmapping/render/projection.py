@@ -46,12 +46,6 @@ def rotation_entries(quats: torch.Tensor) -> list[list[torch.Tensor]]:
     ]
 
 
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices (N, 3, 3) of (w, x, y, z) quaternions, normalised here."""
-    rows = [torch.stack(row, dim=-1) for row in rotation_entries(quats)]
-    return torch.stack(rows, dim=-2)
-
-
 def alpha_extent(opacities: torch.Tensor) -> torch.Tensor:
     """Mahalanobis radius inside which ``opacity * exp(-0.5 d^2)`` stays >= ALPHA_MIN (0 below it)."""
     ratio = (opacities / ALPHA_MIN).clamp_min(1.0)
