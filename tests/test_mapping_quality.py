@@ -1,0 +1,54 @@
+"""The mapper, end to end through ``ogmap run``, judged by image quality.
+
+Floors are set a little below what the code measured (see bench/RESULTS.md), so a regression
+fails them. They run on small inputs to keep the suite fast.
+"""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from ogmapping.config import build
+from ogmapping.runner import RunOptions, run
+
+RESULT_KEYS = {"streamed", "heldout", "processing_fps", "snapshot_bytes", "anchors", "gaussians", "device",
+               "preset", "resolution"}
+SYNTHETIC_PSNR_FLOOR = 30.0
+REAL_160_PSNR_FLOOR = 24.0
+REAL_320_PSNR_FLOOR = 22.0
+
+
+def test_synthetic_scene_reaches_30_db(tmp_path):
+    options = RunOptions(data="synthetic", format="synthetic", frames="0:12", scale=0.25, preset="sparse",
+                         out=tmp_path, progress=False)
+    results = run(options, build("sparse"))
+    assert results.keys() >= RESULT_KEYS
+    assert results["streamed"]["frames"] == 11 and results["heldout"]["frames"] == 1
+    assert results["streamed"]["psnr"] >= SYNTHETIC_PSNR_FLOOR
+    assert results["streamed"]["depth_l1_cm"] < 3.0
+    assert (tmp_path / "map.safetensors").stat().st_size == results["snapshot_bytes"]
+    assert list(tmp_path.glob("streamed_*.png")) and list(tmp_path.glob("heldout_*.png"))
+
+
+@pytest.mark.realdata
+def test_seven_scenes_160x120_holds_its_quality(seven_scenes, tmp_path):
+    command = [sys.executable, "-m", "ogmapping.cli", "run", "--data", str(seven_scenes), "--frames", "0:40",
+               "--scale", "0.25", "--preset", "sparse-fast", "--out", str(tmp_path), "--quiet"]
+    subprocess.run(command, check=True, capture_output=True, timeout=600)
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["resolution"] == [160, 120]
+    assert results["streamed"]["psnr"] >= REAL_160_PSNR_FLOOR
+    assert results["heldout"]["psnr"] >= REAL_160_PSNR_FLOOR - 1.0
+    assert results["heldout"]["depth_l1_cm"] < 5.0
+
+
+@pytest.mark.realdata
+def test_seven_scenes_320x240_holds_its_quality(seven_scenes, tmp_path):
+    options = RunOptions(data=str(seven_scenes), frames="0:20", scale=0.5, preset="sparse-fast", out=tmp_path,
+                         progress=False)
+    results = run(options, build("sparse-fast"))
+    assert results["resolution"] == [320, 240]
+    assert results["heldout"]["psnr"] >= REAL_320_PSNR_FLOOR
+    assert results["streamed"]["psnr"] >= REAL_320_PSNR_FLOOR
