@@ -102,6 +102,27 @@ def test_stop_and_clamp_rules_are_exercised() -> None:
     torch.testing.assert_close(out.alpha, alpha, rtol=1e-10, atol=1e-12)
 
 
+def test_gaussian_that_stops_every_pixel() -> None:
+    """A tiny opaque Gaussian ends compositing at every pixel it reaches; the faint layer behind it
+    passes the transmittance test elsewhere, and would wrongly pass it there too if the stopping
+    Gaussian were skipped (it contributes to no pixel itself)."""
+    centre = 0.5 / 7.0  # a pixel centre, (4.5, 3.5), seen from the camera
+    scene = {
+        "means": torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.5], [2 * centre, 2 * centre, 2.0], [0.0, 0.0, 2.5]]),
+        "quats": torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(4, 1),
+        "scales": torch.tensor([[50.0] * 3, [50.0] * 3, [1e-3] * 3, [50.0] * 3]),
+        # T = 0.01 after the first (alpha clamped to 0.99), about 1.02e-4 after the second.
+        "opacities": torch.tensor([1.0, 0.9898, 0.99, 0.005]),
+        "colors": torch.eye(4)[:, :3] + 0.1,
+    }
+    scene = {k: v.double() for k, v in scene.items()}
+    out = render(scene)
+    color, depth, alpha = naive_render(scene, torch.zeros(3, dtype=torch.float64))
+    torch.testing.assert_close(out.color, color, rtol=1e-10, atol=1e-14)
+    torch.testing.assert_close(out.depth, depth, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(out.alpha, alpha, rtol=1e-10, atol=1e-14)
+
+
 def test_projection_matches_matrix_form() -> None:
     """Means, depths and 2D covariances against the textbook EWA formulas with explicit matrices."""
     scene = random_scene(5, 12)

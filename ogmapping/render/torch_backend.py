@@ -3,8 +3,9 @@
 Per pixel, Gaussians go front to back: ``alpha = min(ALPHA_MAX, opacity * exp(-power))``; a
 Gaussian with ``alpha < ALPHA_MIN`` is skipped; compositing stops before the first Gaussian that
 would take the transmittance below TRANSMITTANCE_MIN. Pixels are processed one 16x16 tile at a
-time (only Gaussians whose bounding square touches the tile), each tile under activation
-checkpointing, so memory stays bounded by one tile's work even for large scenes.
+time (only Gaussians whose bounding square touches the tile and that reach one of its pixels),
+each tile under activation checkpointing, so memory stays bounded by one tile's work even for
+large scenes.
 """
 
 from __future__ import annotations
@@ -15,6 +16,18 @@ from torch.utils.checkpoint import checkpoint
 from ogmapping.render import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN, RenderOutput
 from ogmapping.render.projection import Projection, project_gaussians, tile_grid
 from ogmapping.render.tiles import TILE_SIZE, tile_lists
+
+
+def tile_alphas(
+    pixels: torch.Tensor, means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor
+) -> torch.Tensor:
+    """Alpha (P, G) of Gaussians at pixel centres (P, 2), zero where below ALPHA_MIN."""
+    dx = pixels[:, :1] - means2d[:, 0]
+    dy = pixels[:, 1:] - means2d[:, 1]
+    a, b, c = conics.unbind(-1)
+    power = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+    alpha = torch.clamp(opacities * torch.exp(-power), max=ALPHA_MAX)
+    return torch.where(alpha >= ALPHA_MIN, alpha, torch.zeros_like(alpha))
 
 
 def composite_tile(
@@ -29,12 +42,7 @@ def composite_tile(
 
     Returns the weighted colour sum (P, 3), weighted depth sum (P,) and final transmittance (P,).
     """
-    dx = pixels[:, :1] - means2d[:, 0]
-    dy = pixels[:, 1:] - means2d[:, 1]
-    a, b, c = conics.unbind(-1)
-    power = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-    alpha = torch.clamp(opacities * torch.exp(-power), max=ALPHA_MAX)
-    alpha = torch.where(alpha >= ALPHA_MIN, alpha, torch.zeros_like(alpha))
+    alpha = tile_alphas(pixels, means2d, conics, opacities)
     with torch.no_grad():
         included = torch.cumprod(1.0 - alpha, dim=1) >= TRANSMITTANCE_MIN
     alpha = torch.where(included, alpha, torch.zeros_like(alpha))
@@ -42,6 +50,19 @@ def composite_tile(
     before = torch.cat([torch.ones_like(transmittance[:, :1]), transmittance[:, :-1]], dim=1)
     weights = alpha * before
     return weights @ colors, weights @ depths, transmittance[:, -1]
+
+
+@torch.no_grad()
+def active_gaussians(
+    pixels: torch.Tensor, means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor
+) -> torch.Tensor:
+    """Which depth-sorted Gaussians (G,) matter to some pixel: composited there, or the one that
+    stops compositing there. Every other one multiplies each pixel's transmittance by exactly 1
+    before its stop, so dropping it changes no output and spares the differentiable pass."""
+    alpha = tile_alphas(pixels, means2d, conics, opacities)
+    transmittance = torch.cumprod(1.0 - alpha, dim=1)
+    before = torch.cat([torch.ones_like(transmittance[:, :1]), transmittance[:, :-1]], dim=1)
+    return ((alpha > 0) & (before >= TRANSMITTANCE_MIN)).any(0)
 
 
 def rasterize(
@@ -86,6 +107,9 @@ def rasterize(
         grid_y, grid_x = torch.meshgrid(rows, cols, indexing="ij")
         pixels = torch.stack([grid_x.reshape(-1), grid_y.reshape(-1)], dim=-1)
         sel = ids[start:end]
+        sel = sel[active_gaussians(pixels, proj.means2d[sel], proj.conics[sel], opacities[sel])]
+        if sel.numel() == 0:
+            continue
         args = (pixels, proj.means2d[sel], proj.conics[sel], opacities[sel], colors[sel], proj.depths[sel])
         if needs_grad:
             c_sum, d_sum, t_final = checkpoint(composite_tile, *args, use_reentrant=False)
