@@ -1,9 +1,17 @@
 """Numba kernels of the cpu rasterizer: tile binning, front-to-back forward, back-to-front backward.
 
-All per-pixel arithmetic is float32 with float32 constants (a float64 literal would silently
-promote the hot loops). ``fastmath`` stays off so the backward recomputes exactly the alphas the
-forward used. Work is split by tile; every write goes to memory owned by the tile (its pixels, its
-slice of the pair list), and per-Gaussian gradients are reduced from per-pair buffers afterwards,
+Layout: Gaussians are binned into 16x16 tiles (counting sort that keeps depth order); each tile
+keeps its per-pixel state in flat float32 arrays and walks its list one Gaussian at a time over
+the tile rows that Gaussian's ellipse spans. Those pixel loops are written branch-free (masks,
+exact 0/1 arithmetic blends, a polynomial exp) so LLVM vectorises them with AVX2.
+
+Exactness: all per-pixel arithmetic is float32 with float32 constants (a float64 literal would
+silently promote the loops) and ``fastmath`` stays off, so the backward re-finds exactly the
+contributors the forward composited. ``error_model="numpy"``: Python's would put a zero check
+(an early exit) on every division and stop vectorisation.
+
+Threads: work is split by tile; every write goes to memory owned by the tile (its pixels, its
+slice of the pair list) and per-Gaussian gradients are summed from per-pair buffers afterwards,
 so the kernels are race-free and deterministic whatever the thread count.
 """
 
@@ -24,8 +32,8 @@ _T_MIN = np.float32(TRANSMITTANCE_MIN)
 _HALF = np.float32(0.5)
 _ONE = np.float32(1.0)
 _ZERO = np.float32(0.0)
-# Added to the exact log-threshold before skipping a Gaussian without evaluating exp(); far larger
-# than float32 rounding, so the skip never removes a Gaussian the alpha test would keep.
+# Added to the exact threshold log(opacity / ALPHA_MIN) on ``power`` beyond which a pixel is outside
+# a Gaussian; far larger than float32 rounding, so it never rejects a pixel the alpha test keeps.
 _POWER_SLACK = np.float32(1e-3)
 # exp(-x) helper: arguments are clamped to [0, _EXP_CLAMP] (thresholds stay below 5.6 for
 # opacities <= 1); Cody-Waite split of ln 2; exp(r) on [-ln2/2, ln2/2] by the degree-6 polynomial
