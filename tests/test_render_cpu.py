@@ -148,7 +148,8 @@ def test_float64_inputs_keep_dtype_and_one_signature() -> None:
     out, grads = render_and_grad(cpu_backend, scene, 64, 48, torch.float64)
     assert out.color.dtype == torch.float64 and grads["means.grad"].dtype == torch.float64
     render_and_grad(cpu_backend, scene, 64, 48, torch.float32)
-    for kernel in (cpu_kernels.bin_tiles, cpu_kernels.render_forward, cpu_kernels.render_backward):
+    kernels = (cpu_kernels.bin_tiles, cpu_kernels.render_forward, cpu_kernels.render_backward, cpu_kernels.reduce_pairs)
+    for kernel in kernels:
         assert len(kernel.signatures) == 1, kernel.signatures
 
 
