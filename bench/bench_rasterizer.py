@@ -2,8 +2,9 @@
 
 Both backends render the same random scene (Gaussians scattered through the camera frustum 1-4 m
 away, scales 0.5-5 cm, opacities 0.1-0.9) in one process; each timing is the median over
-``--repeats`` runs after a warm-up. Every case also checks that the two agree (relative norm
-error of the images and of every gradient). Prints a Markdown table; ``--json`` also saves it.
+``--repeats`` (cpu) or ``--ref-repeats`` (torch) runs after a warm-up, the two interleaved.
+Every case also checks that the two agree (relative norm error of the images and of every
+gradient). Prints a Markdown table; ``--json`` also saves it.
 
     .venv/bin/python bench/bench_rasterizer.py
     .venv/bin/python bench/bench_rasterizer.py --sizes 50000 --resolutions 320x240 --json out.json
@@ -69,14 +70,19 @@ def bench_case(n: int, width: int, height: int, args: argparse.Namespace) -> dic
     g = torch.Generator().manual_seed(args.seed + 1)
     weights = (torch.rand(height, width, 3, generator=g), torch.rand(height, width, generator=g),
                torch.rand(height, width, generator=g))
-    timings, results = {}, {}
-    for name, backend, repeats in (("cpu", cpu_backend, args.repeats), ("torch", torch_backend, args.ref_repeats)):
+    backends = {"cpu": cpu_backend, "torch": torch_backend}
+    for backend in backends.values():
         forward_backward(backend, params, viewmat, K, width, height, weights)
-        runs = []
-        for _ in range(repeats):
-            elapsed, results[name] = forward_backward(backend, params, viewmat, K, width, height, weights)
-            runs.append(elapsed)
-        timings[name] = statistics.median(runs) * 1e3
+    # Interleave the two backends' runs so load from other processes hits both alike.
+    plan = sorted(
+        [(i / args.repeats, "cpu") for i in range(args.repeats)]
+        + [(i / args.ref_repeats, "torch") for i in range(args.ref_repeats)]
+    )
+    runs, results = {"cpu": [], "torch": []}, {}
+    for _, name in plan:
+        elapsed, results[name] = forward_backward(backends[name], params, viewmat, K, width, height, weights)
+        runs[name].append(elapsed)
+    timings = {name: statistics.median(times) * 1e3 for name, times in runs.items()}
     errors = {key: relative_error(results["cpu"][key], results["torch"][key]) for key in results["torch"]}
     return {
         "gaussians": n, "width": width, "height": height,
