@@ -53,8 +53,8 @@ _P6 = np.float32(0.0013941108435)
 _OPEN_CHECK_EVERY = 8
 # Tile-list entries the forward gathers at a time.
 _GATHER_BLOCK = 64
-# The backward skips either half of a tile row (one 8-float AVX2 register each) that it cannot touch.
-_HALF_ROW = 8
+# Tiles are stored as two half-tiles of this many columns (one AVX2 register of float32 per row).
+_HALF_W = 8
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -147,13 +147,13 @@ def _exp_neg(x):
 
 
 @njit(cache=True, error_model="numpy")
-def _gather(ids, start, k0, k1, means2d, conics, opacities, colors, depths, y0, tile_h, feats, spans):
+def _gather(ids, start, k0, k1, means2d, conics, opacities, colors, depths, x0, y0, tile_w, tile_h, feats, spans):
     """Copy entries [k0, k1) of one tile's list (front to back) into contiguous rows.
 
     Row k of ``feats``: mean x, mean y, conic a, b, c, opacity, power threshold, colour r, g, b,
-    depth. ``spans[k]`` is the inclusive local row range whose pixel centres lie within the
-    vertical extent of the ellipse ``power <= threshold``, padded by half a pixel (empty when
-    y1 < y0).
+    depth. ``spans[k]`` holds the inclusive range of tile rows and of half-tiles (columns
+    [0, _HALF_W) and [_HALF_W, TILE)) whose pixel centres can lie within the ellipse
+    ``power <= threshold``: its bounding box, padded by half a pixel. Empty ranges have end < start.
     """
     for k in range(k0, k1):
         idx = ids[start + k]
@@ -174,16 +174,24 @@ def _gather(ids, start, k0, k1, means2d, conics, opacities, colors, depths, y0, 
         feats[k, 9] = colors[idx, 2]
         feats[k, 10] = depths[idx]
         det = np.float64(a) * np.float64(c) - np.float64(b) * np.float64(b)
-        lo_y, hi_y = 0, tile_h - 1
+        lo_y, hi_y, lo_x, hi_x = 0, tile_h - 1, 0, tile_w - 1
         if det > 0.0 and limit > 0.0:
+            # The ellipse d^T conic d <= 2 limit spans sqrt(2 limit Sigma_ii) along each axis,
+            # Sigma = conic^-1 = [[c, -b], [-b, a]] / det.
+            ex = np.sqrt(2.0 * np.float64(limit) * np.float64(c) / det) + 0.5
             ey = np.sqrt(2.0 * np.float64(limit) * np.float64(a) / det) + 0.5
+            mx = np.float64(means2d[idx, 0])
             my = np.float64(means2d[idx, 1])
+            lo_x = max(lo_x, np.int64(max(np.ceil(mx - ex - 0.5) - x0, -1.0)))
+            hi_x = min(hi_x, np.int64(min(np.floor(mx + ex - 0.5) - x0, tile_w + 0.0)))
             lo_y = max(lo_y, np.int64(max(np.ceil(my - ey - 0.5) - y0, -1.0)))
             hi_y = min(hi_y, np.int64(min(np.floor(my + ey - 0.5) - y0, tile_h + 0.0)))
         elif limit <= 0.0:
             hi_y = -1
         spans[k, 0] = lo_y
         spans[k, 1] = hi_y
+        spans[k, 2] = lo_x // _HALF_W
+        spans[k, 3] = hi_x // _HALF_W if hi_x >= lo_x else -1
 
 
 @njit(inline="always", cache=True, error_model="numpy")
@@ -222,28 +230,37 @@ def _forward_run(p0, n, xs, ys, f, k_next, st, last):
 
 @njit(inline="always", cache=True, error_model="numpy")
 def _refresh_open_rows(st, open_rows):
-    """Mark rows with a pixel still compositing; returns whether any row is open."""
+    """Mark half-tile rows with a pixel still compositing; returns whether any is open."""
     any_open = False
-    for ly in range(TILE):
-        row_open = False
-        for lx in range(TILE):
-            if st[0, ly * TILE + lx] > _ZERO:
-                row_open = True
-                break
-        open_rows[ly] = row_open
-        any_open = any_open or row_open
+    for h in range(2):
+        for ly in range(TILE):
+            row_open = False
+            for j in range(_HALF_W):
+                if st[0, _pixel(h, ly, j)] > _ZERO:
+                    row_open = True
+                    break
+            open_rows[h, ly] = row_open
+            any_open = any_open or row_open
     return any_open
 
 
 @njit(inline="always", cache=True, error_model="numpy")
+def _pixel(h, ly, j):
+    """Flat index of tile pixel (row ly, column h * _HALF_W + j): half-tiles are stored one after
+    the other, row-major, so consecutive rows of one half form a contiguous run."""
+    return h * (_HALF_W * TILE) + ly * _HALF_W + j
+
+
+@njit(inline="always", cache=True, error_model="numpy")
 def _pixel_centres(x0, y0):
-    """Flat (TILE^2) x and y pixel-centre coordinates of a tile, row-major."""
+    """Pixel-centre x and y coordinates of a tile in the flat layout of ``_pixel``."""
     xs = np.empty(TILE * TILE, np.float32)
     ys = np.empty(TILE * TILE, np.float32)
-    for ly in range(TILE):
-        for lx in range(TILE):
-            xs[ly * TILE + lx] = np.float32(x0 + lx) + _HALF
-            ys[ly * TILE + lx] = np.float32(y0 + ly) + _HALF
+    for h in range(2):
+        for ly in range(TILE):
+            for j in range(_HALF_W):
+                xs[_pixel(h, ly, j)] = np.float32(x0 + h * _HALF_W + j) + _HALF
+                ys[_pixel(h, ly, j)] = np.float32(y0 + ly) + _HALF
     return xs, ys
 
 
@@ -252,10 +269,10 @@ def _forward_tile(
     t, n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, background, width, height,
     out_color, out_depth, out_t, n_contrib,
 ):
-    """Forward of one tile: Gaussians front to back, each over the tile rows its ellipse spans.
+    """Forward of one tile: Gaussians front to back, each over the half-tile rows it can reach.
 
-    Rows whose pixels have all stopped are skipped (rechecked every _OPEN_CHECK_EVERY Gaussians)
-    and the tile ends when none is left; the per-pixel order and rules are the reference's.
+    Half-tile rows whose pixels have all stopped are skipped (rechecked every _OPEN_CHECK_EVERY
+    Gaussians) and the tile ends when none is left; per pixel, order and rules are the reference's.
     """
     ty = t // n_x
     x0 = (t - ty * n_x) * TILE
@@ -266,34 +283,39 @@ def _forward_tile(
     g = tile_offsets[t + 1] - start
     # Gathered in blocks as compositing advances: most tiles saturate long before their list ends.
     feats = np.empty((g, 11), np.float32)
-    spans = np.empty((g, 2), np.int64)
+    spans = np.empty((g, 4), np.int64)
     gathered = 0
     xs, ys = _pixel_centres(x0, y0)
     st = np.zeros((5, TILE * TILE), np.float32)
     st[0] = -_ONE  # pixels outside the image start (and stay) stopped
     for ly in range(tile_h):
-        st[0, ly * TILE:ly * TILE + tile_w] = _ONE
+        for lx in range(tile_w):
+            st[0, _pixel(lx // _HALF_W, ly, lx % _HALF_W)] = _ONE
     last = np.zeros(TILE * TILE, np.int32)
-    open_rows = np.ones(TILE, np.bool_)
+    open_rows = np.ones((2, TILE), np.bool_)
     for k in range(g):
         if k % _OPEN_CHECK_EVERY == 0 and not _refresh_open_rows(st, open_rows):
             break
         if k == gathered:
             gathered = min(g, gathered + _GATHER_BLOCK)
-            _gather(ids, start, k, gathered, means2d, conics, opacities, colors, depths, y0, tile_h, feats, spans)
+            _gather(
+                ids, start, k, gathered, means2d, conics, opacities, colors, depths, x0, y0, tile_w, tile_h,
+                feats, spans,
+            )
         f = feats[k]
-        ly = spans[k, 0]
-        while ly <= spans[k, 1]:
-            if not open_rows[ly]:
-                ly += 1
-                continue
-            first = ly
-            while ly <= spans[k, 1] and open_rows[ly]:
-                ly += 1
-            _forward_run(first * TILE, (ly - first) * TILE, xs, ys, f, np.int32(k + 1), st, last)
+        for h in range(spans[k, 2], spans[k, 3] + 1):
+            ly = spans[k, 0]
+            while ly <= spans[k, 1]:
+                if not open_rows[h, ly]:
+                    ly += 1
+                    continue
+                first = ly
+                while ly <= spans[k, 1] and open_rows[h, ly]:
+                    ly += 1
+                _forward_run(_pixel(h, first, 0), (ly - first) * _HALF_W, xs, ys, f, np.int32(k + 1), st, last)
     for ly in range(tile_h):
         for lx in range(tile_w):
-            p = ly * TILE + lx
+            p = _pixel(lx // _HALF_W, ly, lx % _HALF_W)
             py = y0 + ly
             px = x0 + lx
             t_end = abs(st[0, p])
@@ -362,6 +384,18 @@ def render_forward(
 
 
 @njit(inline="always", cache=True, error_model="numpy")
+def _row_major_centres(x0, y0):
+    """Pixel-centre x and y coordinates of a tile, flat and row-major (the backward's layout)."""
+    xs = np.empty(TILE * TILE, np.float32)
+    ys = np.empty(TILE * TILE, np.float32)
+    for ly in range(TILE):
+        for lx in range(TILE):
+            xs[ly * TILE + lx] = np.float32(x0 + lx) + _HALF
+            ys[ly * TILE + lx] = np.float32(y0 + ly) + _HALF
+    return xs, ys
+
+
+@njit(inline="always", cache=True, error_model="numpy")
 def _backward_run(p0, lane0, n, xs, ys, f, k, count, st, lanes):
     """Undo Gaussian ``f`` over ``n`` pixels of a tile row from flat index ``p0`` (column ``lane0``).
 
@@ -423,7 +457,7 @@ def _backward_run(p0, lane0, n, xs, ys, f, k, count, st, lanes):
 
 @njit(inline="always", cache=True, error_model="numpy")
 def _halves_in_reach(p0, n, xs, ys, f, k, count):
-    """Whether columns [0, _HALF_ROW) and [_HALF_ROW, n) of a row hold a pixel that Gaussian ``f``
+    """Whether columns [0, _HALF_W) and [_HALF_W, n) of a row hold a pixel that Gaussian ``f``
     (list entry ``k``) can reach: inside its threshold ellipse and not yet past its stop."""
     mx, my, ca, cb, cc, limit = f[0], f[1], f[2], f[3], f[4], f[6]
     base = np.uint64(p0)
@@ -435,7 +469,7 @@ def _halves_in_reach(p0, n, xs, ys, f, k, count):
         dy = ys[p] - my
         power = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
         reach = 1 if ((k < count[p]) & (power <= limit)) else 0
-        if j < _HALF_ROW:
+        if j < _HALF_W:
             left |= reach
         else:
             right |= reach
@@ -449,8 +483,10 @@ def _backward_tile(
 ):
     """Backward of one tile: Gaussians back to front over the rows they span, as in the forward.
 
-    Both passes visit exactly the same pixels for a Gaussian (its span rows, whole) and apply the
-    same float32 per-pixel test, so the backward re-finds precisely the forward's contributors.
+    Per pixel state is row-major here (16-lane rows vectorise best for this heavier loop). A
+    Gaussian is visited on the forward's half-tile rows (``_gather`` spans) minus those where no
+    pixel can have used it, and pixels apply the forward's float32 test, so the backward re-finds
+    precisely the forward's contributors.
     """
     ty = t // n_x
     x0 = (t - ty * n_x) * TILE
@@ -458,7 +494,7 @@ def _backward_tile(
     tile_w = min(TILE, width - x0)
     tile_h = min(TILE, height - y0)
     start = tile_offsets[t]
-    xs, ys = _pixel_centres(x0, y0)
+    xs, ys = _row_major_centres(x0, y0)
     st = np.zeros((10, TILE * TILE), np.float32)
     count = np.zeros(TILE * TILE, np.int32)
     row_count = np.zeros(TILE, np.int64)
@@ -497,21 +533,24 @@ def _backward_tile(
     for ly in range(tile_h):
         k_end = max(k_end, row_count[ly])
     feats = np.empty((k_end, 11), np.float32)
-    spans = np.empty((k_end, 2), np.int64)
-    _gather(ids, start, 0, k_end, means2d, conics, opacities, colors, depths, y0, tile_h, feats, spans)
+    spans = np.empty((k_end, 4), np.int64)
+    _gather(ids, start, 0, k_end, means2d, conics, opacities, colors, depths, x0, y0, tile_w, tile_h, feats, spans)
     for k in range(k_end - 1, -1, -1):
         f = feats[k]
         touched = False
         for ly in range(spans[k, 0], spans[k, 1] + 1):
             if k >= row_count[ly]:
                 continue
-            # Columns [0, 8) and [8, tile_w) where some pixel may be active; the test is the run's
-            # own float32 test, so skipping a half never drops a contributor.
+            # Halves of the row (columns [0, 8) and [8, tile_w)) that the forward visited for this
+            # Gaussian and where some pixel may be active; the test is the run's own float32
+            # test, so skipping a half never drops a contributor.
             p0 = ly * TILE
             left, right = _halves_in_reach(p0, tile_w, xs, ys, f, np.int32(k), count)
+            left = left and spans[k, 2] <= 0 <= spans[k, 3]
+            right = right and spans[k, 2] <= 1 <= spans[k, 3]
             if left or right:
-                lane0 = 0 if left else _HALF_ROW
-                lane1 = tile_w if right else min(_HALF_ROW, tile_w)
+                lane0 = 0 if left else _HALF_W
+                lane1 = tile_w if right else min(_HALF_W, tile_w)
                 _backward_run(p0 + lane0, lane0, lane1 - lane0, xs, ys, f, np.int32(k), count, st, lanes)
                 touched = True
         if touched:
