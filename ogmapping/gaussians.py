@@ -52,16 +52,16 @@ def generate(
     anchor_scale = torch.exp(anchors.log_scales[rows])  # (V, 3)
     means = positions.unsqueeze(1) + anchors.offsets[rows] * anchor_scale.unsqueeze(1)
     scales = anchor_scale.unsqueeze(1) * decoded.scale_factor
-    keep = decoded.opacity > 0
-    slot_index = torch.arange(anchors.n_offsets, device=rows.device).expand(rows.shape[0], -1)
+    keep = torch.nonzero(decoded.opacity.reshape(-1) > 0).squeeze(-1)  # one nonzero, shared by every gather
+    n = anchors.n_offsets
     return GaussianSet(
-        means=means[keep],
-        quats=decoded.quat[keep],
-        scales=scales[keep],
-        opacities=decoded.opacity[keep],
-        colors=decoded.color[keep],
-        rows=rows.unsqueeze(1).expand_as(keep)[keep],
-        slots=slot_index[keep],
+        means=means.reshape(-1, 3)[keep],
+        quats=decoded.quat.reshape(-1, 4)[keep],
+        scales=scales.reshape(-1, 3)[keep],
+        opacities=decoded.opacity.reshape(-1)[keep],
+        colors=decoded.color.reshape(-1, 3)[keep],
+        rows=rows[keep // n],
+        slots=keep % n,
         anchor_rows=rows,
         anchor_opacity=decoded.opacity.detach().amax(dim=1),
     )

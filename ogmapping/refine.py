@@ -33,9 +33,10 @@ def accumulate(anchors: AnchorMap, gaussians: GaussianSet, means2d_grad: torch.T
     if means2d_grad is None or len(gaussians) == 0:
         return
     scale = means2d_grad.new_tensor([width / 2.0, height / 2.0])
-    norms = (means2d_grad * scale).norm(dim=-1)
-    rows, slots = gaussians.rows[visible], gaussians.slots[visible]
-    anchors.grad_sum.index_put_((rows, slots), norms[visible].to(anchors.grad_sum), accumulate=True)
+    seen = torch.nonzero(visible).squeeze(-1)
+    norms = (means2d_grad[seen] * scale).norm(dim=-1)
+    rows, slots = gaussians.rows[seen], gaussians.slots[seen]
+    anchors.grad_sum.index_put_((rows, slots), norms.to(anchors.grad_sum), accumulate=True)
     anchors.grad_count.index_put_((rows, slots), torch.ones_like(rows), accumulate=True)
 
 
