@@ -1,9 +1,10 @@
-"""Compiled CPU rasterizer: torch projection, Numba compositing with a hand-written backward.
+"""Compiled CPU rasterizer: Numba projection and compositing, each with a hand-written backward.
 
-Projection stays in torch (``projection.py``) so autograd carries gradients from the screen-space
-quantities back to means, quaternions and scales; compositing is one ``autograd.Function`` whose
-forward and backward run the float32 kernels of ``cpu_kernels``. Results follow exactly the rules
-of the torch reference and come back in the input dtype.
+Two ``autograd.Function``s chained by autograd: projection (``cpu_projection``) turns the Gaussian
+parameters into screen-space means, conics, depths and radii, and compositing (``cpu_kernels``)
+turns those into images. Keeping ``means2d`` a separate autograd node is what gives it the
+``.grad`` refinement reads. Both run float32 kernels; results follow exactly the rules of the
+torch reference and come back in the input dtype.
 """
 
 from __future__ import annotations
@@ -12,9 +13,9 @@ import numba
 import numpy as np
 import torch
 
-from ogmapping.render import RenderOutput
+from ogmapping.render import RenderOutput, cpu_projection
 from ogmapping.render import cpu_kernels as kernels
-from ogmapping.render.projection import project_gaussians
+from ogmapping.render.projection import Projection
 from ogmapping.render.torch_backend import finish_output
 
 
@@ -35,6 +36,41 @@ def _depth_order(depths: np.ndarray, visible: np.ndarray) -> np.ndarray:
     if np.any(sorted_keys[1:] == sorted_keys[:-1]):
         order = np.argsort(keys, kind="stable")
     return visible[order].astype(np.int32)
+
+
+class _Project(torch.autograd.Function):
+    """Gaussian parameters -> (means2d, conics, depths, radii); opacity only culls, so gets no gradient."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, viewmat, K, width, height):
+        inputs = [_f32(t) for t in (means, quats, scales, opacities, viewmat, K)]
+        means2d, conics, depths, radii = cpu_projection.project_forward(*inputs, width, height)
+        ctx.state = (inputs, width, height)
+        ctx.dtypes = (means.dtype, quats.dtype, scales.dtype)
+        ctx.device = means.device
+        radii = torch.from_numpy(radii).to(means.device)
+        ctx.mark_non_differentiable(radii)
+        like = {"dtype": means.dtype, "device": means.device}
+        return (
+            torch.from_numpy(means2d).to(**like),
+            torch.from_numpy(conics).to(**like),
+            torch.from_numpy(depths).to(**like),
+            radii,
+        )
+
+    @staticmethod
+    def backward(ctx, grad_means2d, grad_conics, grad_depths, _grad_radii):
+        inputs, width, height = ctx.state
+        n = inputs[0].shape[0]
+        upstream = [
+            np.zeros(shape, np.float32) if g is None else _f32(g)
+            for g, shape in ((grad_means2d, (n, 2)), (grad_conics, (n, 3)), (grad_depths, (n,)))
+        ]
+        grads = cpu_projection.project_backward(*inputs, width, height, *upstream)
+        means, quats, scales = (
+            torch.from_numpy(g).to(dtype=dtype, device=ctx.device) for g, dtype in zip(grads, ctx.dtypes, strict=True)
+        )
+        return means, quats, scales, None, None, None, None, None
 
 
 class _Composite(torch.autograd.Function):
@@ -89,7 +125,7 @@ def rasterize(
     background: torch.Tensor | None = None,
 ) -> RenderOutput:
     """Render with the compiled kernels; see ``ogmapping.render.rasterize`` for the arguments."""
-    proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height)
+    proj = Projection(*_Project.apply(means, quats, scales, opacities, viewmat, K, int(width), int(height)))
     if proj.means2d.requires_grad:
         proj.means2d.retain_grad()
     bg = torch.zeros(3, dtype=means.dtype, device=means.device) if background is None else background.to(means)
