@@ -1,0 +1,144 @@
+"""The fused Numba projection against ``projection.project_gaussians``: outputs and gradients.
+
+Outputs are compared with the torch projection run in float32 on the same inputs (the kernel
+follows it operation by operation, so they agree to float32 rounding and cull identically);
+gradients with torch autograd through it in float64, as relative norm errors below 1e-4, overall
+and separately on the Gaussians that exercise each branch (visible, clamped Jacobian, culled).
+"""
+
+from __future__ import annotations
+
+import math
+
+import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts its thread pool)
+
+# isort: split
+import pytest
+import torch
+
+from ogmapping.render import ALPHA_MIN, cpu_backend, cpu_projection
+from ogmapping.render.projection import FOV_MARGIN, project_gaussians
+
+TOLERANCE = 1e-4
+WIDTH, HEIGHT = 96, 72
+
+
+def camera(seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """An off-centre principal point and a rotated, translated world-to-camera pose."""
+    g = torch.Generator().manual_seed(seed)
+    K = torch.tensor([[0.8 * WIDTH, 0.0, 0.45 * WIDTH], [0.0, 0.85 * WIDTH, 0.55 * HEIGHT], [0.0, 0.0, 1.0]])
+    axis_angle = 0.3 * torch.randn(3, generator=g)
+    viewmat = torch.eye(4)
+    viewmat[:3, :3] = torch.linalg.matrix_exp(torch.linalg.cross(torch.eye(3), axis_angle.expand(3, 3)))
+    viewmat[:3, 3] = 0.5 * torch.randn(3, generator=g)
+    return viewmat, K
+
+
+def scene(seed: int, n: int, viewmat: torch.Tensor, K: torch.Tensor) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+    """Gaussians placed by pixel and depth: in view, behind, far off-screen, beyond the Jacobian's
+    clamp (some still reaching the image), tiny, huge, faint. Returns them and the kinds."""
+    g = torch.Generator().manual_seed(seed)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    z = 0.5 + 3.5 * torch.rand(n, generator=g)
+    u = (torch.rand(n, generator=g) * 1.2 - 0.1) * WIDTH
+    v = (torch.rand(n, generator=g) * 1.2 - 0.1) * HEIGHT
+    scales = torch.exp(torch.empty(n, 3).uniform_(math.log(0.005), math.log(0.08), generator=g))
+    opacities = torch.empty(n).uniform_(0.05, 1.0, generator=g)
+    kind = torch.randint(0, 10, (n,), generator=g)
+    z[kind == 1] = torch.empty(int((kind == 1).sum())).uniform_(-2.0, 0.009, generator=g)
+    u[kind == 2] += 20.0 * WIDTH
+    beyond = (kind == 3) | (kind == 4)
+    margin = (1.0 + FOV_MARGIN) * WIDTH
+    sign = torch.randint(0, 2, (n,), generator=g) * 2 - 1
+    u[beyond] = WIDTH / 2 + sign[beyond] * margin * torch.empty(int(beyond.sum())).uniform_(0.6, 0.9, generator=g)
+    v[kind == 4] = HEIGHT / 2 + sign[kind == 4] * (1.0 + FOV_MARGIN) * HEIGHT * 0.8
+    scales[beyond] *= 8.0
+    scales[kind == 5] *= 0.01
+    scales[kind == 6] = torch.empty(int((kind == 6).sum()), 3).uniform_(0.5, 2.0, generator=g)
+    opacities[kind == 7] = 0.5 * ALPHA_MIN
+    camera_points = torch.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], dim=-1)
+    means = (camera_points - viewmat[:3, 3]) @ viewmat[:3, :3]
+    quats = torch.randn(n, 4, generator=g)
+    return {"means": means, "quats": quats, "scales": scales, "opacities": opacities}, kind
+
+
+def fused(params: dict[str, torch.Tensor], viewmat: torch.Tensor, K: torch.Tensor):
+    arrays = [params[k].float().numpy() for k in ("means", "quats", "scales", "opacities")]
+    return [*arrays, viewmat.float().numpy(), K.float().numpy(), WIDTH, HEIGHT]
+
+
+def relative_error(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a.double() - b.double()).norm() / b.double().norm().clamp_min(1e-30))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_forward_matches_torch_projection(seed: int) -> None:
+    viewmat, K = camera(seed)
+    params, kind = scene(seed, 4000, viewmat, K)
+    means2d, conics, depths, radii = cpu_projection.project_forward(*fused(params, viewmat, K))
+    ref = project_gaussians(*(params[k] for k in ("means", "quats", "scales", "opacities")), viewmat, K, WIDTH, HEIGHT)
+    assert torch.equal(torch.from_numpy(radii), ref.radii)
+    torch.testing.assert_close(torch.from_numpy(means2d), ref.means2d, rtol=1e-6, atol=1e-5)
+    torch.testing.assert_close(torch.from_numpy(conics), ref.conics, rtol=1e-6, atol=1e-8)
+    torch.testing.assert_close(torch.from_numpy(depths), ref.depths, rtol=1e-6, atol=1e-7)
+    visible = ref.radii > 0
+    # Every kind of Gaussian is represented, and the clamped ones partly reach the image.
+    assert bool(visible[kind == 0].any()) and not bool(visible[(kind == 1) | (kind == 2) | (kind == 7)].any())
+    assert 0 < int(visible[(kind == 3) | (kind == 4)].sum()) < int(((kind == 3) | (kind == 4)).sum())
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_gradients_match_autograd(seed: int) -> None:
+    """Random upstream gradients on every Gaussian, culled ones included."""
+    viewmat, K = camera(seed)
+    params, kind = scene(seed, 4000, viewmat, K)
+    n = kind.shape[0]
+    g = torch.Generator().manual_seed(seed + 100)
+    upstream = (torch.randn(n, 2, generator=g), torch.randn(n, 3, generator=g), torch.randn(n, generator=g))
+    leaves = {k: params[k].double().clone().requires_grad_(True) for k in ("means", "quats", "scales")}
+    ref = project_gaussians(
+        leaves["means"], leaves["quats"], leaves["scales"], params["opacities"].double(), viewmat.double(),
+        K.double(), WIDTH, HEIGHT,
+    )
+    outputs = (ref.means2d, ref.conics, ref.depths)
+    sum((o * u.double()).sum() for o, u in zip(outputs, upstream, strict=True)).backward()
+    grads = cpu_projection.project_backward(*fused(params, viewmat, K), *(u.numpy() for u in upstream))
+
+    visible = ref.radii > 0
+    groups = {"all": torch.ones_like(visible), "visible": visible, "clamped": (kind == 3) | (kind == 4),
+              "behind": kind == 1, "off-screen": kind == 2, "tiny": kind == 5, "huge": kind == 6}
+    for name, grad in zip(("means", "quats", "scales"), grads, strict=True):
+        grad = torch.from_numpy(grad)
+        for group, mask in groups.items():
+            error = relative_error(grad[mask], leaves[name].grad[mask])
+            assert error < TOLERANCE, (name, group, error)
+
+
+def test_clamped_jacobian_passes_no_gradient_through_the_clamp() -> None:
+    """A Gaussian far beyond the clamp: its conic no longer depends on how far (zero x-gradient in
+    the camera frame from the conic), while its centre still moves with it."""
+    viewmat, K = torch.eye(4), torch.tensor([[50.0, 0.0, 32.0], [0.0, 50.0, 24.0], [0.0, 0.0, 1.0]])
+    params = {"means": torch.tensor([[10.0, 0.1, 2.0]]), "quats": torch.tensor([[0.9, 0.1, 0.3, -0.2]]),
+              "scales": torch.tensor([[0.3, 0.2, 0.1]]), "opacities": torch.tensor([0.8])}
+    conic_only = (torch.zeros(1, 2), torch.ones(1, 3), torch.zeros(1))
+    arrays = [params[k].numpy() for k in ("means", "quats", "scales", "opacities")]
+    grad_means, _, _ = cpu_projection.project_backward(*arrays, viewmat.numpy(), K.numpy(), 64, 48,
+                                                       *(u.numpy() for u in conic_only))
+    assert grad_means[0, 0] == 0.0 and grad_means[0, 2] != 0.0
+
+
+def test_backend_opacity_gradient_comes_from_compositing_only() -> None:
+    """The projection gives opacity no gradient; the backend's opacity gradient is compositing's,
+    and float32 and float64 callers share one compiled signature of each projection kernel."""
+    viewmat, K = camera(3)
+    params, _ = scene(3, 500, viewmat, K)
+    for dtype in (torch.float64, torch.float32):
+        leaves = {k: v.to(dtype).clone().requires_grad_(True) for k, v in params.items()}
+        colors = torch.rand(500, 3, dtype=dtype)
+        out = cpu_backend.rasterize(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"],
+                                    colors, viewmat.to(dtype), K.to(dtype), WIDTH, HEIGHT)
+        out.means2d.sum().backward()  # means2d alone: no path to the opacities
+        assert leaves["opacities"].grad is None
+        assert out.means2d.grad is not None and leaves["means"].grad.dtype == dtype
+    for kernel in (cpu_projection.project_forward, cpu_projection.project_backward):
+        assert len(kernel.signatures) == 1, kernel.signatures
