@@ -142,3 +142,10 @@ def test_backend_opacity_gradient_comes_from_compositing_only() -> None:
         assert out.means2d.grad is not None and leaves["means"].grad.dtype == dtype
     for kernel in (cpu_projection.project_forward, cpu_projection.project_backward):
         assert len(kernel.signatures) == 1, kernel.signatures
+
+
+def test_camera_gradient_is_refused() -> None:
+    viewmat, K = camera(4)
+    params, _ = scene(4, 10, viewmat, K)
+    with pytest.raises(NotImplementedError):
+        cpu_backend.rasterize(*params.values(), torch.rand(10, 3), viewmat.requires_grad_(True), K, WIDTH, HEIGHT)

@@ -124,7 +124,13 @@ def rasterize(
     height: int,
     background: torch.Tensor | None = None,
 ) -> RenderOutput:
-    """Render with the compiled kernels; see ``ogmapping.render.rasterize`` for the arguments."""
+    """Render with the compiled kernels; see ``ogmapping.render.rasterize`` for the arguments.
+
+    Camera poses and intrinsics are fixed here: the projection's backward has no gradient for them,
+    so asking for one is an error rather than a silent zero.
+    """
+    if viewmat.requires_grad or K.requires_grad:
+        raise NotImplementedError("the cpu backend has no gradient for viewmat or K; use backend='torch'")
     proj = Projection(*_Project.apply(means, quats, scales, opacities, viewmat, K, int(width), int(height)))
     if proj.means2d.requires_grad:
         proj.means2d.retain_grad()
