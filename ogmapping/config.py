@@ -19,7 +19,7 @@ import yaml
 @dataclass
 class ModelConfig:
     encoding: str = "hash"  # "hash" (dense version) or "anchor" (sparse version: a feature per anchor)
-    n_offsets: int = 10
+    n_offsets: int = 5  # Scaffold-GS uses 10; 5 renders as well here at half the cost (bench/RESULTS.md)
     feature_dim: int = 32
     hidden_dim: int = 32
     hash_levels: int = 8
@@ -42,16 +42,16 @@ class OctreeConfig:
 class KeyframeConfig:
     overlap_threshold: float = 0.8  # a frame becomes a keyframe when N_overlap / N_union is below this
     local_threshold: float = 0.3  # rho_w: keyframes overlapping K_new at least this much are "local"
-    local_count: int = 2  # b1
-    global_count: int = 2  # b2
-    iterations: int = 30  # k: optimisation iterations per new keyframe
-    first_iterations: int = 100  # iterations on the very first keyframe
+    local_count: int = 1  # b1
+    global_count: int = 1  # b2
+    iterations: int = 15  # k: optimisation iterations per new keyframe
+    first_iterations: int = 60  # iterations on the very first keyframe
 
 
 @dataclass
 class RefineConfig:
     interval: int = 10  # m: grow and prune every m iterations
-    grad_threshold: float = 0.0004  # tau_0 on the mean screen-space gradient (NDC units, as 3DGS)
+    grad_threshold: float = 0.0008  # tau_0 on the mean screen-space gradient (NDC units, as 3DGS)
     min_observations: int = 3  # a Gaussian's gradient is trusted after this many renders
     prune_opacity: float = 0.01  # rho: an anchor whose Gaussians all stay below it is removed
     prune_min_observations: int = 10  # anchors seen fewer times are never pruned

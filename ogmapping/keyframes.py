@@ -13,6 +13,7 @@ import torch
 
 from ogmapping.camera import Intrinsics
 from ogmapping.config import KeyframeConfig
+from ogmapping.ssim import ReferenceStatistics
 
 
 @dataclass
@@ -23,6 +24,7 @@ class Keyframe:
     intrinsics: Intrinsics
     c2w: torch.Tensor  # (4, 4)
     codes: torch.Tensor  # sorted unique coarsest-cell codes this frame observes
+    ssim_reference: ReferenceStatistics | None = None  # cached SSIM statistics of ``rgb``
 
 
 def overlap_ratio(first: torch.Tensor, second: torch.Tensor) -> float:

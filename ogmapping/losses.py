@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 
 from ogmapping.config import LossConfig
-from ogmapping.ssim import ssim_map
+from ogmapping.ssim import ReferenceStatistics, ssim_map
 
 
 def depth_l1(render_depth: torch.Tensor, gt_depth: torch.Tensor) -> torch.Tensor:
@@ -27,15 +27,17 @@ def mapping_loss(
     gt_depth: torch.Tensor,
     scales: torch.Tensor,
     weights: LossConfig,
+    gt_statistics: ReferenceStatistics | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Weighted sum of the four terms for one view.
 
     ``render_color``/``gt_color`` (H, W, 3) in [0, 1], depths (H, W) in metres (gt 0 = no
-    measurement), ``scales`` (N, 3) of the Gaussians that were rendered.
+    measurement), ``scales`` (N, 3) of the Gaussians that were rendered; ``gt_statistics`` is the
+    cached SSIM side of ``gt_color`` when the caller has it.
     """
     parts = {
         "color": (render_color - gt_color).abs().mean(),
-        "ssim": 1.0 - ssim_map(render_color, gt_color).mean(),
+        "ssim": 1.0 - ssim_map(render_color, gt_color, gt_statistics).mean(),
         "depth": depth_l1(render_depth, gt_depth),
         "scale": scales.prod(dim=-1).mean() if scales.numel() else scales.sum() * 0.0,
     }

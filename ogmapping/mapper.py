@@ -33,6 +33,7 @@ from ogmapping.losses import mapping_loss
 from ogmapping.octree import SparseVoxelOctree
 from ogmapping.preprocess import clip_depth, register_depth
 from ogmapping.render import RenderOutput, rasterize, resolve_backend
+from ogmapping.ssim import reference_statistics
 
 
 @dataclass
@@ -115,7 +116,8 @@ class Mapper:
         with self._timed("keyframes"):
             is_keyframe = self.keyframes.should_insert(codes)
             if is_keyframe:
-                self.keyframes.insert(Keyframe(frame.index, rgb, depth, frame.color_intrinsics, c2w, codes))
+                self.keyframes.insert(Keyframe(frame.index, rgb, depth, frame.color_intrinsics, c2w, codes,
+                                               reference_statistics(rgb)))
         iterations, loss, grown = 0, float("nan"), 0
         if is_keyframe:
             first = len(self.keyframes) == 1
@@ -169,7 +171,7 @@ class Mapper:
             gaussians, output = self._render(keyframe.c2w, keyframe.intrinsics)
             with self._timed("loss"):
                 loss, _ = mapping_loss(output.color, output.depth, keyframe.rgb, keyframe.depth,
-                                       gaussians.scales, self.config.loss)
+                                       gaussians.scales, self.config.loss, keyframe.ssim_reference)
             total = total + loss / len(window)
             renders.append((gaussians, output, keyframe))
         with self._timed("backward"):

@@ -8,6 +8,8 @@ a border afterwards, the loss simply averages the whole map.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 import torch.nn.functional as F
 
@@ -39,16 +41,40 @@ def _blur(x: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
     return F.conv2d(x, vertical, padding=(pad, 0), groups=channels)
 
 
-def ssim_map(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Per-pixel, per-channel SSIM of two (H, W, C) images in [0, 1]; returns (H, W, C)."""
+@dataclass
+class ReferenceStatistics:
+    """The blurred mean and second moment of a fixed image, computed once per keyframe.
+
+    The ground-truth side of SSIM never changes during mapping, so caching it saves two of the
+    five blurs of every loss evaluation.
+    """
+
+    image: torch.Tensor  # (1, C, H, W)
+    mean: torch.Tensor
+    square_mean: torch.Tensor
+
+
+def reference_statistics(b: torch.Tensor) -> ReferenceStatistics:
+    """Statistics of an (H, W, C) image for repeated ``ssim_map`` calls against it."""
+    y = b.permute(2, 0, 1)[None].contiguous()
+    taps = gaussian_window(dtype=y.dtype, device=y.device)
+    return ReferenceStatistics(image=y, mean=_blur(y, taps), square_mean=_blur(y * y, taps))
+
+
+def ssim_map(a: torch.Tensor, b: torch.Tensor, reference: ReferenceStatistics | None = None) -> torch.Tensor:
+    """Per-pixel, per-channel SSIM of two (H, W, C) images in [0, 1]; returns (H, W, C).
+
+    ``reference``, when given, must be ``reference_statistics(b)``.
+    """
     if a.shape != b.shape or a.dim() != 3:
         raise ValueError(f"ssim_map expects two (H, W, C) images of one shape, got {a.shape} and {b.shape}")
+    reference = reference if reference is not None else reference_statistics(b)
     x = a.permute(2, 0, 1)[None]
-    y = b.permute(2, 0, 1)[None]
+    y = reference.image
     taps = gaussian_window(dtype=x.dtype, device=x.device)
-    mu_x, mu_y = _blur(x, taps), _blur(y, taps)
+    mu_x, mu_y = _blur(x, taps), reference.mean
     var_x = _blur(x * x, taps) - mu_x**2
-    var_y = _blur(y * y, taps) - mu_y**2
+    var_y = reference.square_mean - mu_y**2
     cov = _blur(x * y, taps) - mu_x * mu_y
     numerator = (2 * mu_x * mu_y + C1) * (2 * cov + C2)
     denominator = (mu_x**2 + mu_y**2 + C1) * (var_x + var_y + C2)

@@ -59,3 +59,11 @@ def test_weights_and_gradients():
     total.backward()
     for tensor in (render_color, render_depth, scales):
         assert tensor.grad is not None and tensor.grad.abs().sum() > 0
+
+
+def test_cached_reference_statistics_give_the_same_ssim():
+    from ogmapping.ssim import reference_statistics, ssim_map
+
+    generator = torch.Generator().manual_seed(3)
+    a, b = torch.rand(20, 24, 3, generator=generator), torch.rand(20, 24, 3, generator=generator)
+    assert torch.allclose(ssim_map(a, b, reference_statistics(b)), ssim_map(a, b), atol=1e-6)
