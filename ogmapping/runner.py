@@ -25,6 +25,7 @@ from ogmapping.preprocess import clip_depth, register_depth, resize_frame
 from ogmapping.selection import select
 
 PREVIEW_COUNT = 3
+MEMORY_LOG_INTERVAL = 100  # streamed frames between peak-memory records
 
 
 @dataclass
@@ -74,6 +75,16 @@ def side_by_side(rendered: Rendered, truth: Frame) -> np.ndarray:
     return np.concatenate([top_bgr, bottom], axis=0)
 
 
+def memory_snapshot(frames: int, anchors: int, device: torch.device) -> dict:
+    """Peak memory so far, so a run can show it stays flat once the scene stops growing."""
+    return {
+        "frames": frames,
+        "anchors": anchors,
+        "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+        "peak_gpu_memory_bytes": torch.cuda.max_memory_allocated(device) if device.type == "cuda" else None,
+    }
+
+
 def spread(items: list[int], count: int) -> list[int]:
     """Up to ``count`` items evenly spaced over the list, first and last included."""
     if len(items) <= count:
@@ -112,12 +123,17 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
 
     keyframes = 0
     start = time.perf_counter()
+    memory_log = []
     progress = tqdm(total=len(selection.streamed), desc="mapping", unit="frame", disable=not options.progress)
-    for frame in prefetched(load, selection.streamed):
+    for count, frame in enumerate(prefetched(load, selection.streamed), start=1):
         result = mapper.process(frame)
         keyframes += result.keyframe
         progress.set_postfix(anchors=result.anchors, keyframes=keyframes, refresh=False)
         progress.update()
+        if count % MEMORY_LOG_INTERVAL == 0:
+            memory_log.append(memory_snapshot(count, result.anchors, device))
+            if options.progress:
+                tqdm.write(json.dumps(memory_log[-1]))
     progress.close()
     mapping_seconds = time.perf_counter() - start
 
@@ -156,6 +172,7 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
         "time_per_stage_seconds": stats["timings"],
         "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
         "peak_gpu_memory_bytes": torch.cuda.max_memory_allocated(device) if device.type == "cuda" else None,
+        "memory_per_100_frames": memory_log,
         "device": str(device),
         "backend": stats["backend"],
         "preset": options.preset,
