@@ -15,9 +15,10 @@ from ogmapping.runner import RunOptions, run
 
 RESULT_KEYS = {"streamed", "heldout", "processing_fps", "snapshot_bytes", "anchors", "gaussians", "device",
                "preset", "resolution"}
-SYNTHETIC_PSNR_FLOOR = 30.0
-REAL_160_PSNR_FLOOR = 24.0
-REAL_320_PSNR_FLOOR = 22.0
+SYNTHETIC_PSNR_FLOOR = 30.0  # the bar; measured 31.9 dB
+TSDF_HELDOUT_PSNR_0_99_160 = 18.67  # Open3D TSDF fusion of frames 0-99 at 160x120 (SOURCE.md)
+REAL_160_PSNR_FLOOR = 25.5  # measured 26.29 dB held-out (bench/RESULTS.md)
+REAL_320_PSNR_FLOOR = 23.5  # measured 24.41 dB held-out on frames 0-59
 
 
 def test_synthetic_scene_reaches_30_db(tmp_path):
@@ -33,22 +34,23 @@ def test_synthetic_scene_reaches_30_db(tmp_path):
 
 
 @pytest.mark.realdata
-def test_seven_scenes_160x120_holds_its_quality(seven_scenes, tmp_path):
-    command = [sys.executable, "-m", "ogmapping.cli", "run", "--data", str(seven_scenes), "--frames", "0:40",
-               "--scale", "0.25", "--preset", "sparse-fast", "--out", str(tmp_path), "--quiet"]
+def test_seven_scenes_0_99_at_160x120_beats_tsdf_clearly(seven_scenes, tmp_path):
+    command = [sys.executable, "-m", "ogmapping.cli", "run", "--data", str(seven_scenes), "--frames", "0:100",
+               "--scale", "0.25", "--preset", "sparse", "--out", str(tmp_path), "--quiet"]
     subprocess.run(command, check=True, capture_output=True, timeout=600)
     results = json.loads((tmp_path / "results.json").read_text())
     assert results["resolution"] == [160, 120]
+    assert results["heldout"]["frames"] == 10
+    assert results["heldout"]["psnr"] >= REAL_160_PSNR_FLOOR > TSDF_HELDOUT_PSNR_0_99_160 + 5
     assert results["streamed"]["psnr"] >= REAL_160_PSNR_FLOOR
-    assert results["heldout"]["psnr"] >= REAL_160_PSNR_FLOOR - 1.0
-    assert results["heldout"]["depth_l1_cm"] < 5.0
+    assert results["heldout"]["depth_l1_cm"] < 3.5
 
 
 @pytest.mark.realdata
 def test_seven_scenes_320x240_holds_its_quality(seven_scenes, tmp_path):
-    options = RunOptions(data=str(seven_scenes), frames="0:20", scale=0.5, preset="sparse-fast", out=tmp_path,
+    options = RunOptions(data=str(seven_scenes), frames="0:60", scale=0.5, preset="sparse", out=tmp_path,
                          progress=False)
-    results = run(options, build("sparse-fast"))
+    results = run(options, build("sparse"))
     assert results["resolution"] == [320, 240]
     assert results["heldout"]["psnr"] >= REAL_320_PSNR_FLOOR
     assert results["streamed"]["psnr"] >= REAL_320_PSNR_FLOOR
