@@ -104,7 +104,7 @@ def parser() -> argparse.ArgumentParser:
     commands = root.add_subparsers(dest="command", required=True)
     run = commands.add_parser("run", help="map a dataset and score it on streamed and held-out views",
                               description="Streams the selected frames (holding out every position with "
-                              "index %% 10 == 5 as novel views), then writes results.json, preview PNGs "
+                              "index % 10 == 5 as novel views), then writes results.json, preview PNGs "
                               "(render | truth, depth below) and map.safetensors into --out.")
     add_dataset_arguments(run)
     add_config_arguments(run)

@@ -53,7 +53,7 @@ def parser() -> argparse.ArgumentParser:
     stream = sub.add_parser(
         "stream", help="stream a dataset into a (new) session",
         description="Stream the selected frames (the same selection as `ogmap run`: positions with "
-        "index %% 10 == 5 are held out and never streamed) with a progress bar of live acks. Creates a "
+        "index % 10 == 5 are held out and never streamed) with a progress bar of live acks. Creates a "
         "session unless --session names one. Rejected frames are reported and make the exit status 1.",
     )
     add_dataset_arguments(stream)
