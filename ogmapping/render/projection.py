@@ -1,7 +1,9 @@
-"""EWA projection of 3D Gaussians to screen-space ellipses, shared by the torch and cpu backends.
+"""EWA projection of 3D Gaussians to screen-space ellipses: the definition every backend follows.
 
 Pure torch so autograd carries gradients from ``means2d``/``conics``/``depths`` back to the
-Gaussian parameters; only the integer ``radii`` are computed without gradients.
+Gaussian parameters; only the integer ``radii`` are computed without gradients. The reference
+backend uses it directly; the cpu backend runs a fused Numba copy (``cpu_projection.py``) that
+tests hold equal to this one, and shares its ``Projection`` type and constants.
 """
 
 from __future__ import annotations
