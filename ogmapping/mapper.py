@@ -31,7 +31,7 @@ from ogmapping.gaussians import GaussianSet, anchors_in_view, generate
 from ogmapping.keyframes import Keyframe, KeyframeSet
 from ogmapping.losses import mapping_loss
 from ogmapping.octree import SparseVoxelOctree
-from ogmapping.preprocess import clip_depth, register_depth
+from ogmapping.preprocess import prepare
 from ogmapping.render import RenderOutput, rasterize, resolve_backend
 from ogmapping.ssim import reference_statistics
 
@@ -103,7 +103,7 @@ class Mapper:
         """Map one frame; returns what happened to it."""
         start = time.perf_counter()
         with self._timed("preprocess"):
-            frame = clip_depth(register_depth(frame), self.config.octree.depth_min, self.config.octree.depth_max)
+            frame = prepare(frame, self.config.octree.depth_min, self.config.octree.depth_max)
             rgb = torch.as_tensor(frame.rgb, dtype=torch.float32, device=self.device)
             depth = torch.as_tensor(frame.depth, dtype=torch.float32, device=self.device)
             c2w = torch.as_tensor(frame.c2w, dtype=torch.float32, device=self.device)

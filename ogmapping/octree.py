@@ -62,6 +62,15 @@ class SparseVoxelOctree:
         coords = morton.decode(codes)
         return ((coords.to(torch.float64) + 0.5) * self.cell_size(level)).to(dtype)
 
+    def centers_by_level(self, codes: torch.Tensor, levels: torch.Tensor) -> torch.Tensor:
+        """World-space centres (M, 3) of cells whose levels differ per code."""
+        positions = torch.zeros(codes.numel(), 3, device=codes.device)
+        for level in range(self.levels):
+            at_level = levels == level
+            if bool(at_level.any()):
+                positions[at_level] = self.centers(codes[at_level], level).to(positions)
+        return positions
+
     def contains(self, codes: torch.Tensor, level: int = 0) -> torch.Tensor:
         """Boolean mask: which codes are occupied at this level."""
         self._check_level(level)

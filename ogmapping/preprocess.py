@@ -129,3 +129,9 @@ def register_depth(frame: Frame) -> Frame:
     return dataclasses.replace(
         frame, depth=depth, depth_intrinsics=frame.color_intrinsics, depth_to_color=None
     )
+
+
+def prepare(frame: Frame, depth_min: float, depth_max: float) -> Frame:
+    """The frame as the mapper uses it and as evaluation scores against: depth registered onto the
+    colour grid, then clipped to the working range."""
+    return clip_depth(register_depth(frame), depth_min, depth_max)

@@ -105,11 +105,7 @@ def grow(anchors: AnchorMap, octree: SparseVoxelOctree, config: RefineConfig, vo
         return 0
     for level in range(octree.max_level + 1):
         octree.insert(proposals.codes[proposals.levels == level], level)
-    positions = torch.zeros(total, 3, device=anchors.device)
-    for level in range(octree.max_level + 1):
-        at_level = proposals.levels == level
-        if bool(at_level.any()):
-            positions[at_level] = octree.centers(proposals.codes[at_level], level).to(positions)
+    positions = octree.centers_by_level(proposals.codes, proposals.levels)
     features = anchors.features.detach()[proposals.parents] if anchors.with_features else None
     anchors.add(proposals.codes, proposals.levels, positions, cell_size(voxel_size, proposals.levels),
                 features, optimizer)

@@ -21,7 +21,7 @@ from ogmapping.datasets import open_dataset
 from ogmapping.frame import Frame
 from ogmapping.mapper import Mapper, Rendered
 from ogmapping.metrics import depth_l1_cm, lpips_status, psnr, ssim, summarise
-from ogmapping.preprocess import clip_depth, register_depth, resize_frame
+from ogmapping.preprocess import prepare, resize_frame
 from ogmapping.selection import select
 
 PREVIEW_COUNT = 3
@@ -54,7 +54,7 @@ def pick_device(name: str) -> torch.device:
 
 def ground_truth(frame: Frame, config: MapperConfig) -> Frame:
     """The frame as the mapper sees it: depth on the colour grid, clipped to the working range."""
-    return clip_depth(register_depth(frame), config.octree.depth_min, config.octree.depth_max)
+    return prepare(frame, config.octree.depth_min, config.octree.depth_max)
 
 
 def score(rendered: Rendered, truth: Frame) -> dict:

@@ -103,11 +103,7 @@ def _fill(mapper, tensors: dict[str, torch.Tensor]) -> None:
         mapper.encoding.table.data.copy_(tensors["encoding.table"].to(torch.float32))
     codes = tensors["anchors.codes"].to(device)
     levels = tensors["anchors.levels"].to(device)
-    positions = torch.zeros(codes.numel(), 3, device=device)
-    for level in range(mapper.octree.levels):
-        at_level = levels == level
-        if bool(at_level.any()):
-            positions[at_level] = mapper.octree.centers(codes[at_level], level).to(device)
+    positions = mapper.octree.centers_by_level(codes, levels)
     anchors = mapper.anchors
     features = tensors["anchors.features"].float() if anchors.with_features else None
     anchors.add(codes, levels, positions, torch.ones(codes.numel(), device=device), features, mapper.optimizer)

@@ -18,9 +18,6 @@ from ogmapping.datasets.sevenscenes import SevenScenes
 from ogmapping.datasets.synthetic import SyntheticSource
 from ogmapping.datasets.tum import TUM, associate_unique, quaternion_to_matrix
 
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-REDKITCHEN = SHARED_DATA / "7scenes-redkitchen"
-
 
 def random_pose(rng: np.random.Generator) -> np.ndarray:
     q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
@@ -124,16 +121,14 @@ def test_frame_source_indexing(sevenscenes_dir: tuple[Path, list[np.ndarray]]) -
 
 
 @pytest.mark.realdata
-def test_sevenscenes_real_data() -> None:
-    if not (REDKITCHEN / "data").is_dir():
-        pytest.skip(f"7-Scenes copy not found at {REDKITCHEN} (shared data absent)")
-    source = open_dataset(str(REDKITCHEN))
+def test_sevenscenes_real_data(seven_scenes: Path) -> None:
+    source = open_dataset(str(seven_scenes))
     assert isinstance(source, SevenScenes)
     assert len(source) == 600
     assert source.depth_intrinsics == Intrinsics(585.0, 585.0, 320.5, 240.5, 640, 480)
     assert source.intrinsics == Intrinsics(528.0, 528.0, 315.0, 239.0, 640, 480)
     frame = source[10]
-    np.testing.assert_allclose(frame.c2w, np.loadtxt(REDKITCHEN / "data" / "frame-000010.pose.txt"))
+    np.testing.assert_allclose(frame.c2w, np.loadtxt(seven_scenes / "data" / "frame-000010.pose.txt"))
     valid = frame.depth[frame.depth > 0]
     assert frame.depth.shape == (480, 640) and frame.rgb.shape == (480, 640, 3)
     assert valid.min() > 0.7 and valid.max() < 4.5  # 65535 never leaks through as 65.5 m

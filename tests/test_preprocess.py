@@ -17,8 +17,6 @@ from ogmapping.datasets.sevenscenes import SevenScenes
 from ogmapping.frame import Frame
 from ogmapping.preprocess import clip_depth, register_depth, reproject_depth, resize_frame
 
-REDKITCHEN = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "7scenes-redkitchen"
-
 
 def make_frame(depth: np.ndarray, depth_k: Intrinsics, color_k: Intrinsics, transform: np.ndarray | None) -> Frame:
     rng = np.random.default_rng(0)
@@ -157,15 +155,9 @@ def test_clip_depth() -> None:
     assert frame.depth[0, 0] == pytest.approx(0.05)  # the input is left alone
 
 
-def real_frames() -> SevenScenes:
-    if not (REDKITCHEN / "data").is_dir():
-        pytest.skip(f"7-Scenes copy not found at {REDKITCHEN} (shared data absent)")
-    return SevenScenes(REDKITCHEN)
-
-
 @pytest.mark.realdata
-def test_registration_agrees_across_real_frames() -> None:
-    source = real_frames()
+def test_registration_agrees_across_real_frames(seven_scenes: Path) -> None:
+    source = SevenScenes(seven_scenes)
     a, b = register_depth(source[0]), register_depth(source[10])
     k = a.color_intrinsics
     points = backproject(torch.from_numpy(a.depth), k, torch.from_numpy(a.c2w))
@@ -180,8 +172,8 @@ def test_registration_agrees_across_real_frames() -> None:
 
 
 @pytest.mark.realdata
-def test_registration_speed_on_real_frame() -> None:
-    frame = real_frames()[0]
+def test_registration_speed_on_real_frame(seven_scenes: Path) -> None:
+    frame = SevenScenes(seven_scenes)[0]
     register_depth(frame)
     best = min(_timed(register_depth, frame) for _ in range(3))
     # Well under 50 ms on an idle core; the bound leaves room for a busy shared machine.
