@@ -7,13 +7,15 @@ codes): occlusion-aware and cheap, as the cells come straight from back-projecte
 from __future__ import annotations
 
 import random
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
+import cv2
 import torch
 
 from ogmapping.camera import Intrinsics
 from ogmapping.config import KeyframeConfig
-from ogmapping.ssim import ReferenceStatistics
+from ogmapping.preprocess import resize_depth
+from ogmapping.ssim import ReferenceStatistics, reference_statistics
 
 
 @dataclass
@@ -25,6 +27,21 @@ class Keyframe:
     c2w: torch.Tensor  # (4, 4)
     codes: torch.Tensor  # sorted unique coarsest-cell codes this frame observes
     ssim_reference: ReferenceStatistics | None = None  # cached SSIM statistics of ``rgb``
+    _downscaled: dict[float, Keyframe] = field(default_factory=dict, repr=False)
+
+    def downscaled(self, scale: float) -> Keyframe:
+        """This keyframe with its images resized by ``scale`` (colour by area, depth nearest), cached."""
+        if scale == 1.0:
+            return self
+        if scale not in self._downscaled:
+            intrinsics = self.intrinsics.scaled(scale)
+            size = (intrinsics.width, intrinsics.height)
+            rgb = cv2.resize(self.rgb.cpu().numpy(), size, interpolation=cv2.INTER_AREA)
+            rgb = torch.as_tensor(rgb, device=self.rgb.device).clamp(0.0, 1.0)
+            depth = torch.as_tensor(resize_depth(self.depth.cpu().numpy(), *size), device=self.depth.device)
+            self._downscaled[scale] = Keyframe(self.index, rgb, depth, intrinsics, self.c2w, self.codes,
+                                               reference_statistics(rgb))
+        return self._downscaled[scale]
 
 
 def overlap_ratio(first: torch.Tensor, second: torch.Tensor) -> float:

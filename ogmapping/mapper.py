@@ -110,9 +110,9 @@ class Mapper:
         with self.lock, self._timed("allocate"):
             stride = self.config.octree.allocation_stride
             points = backproject(_subsampled(depth, stride), frame.color_intrinsics, c2w)
-            new_codes = self.octree.allocate(points)
-            self._add_coarse_anchors(new_codes)
             codes = self.octree.observed(points)
+            new_codes = self.octree.insert(codes, 0)
+            self._add_coarse_anchors(new_codes)
         with self._timed("keyframes"):
             is_keyframe = self.keyframes.should_insert(codes)
             if is_keyframe:
@@ -167,7 +167,9 @@ class Mapper:
         self.optimizer.zero_grad(set_to_none=True)
         renders: list[tuple[GaussianSet, RenderOutput, Keyframe]] = []
         total = torch.zeros((), device=self.device)
-        for keyframe in window:
+        scale = self.config.keyframes.window_scale
+        for position, keyframe in enumerate(window):
+            keyframe = keyframe if position == 0 else keyframe.downscaled(scale)
             gaussians, output = self._render(keyframe.c2w, keyframe.intrinsics)
             with self._timed("loss"):
                 loss, _ = mapping_loss(output.color, output.depth, keyframe.rgb, keyframe.depth,

@@ -46,19 +46,27 @@ class ReferenceStatistics:
     """The blurred mean and second moment of a fixed image, computed once per keyframe.
 
     The ground-truth side of SSIM never changes during mapping, so caching it saves two of the
-    five blurs of every loss evaluation.
+    five blurs of every loss evaluation. All three are (H, W, C), like the image they describe.
     """
 
-    image: torch.Tensor  # (1, C, H, W)
+    image: torch.Tensor
     mean: torch.Tensor
     square_mean: torch.Tensor
 
 
+def _nchw(image: torch.Tensor) -> torch.Tensor:
+    return image.permute(2, 0, 1)[None]
+
+
+def _hwc(batch: torch.Tensor) -> torch.Tensor:
+    return batch[0].permute(1, 2, 0).contiguous()
+
+
 def reference_statistics(b: torch.Tensor) -> ReferenceStatistics:
     """Statistics of an (H, W, C) image for repeated ``ssim_map`` calls against it."""
-    y = b.permute(2, 0, 1)[None].contiguous()
+    y = _nchw(b).contiguous()
     taps = gaussian_window(dtype=y.dtype, device=y.device)
-    return ReferenceStatistics(image=y, mean=_blur(y, taps), square_mean=_blur(y * y, taps))
+    return ReferenceStatistics(image=b, mean=_hwc(_blur(y, taps)), square_mean=_hwc(_blur(y * y, taps)))
 
 
 def ssim_map(a: torch.Tensor, b: torch.Tensor, reference: ReferenceStatistics | None = None) -> torch.Tensor:
@@ -69,13 +77,13 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, reference: ReferenceStatistics | 
     if a.shape != b.shape or a.dim() != 3:
         raise ValueError(f"ssim_map expects two (H, W, C) images of one shape, got {a.shape} and {b.shape}")
     reference = reference if reference is not None else reference_statistics(b)
-    x = a.permute(2, 0, 1)[None]
-    y = reference.image
+    x = _nchw(a)
+    y = _nchw(reference.image)
     taps = gaussian_window(dtype=x.dtype, device=x.device)
-    mu_x, mu_y = _blur(x, taps), reference.mean
+    mu_x, mu_y = _blur(x, taps), _nchw(reference.mean)
     var_x = _blur(x * x, taps) - mu_x**2
-    var_y = reference.square_mean - mu_y**2
+    var_y = _nchw(reference.square_mean) - mu_y**2
     cov = _blur(x * y, taps) - mu_x * mu_y
     numerator = (2 * mu_x * mu_y + C1) * (2 * cov + C2)
     denominator = (mu_x**2 + mu_y**2 + C1) * (var_x + var_y + C2)
-    return (numerator / denominator)[0].permute(1, 2, 0)
+    return _hwc(numerator / denominator)

@@ -83,7 +83,9 @@ class _Composite(torch.autograd.Function):
         radii_np = np.ascontiguousarray(radii.to("cpu", torch.int32).numpy())
         order = _depth_order(dep, np.flatnonzero(radii_np > 0))
         n_threads = numba.get_num_threads()
-        tile_offsets, ids, pair_start, pair_of = kernels.bin_tiles(order, m2d, radii_np, width, height, n_threads)
+        tile_offsets, ids, pair_start, pair_of = kernels.bin_tiles(
+            order, m2d, con, opa, radii_np, width, height, n_threads
+        )
         color, accum_depth, final_t, n_contrib = kernels.render_forward(
             tile_offsets, ids, m2d, con, opa, col, dep, bg, width, height, n_threads
         )

@@ -57,9 +57,31 @@ _GATHER_BLOCK = 64
 _HALF_W = 8
 
 
+@njit(inline="always", cache=True, error_model="numpy")
+def _alpha_ellipse(a, b, c, o):
+    """``limit`` and half-extents (ex, ey) of the ellipse ``power <= limit`` where a Gaussian of
+    conic (a, b, c) and opacity ``o`` can reach ALPHA_MIN, padded by half a pixel; ex = ey = -1
+    when the conic is degenerate (no bound beyond the radius) and ``limit <= 0`` means no pixel.
+
+    The ellipse d^T conic d <= 2 limit spans sqrt(2 limit Sigma_ii) along each axis,
+    Sigma = conic^-1 = [[c, -b], [-b, a]] / det.
+    """
+    limit = np.log(o / _ALPHA_MIN) + _POWER_SLACK
+    det = np.float64(a) * np.float64(c) - np.float64(b) * np.float64(b)
+    if det > 0.0 and limit > 0.0:
+        ex = np.sqrt(2.0 * np.float64(limit) * np.float64(c) / det) + 0.5
+        ey = np.sqrt(2.0 * np.float64(limit) * np.float64(a) / det) + 0.5
+        return limit, ex, ey
+    return limit, -1.0, -1.0
+
+
 @njit(parallel=True, cache=True, error_model="numpy")
-def bin_tiles(order, means2d, radii, width, height, n_chunks):
+def bin_tiles(order, means2d, conics, opacities, radii, width, height, n_chunks):
     """Tile lists of the Gaussians ``order`` (visible ones, front to back) as CSR arrays.
+
+    A Gaussian is listed in the tiles its bounding square (``radii``, the reference's rule) and
+    the bounding box of its alpha ellipse (``_alpha_ellipse``, the bound ``_gather`` uses inside
+    a tile) both reach: on 7-Scenes that is about half the square's tiles.
 
     Returns ``tile_offsets`` (n_tiles + 1), ``ids`` (pairs, Gaussian index per tile entry, each
     tile's slice front to back), and ``pair_start``/``pair_of`` which map the k-th Gaussian of
@@ -81,7 +103,14 @@ def bin_tiles(order, means2d, radii, width, height, n_chunks):
         y0 = max(np.floor((v - r) / TILE), 0.0)
         x1 = min(np.floor((u + r) / TILE), n_x - 1.0)
         y1 = min(np.floor((v + r) / TILE), n_y - 1.0)
-        if r > 0 and x1 >= x0 and y1 >= y0:
+        limit, ex, ey = _alpha_ellipse(conics[g, 0], conics[g, 1], conics[g, 2], opacities[g])
+        if ex >= 0.0:
+            # Pixel columns ceil(u - ex - 0.5) .. floor(u + ex - 0.5) (see ``_gather``), as tiles.
+            x0 = max(x0, np.floor((u - ex - 0.5) / TILE))
+            x1 = min(x1, np.floor((u + ex - 0.5) / TILE))
+            y0 = max(y0, np.floor((v - ey - 0.5) / TILE))
+            y1 = min(y1, np.floor((v + ey - 0.5) / TILE))
+        if r > 0 and limit > 0.0 and x1 >= x0 and y1 >= y0:
             rects[k, 0] = np.int64(x0)
             rects[k, 1] = np.int64(y0)
             rects[k, 2] = np.int64(x1)
@@ -161,7 +190,7 @@ def _gather(ids, start, k0, k1, means2d, conics, opacities, colors, depths, x0, 
         a = conics[idx, 0]
         b = conics[idx, 1]
         c = conics[idx, 2]
-        limit = np.log(o / _ALPHA_MIN) + _POWER_SLACK
+        limit, ex, ey = _alpha_ellipse(a, b, c, o)
         feats[k, 0] = means2d[idx, 0]
         feats[k, 1] = means2d[idx, 1]
         feats[k, 2] = a
@@ -173,13 +202,8 @@ def _gather(ids, start, k0, k1, means2d, conics, opacities, colors, depths, x0, 
         feats[k, 8] = colors[idx, 1]
         feats[k, 9] = colors[idx, 2]
         feats[k, 10] = depths[idx]
-        det = np.float64(a) * np.float64(c) - np.float64(b) * np.float64(b)
         lo_y, hi_y, lo_x, hi_x = 0, tile_h - 1, 0, tile_w - 1
-        if det > 0.0 and limit > 0.0:
-            # The ellipse d^T conic d <= 2 limit spans sqrt(2 limit Sigma_ii) along each axis,
-            # Sigma = conic^-1 = [[c, -b], [-b, a]] / det.
-            ex = np.sqrt(2.0 * np.float64(limit) * np.float64(c) / det) + 0.5
-            ey = np.sqrt(2.0 * np.float64(limit) * np.float64(a) / det) + 0.5
+        if ex >= 0.0:
             mx = np.float64(means2d[idx, 0])
             my = np.float64(means2d[idx, 1])
             lo_x = max(lo_x, np.int64(max(np.ceil(mx - ex - 0.5) - x0, -1.0)))
