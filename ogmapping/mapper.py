@@ -34,6 +34,7 @@ from ogmapping.octree import SparseVoxelOctree
 from ogmapping.preprocess import prepare
 from ogmapping.render import RenderOutput, rasterize, resolve_backend
 from ogmapping.ssim import reference_statistics
+from ogmapping.threads import mapping_threads, torch_threads
 
 
 @dataclass
@@ -75,6 +76,7 @@ class Mapper:
         self.iterations = 0
         self.last_gaussians = 0
         self.timings: dict[str, float] = defaultdict(float)
+        self.threads = mapping_threads(self.device, model.encoding)
 
     def _make_optimizer(self) -> torch.optim.Adam:
         lr = self.config.optim
@@ -101,6 +103,10 @@ class Mapper:
 
     def process(self, frame: Frame) -> FrameResult:
         """Map one frame; returns what happened to it."""
+        with torch_threads(self.threads):
+            return self._process(frame)
+
+    def _process(self, frame: Frame) -> FrameResult:
         start = time.perf_counter()
         with self._timed("preprocess"):
             frame = prepare(frame, self.config.octree.depth_min, self.config.octree.depth_max)
@@ -211,7 +217,7 @@ class Mapper:
     def render(self, c2w: np.ndarray, intrinsics: Intrinsics) -> Rendered:
         """Colour, depth and alpha from any pose (camera-to-world) and intrinsics."""
         pose = torch.as_tensor(np.asarray(c2w), dtype=torch.float32, device=self.device)
-        with self.lock, torch.no_grad():
+        with self.lock, torch.no_grad(), torch_threads(self.threads):
             _, output = self._render(pose, intrinsics)
         return Rendered(
             color=output.color.clamp(0, 1).cpu().numpy().astype(np.float32),

@@ -22,7 +22,6 @@ from ogmapping.frame import Frame
 from ogmapping.mapper import Mapper, Rendered
 from ogmapping.metrics import depth_l1_cm, lpips_status, psnr, ssim, summarise
 from ogmapping.preprocess import prepare, resize_frame
-from ogmapping.runtime import torch_threads_for
 from ogmapping.selection import select
 
 PREVIEW_COUNT = 3
@@ -116,7 +115,6 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
-    torch.set_num_threads(torch_threads_for(device))
     mapper = Mapper(config, device)
 
     def load(position: int) -> Frame:

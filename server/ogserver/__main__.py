@@ -31,9 +31,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="YAML or JSON settings file")
     p.add_argument("--final-snapshots", dest="final_snapshots", action="store_true", default=None,
                    help="write each session's map into the record dir when it closes")
-    p.add_argument("--torch-threads", dest="torch_threads", type=int,
-                   help="torch intra-op threads (default: 1 on the CPU, whose compiled kernels bring their own "
-                   "threads; min(cores, 8) with CUDA)")
+    p.add_argument("--torch-threads", dest="torch_threads", type=int, help="torch CPU threads (default min(cores, 8))")
     p.add_argument("--grace", dest="grace_seconds", type=float, help="shutdown grace for calls in flight, seconds (5)")
     limits = p.add_argument_group("limits (exceeding one gives RESOURCE_EXHAUSTED)")
     limits.add_argument("--max-sessions", dest="max_sessions", type=int, help="open sessions at once (4)")

@@ -53,7 +53,7 @@ class Server:
 def build(settings: Settings) -> Server:
     """A started server; ``port`` is the bound one (useful with port 0)."""
     device = resolve_device(settings.device)
-    torch.set_num_threads(settings.threads(device))
+    torch.set_num_threads(settings.threads())
     limits = settings.limits
     workers = 2 * limits.max_sessions + 8  # each frame stream holds a thread for its lifetime
     options = [

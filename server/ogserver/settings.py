@@ -4,14 +4,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import torch
 import yaml
-
-from ogmapping.runtime import torch_threads_for
 
 MIB = 1 << 20
 
@@ -41,7 +39,7 @@ class Settings:
     record_dir: str = "recordings"
     device: str = "auto"  # auto, cpu, cuda, cuda:N
     final_snapshots: bool = False  # write <session>.safetensors next to the recording on close
-    torch_threads: int = 0  # 0: what maps fastest on the device (ogmapping.runtime.torch_threads_for)
+    torch_threads: int = 0  # 0: min(cpu count, 8)
     grace_seconds: float = 5.0  # how long shutdown waits for calls in flight
     limits: Limits = field(default_factory=Limits)
 
@@ -52,8 +50,8 @@ class Settings:
             raise ValueError("torch_threads and grace_seconds must not be negative")
         self.limits.validate()
 
-    def threads(self, device: str | torch.device) -> int:
-        return self.torch_threads or torch_threads_for(device)
+    def threads(self) -> int:
+        return self.torch_threads or max(1, min(os.cpu_count() or 1, 8))
 
 
 def _assign(target: Any, data: dict[str, Any], prefix: str = "") -> None:
