@@ -22,6 +22,7 @@ from ogmapping.ssim import C1, C2, ReferenceStatistics, gaussian_window, referen
 _C1 = np.float32(C1)
 _C2 = np.float32(C2)
 _TWO = np.float32(2.0)
+_TAPS = gaussian_window().numpy()  # float32, the window ``ogmapping.ssim`` uses
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -164,13 +165,12 @@ class _ImageTerms(torch.autograd.Function):
     def forward(ctx, color, depth, gt_color, gt_depth, reference):
         height, width, channels = color.shape
         x, y = _planes(color), _planes(gt_color)
-        taps = gaussian_window().numpy()
-        blurred = _blur(_moments(x, y), taps, channels)
+        blurred = _blur(_moments(x, y), _TAPS, channels)
         count = x.size
         ssim_sums, partials = _ssim_and_partials(
             blurred, _planes(reference.mean), _planes(reference.square_mean), np.float32(-1.0 / count)
         )
-        l1_sums, grad_l1, grad_ssim = _colour_terms(x, y, _blur(partials, taps, channels), np.float32(1.0 / count))
+        l1_sums, grad_l1, grad_ssim = _colour_terms(x, y, _blur(partials, _TAPS, channels), np.float32(1.0 / count))
         depth_l1, grad_depth = _depth_terms(
             np.ascontiguousarray(depth.detach().to("cpu", torch.float32).numpy()),
             np.ascontiguousarray(gt_depth.to("cpu", torch.float32).numpy()),
