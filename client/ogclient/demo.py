@@ -27,7 +27,7 @@ from ogclient.streaming import stream_frames
 
 # Sized for a 2-core CPU: 160x120 images, 40 frames (36 streamed, 4 held out), 40 iterations on the
 # first keyframe and 8 on each later one, window keyframes at full size (at 160x120 the preset's
-# half-size window loses 3 dB: 29.6 dB against 32.5): about half a minute on an idle machine.
+# half-size window lost 3 dB: 29.6 dB against 32.8 held-out): about 25 seconds on an idle machine.
 # With a GPU, raise --scale and the iterations.
 DEFAULT_FRAMES = "0:40"
 DEFAULT_SCALE = 0.5
