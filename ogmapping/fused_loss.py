@@ -29,37 +29,33 @@ _TAPS = gaussian_window().numpy()  # float32, the window ``ogmapping.ssim`` uses
 def _blur(maps, taps, channels):
     """Zero-padded separable blur of every (H, W * C) plane of ``maps`` (M, H, W * C), per channel.
 
-    Rows are accumulated tap by tap over unsigned indices: with signed ones Numba adds a
-    negative-index wraparound that stops LLVM vectorising the loop (5x slower).
+    One task per output row does both passes: the column pass sums whole input rows into a
+    zero-margined buffer, the row pass then sums shifted copies of it. Every loop runs over
+    contiguous memory and unsigned indices (with signed ones Numba adds a negative-index
+    wraparound that stops LLVM vectorising), 4.5x faster than two passes over a stored
+    intermediate (bench/RESULTS.md).
     """
     count, height, length = maps.shape
-    radius = taps.shape[0] // 2
-    pad = radius * channels
-    across = np.empty_like(maps)
-    for job in prange(count * height):
-        m = job // height
-        r = job - m * height
-        padded = np.zeros(length + 2 * pad, np.float32)
-        padded[pad : pad + length] = maps[m, r]
-        row = np.zeros(length, np.float32)
-        for k in range(taps.shape[0]):
-            tap = taps[k]
-            shift = np.uint64(k * channels)
-            for i in range(length):
-                row[np.uint64(i)] += tap * padded[shift + np.uint64(i)]
-        across[m, r] = row
+    n_taps = taps.shape[0]
+    radius = n_taps // 2
+    pad = np.uint64(radius * channels)
     out = np.empty_like(maps)
     for job in prange(count * height):
         m = job // height
         r = job - m * height
-        row = np.zeros(length, np.float32)
-        for k in range(taps.shape[0]):
+        column = np.zeros(length + 2 * radius * channels, np.float32)
+        for k in range(n_taps):
             source = r + k - radius
             if 0 <= source < height:
                 tap = taps[k]
-                above = across[m, source]
                 for i in range(length):
-                    row[np.uint64(i)] += tap * above[np.uint64(i)]
+                    column[pad + np.uint64(i)] += tap * maps[m, source, np.uint64(i)]
+        row = np.zeros(length, np.float32)
+        for k in range(n_taps):
+            tap = taps[k]
+            shift = np.uint64(k * channels)
+            for i in range(length):
+                row[np.uint64(i)] += tap * column[shift + np.uint64(i)]
         out[m, r] = row
     return out
 
