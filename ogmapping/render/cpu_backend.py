@@ -83,13 +83,14 @@ class _Composite(torch.autograd.Function):
         radii_np = np.ascontiguousarray(radii.to("cpu", torch.int32).numpy())
         order = _depth_order(dep, np.flatnonzero(radii_np > 0))
         n_threads = numba.get_num_threads()
-        tile_offsets, ids, pair_start, pair_of = kernels.bin_tiles(
+        tile_offsets, ids, pair_start, pair_of, limits, extents = kernels.bin_tiles(
             order, m2d, con, opa, radii_np, width, height, n_threads
         )
+        ellipses = (limits, extents)
         color, accum_depth, final_t, n_contrib = kernels.render_forward(
-            tile_offsets, ids, m2d, con, opa, col, dep, bg, width, height, n_threads
+            tile_offsets, ids, m2d, con, opa, col, dep, *ellipses, bg, width, height, n_threads
         )
-        ctx.state = (order, tile_offsets, ids, pair_start, pair_of, arrays, final_t, n_contrib, width, height)
+        ctx.state = (order, tile_offsets, ids, pair_start, pair_of, arrays, ellipses, final_t, n_contrib, width, height)
         ctx.dtypes = (means2d.dtype, background.dtype)
         ctx.device = means2d.device
         like = {"dtype": means2d.dtype, "device": means2d.device}
@@ -101,10 +102,10 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_color, grad_depth, grad_alpha):
-        order, tile_offsets, ids, pair_start, pair_of, arrays, final_t, n_contrib, width, height = ctx.state
+        order, tile_offsets, ids, pair_start, pair_of, arrays, ellipses, final_t, n_contrib, width, height = ctx.state
         m2d, con, opa, col, dep, bg = arrays
         pair_grads, bg_grads = kernels.render_backward(
-            tile_offsets, ids, m2d, con, opa, col, dep, bg, final_t, n_contrib,
+            tile_offsets, ids, m2d, con, opa, col, dep, *ellipses, bg, final_t, n_contrib,
             _f32(grad_color), _f32(grad_depth), _f32(grad_alpha), width, height, numba.get_num_threads(),
         )
         grads = torch.from_numpy(kernels.reduce_pairs(order, pair_start, pair_of, pair_grads, m2d.shape[0]))

@@ -84,11 +84,15 @@ def bin_tiles(order, means2d, conics, opacities, radii, width, height, n_chunks)
     a tile) both reach: on 7-Scenes that is about half the square's tiles.
 
     Returns ``tile_offsets`` (n_tiles + 1), ``ids`` (pairs, Gaussian index per tile entry, each
-    tile's slice front to back), and ``pair_start``/``pair_of`` which map the k-th Gaussian of
-    ``order`` to its entries, for the gradient reduction. A counting sort over contiguous chunks
-    of ``order`` keeps depth order inside every tile.
+    tile's slice front to back), ``pair_start``/``pair_of`` which map the k-th Gaussian of
+    ``order`` to its entries, for the gradient reduction, and per Gaussian its ellipse
+    (``limits``, ``extents``: ``_alpha_ellipse``), computed once here rather than once per tile
+    entry by the forward and again by the backward. A counting sort over contiguous chunks of
+    ``order`` keeps depth order inside every tile.
     """
     n = order.shape[0]
+    limits = np.zeros(means2d.shape[0], np.float32)
+    extents = np.full((means2d.shape[0], 2), -1.0)
     n_x = (width + TILE - 1) // TILE
     n_y = (height + TILE - 1) // TILE
     n_tiles = n_x * n_y
@@ -104,6 +108,9 @@ def bin_tiles(order, means2d, conics, opacities, radii, width, height, n_chunks)
         x1 = min(np.floor((u + r) / TILE), n_x - 1.0)
         y1 = min(np.floor((v + r) / TILE), n_y - 1.0)
         limit, ex, ey = _alpha_ellipse(conics[g, 0], conics[g, 1], conics[g, 2], opacities[g])
+        limits[g] = limit
+        extents[g, 0] = ex
+        extents[g, 1] = ey
         if ex >= 0.0:
             # Pixel columns ceil(u - ex - 0.5) .. floor(u + ex - 0.5) (see ``_gather``), as tiles.
             x0 = max(x0, np.floor((u - ex - 0.5) / TILE))
@@ -151,7 +158,7 @@ def bin_tiles(order, means2d, conics, opacities, radii, width, height, n_chunks)
                         pair_of[p] = cursor[c, t]
                         cursor[c, t] += 1
                         p += 1
-    return tile_offsets, ids, pair_start, pair_of
+    return tile_offsets, ids, pair_start, pair_of, limits, extents
 
 
 @njit(inline="always", cache=True, error_model="numpy")
@@ -176,7 +183,10 @@ def _exp_neg(x):
 
 
 @njit(cache=True, error_model="numpy")
-def _gather(ids, start, k0, k1, means2d, conics, opacities, colors, depths, x0, y0, tile_w, tile_h, feats, spans):
+def _gather(
+    ids, start, k0, k1, means2d, conics, opacities, colors, depths, limits, extents, x0, y0, tile_w, tile_h,
+    feats, spans,
+):
     """Copy entries [k0, k1) of one tile's list (front to back) into contiguous rows.
 
     Row k of ``feats``: mean x, mean y, conic a, b, c, opacity, power threshold, colour r, g, b,
@@ -190,7 +200,9 @@ def _gather(ids, start, k0, k1, means2d, conics, opacities, colors, depths, x0, 
         a = conics[idx, 0]
         b = conics[idx, 1]
         c = conics[idx, 2]
-        limit, ex, ey = _alpha_ellipse(a, b, c, o)
+        limit = limits[idx]
+        ex = extents[idx, 0]
+        ey = extents[idx, 1]
         feats[k, 0] = means2d[idx, 0]
         feats[k, 1] = means2d[idx, 1]
         feats[k, 2] = a
@@ -290,7 +302,7 @@ def _pixel_centres(x0, y0):
 
 @njit(cache=True, error_model="numpy")
 def _forward_tile(
-    t, n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, background, width, height,
+    t, n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, limits, extents, background, width, height,
     out_color, out_depth, out_t, n_contrib,
 ):
     """Forward of one tile: Gaussians front to back, each over the half-tile rows it can reach.
@@ -323,8 +335,8 @@ def _forward_tile(
         if k == gathered:
             gathered = min(g, gathered + _GATHER_BLOCK)
             _gather(
-                ids, start, k, gathered, means2d, conics, opacities, colors, depths, x0, y0, tile_w, tile_h,
-                feats, spans,
+                ids, start, k, gathered, means2d, conics, opacities, colors, depths, limits, extents, x0, y0,
+                tile_w, tile_h, feats, spans,
             )
         f = feats[k]
         for h in range(spans[k, 2], spans[k, 3] + 1):
@@ -385,7 +397,7 @@ def _next_chunk(c, step, n_chunks):
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def render_forward(
-    tile_offsets, ids, means2d, conics, opacities, colors, depths, background, width, height, n_threads
+    tile_offsets, ids, means2d, conics, opacities, colors, depths, limits, extents, background, width, height, n_threads
 ):
     """Composite every pixel front to back, one tile per task.
 
@@ -401,8 +413,8 @@ def render_forward(
     schedule = _balanced_schedule(tile_offsets, n_threads)
     for i in prange(n_tiles):
         _forward_tile(
-            schedule[i], n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, background, width, height,
-            out_color, out_depth, out_t, n_contrib,
+            schedule[i], n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, limits, extents,
+            background, width, height, out_color, out_depth, out_t, n_contrib,
         )
     return out_color, out_depth, out_t, n_contrib
 
@@ -500,9 +512,20 @@ def _halves_in_reach(p0, n, xs, ys, f, k, count):
     return left != 0, right != 0
 
 
+@njit(inline="always", cache=True, error_model="numpy")
+def _sum_lanes(v):
+    """Sum of the TILE (16) lanes of ``v`` as a balanced tree: four dependent adds instead of a
+    16-long chain, for ten gradient columns per tile entry."""
+    q0 = (v[0] + v[1]) + (v[2] + v[3])
+    q1 = (v[4] + v[5]) + (v[6] + v[7])
+    q2 = (v[8] + v[9]) + (v[10] + v[11])
+    q3 = (v[12] + v[13]) + (v[14] + v[15])
+    return (q0 + q1) + (q2 + q3)
+
+
 @njit(cache=True, error_model="numpy")
 def _backward_tile(
-    t, n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, background,
+    t, n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, limits, extents, background,
     final_t, n_contrib, grad_color, grad_depth, grad_alpha, width, height, pair_grads, bg_grads,
 ):
     """Backward of one tile: Gaussians back to front over the rows they span, as in the forward.
@@ -558,7 +581,10 @@ def _backward_tile(
         k_end = max(k_end, row_count[ly])
     feats = np.empty((k_end, 11), np.float32)
     spans = np.empty((k_end, 4), np.int64)
-    _gather(ids, start, 0, k_end, means2d, conics, opacities, colors, depths, x0, y0, tile_w, tile_h, feats, spans)
+    _gather(
+        ids, start, 0, k_end, means2d, conics, opacities, colors, depths, limits, extents, x0, y0, tile_w, tile_h,
+        feats, spans,
+    )
     for k in range(k_end - 1, -1, -1):
         f = feats[k]
         touched = False
@@ -580,16 +606,13 @@ def _backward_tile(
         if touched:
             row = start + k
             for j in range(N_GRAD):
-                total = _ZERO
-                for lx in range(TILE):
-                    total += lanes[j, lx]
-                    lanes[j, lx] = _ZERO
-                pair_grads[row, j] = total
+                pair_grads[row, j] = _sum_lanes(lanes[j])
+            lanes[:] = _ZERO
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def render_backward(
-    tile_offsets, ids, means2d, conics, opacities, colors, depths, background,
+    tile_offsets, ids, means2d, conics, opacities, colors, depths, limits, extents, background,
     final_t, n_contrib, grad_color, grad_depth, grad_alpha, width, height, n_threads,
 ):
     """Gradients per tile entry (pairs, N_GRAD) and per tile for the background (n_tiles, 3).
@@ -606,8 +629,8 @@ def render_backward(
     schedule = _balanced_schedule(tile_offsets, n_threads)
     for i in prange(n_tiles):
         _backward_tile(
-            schedule[i], n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, background,
-            final_t, n_contrib, grad_color, grad_depth, grad_alpha, width, height, pair_grads, bg_grads,
+            schedule[i], n_x, tile_offsets, ids, means2d, conics, opacities, colors, depths, limits, extents,
+            background, final_t, n_contrib, grad_color, grad_depth, grad_alpha, width, height, pair_grads, bg_grads,
         )
     return pair_grads, bg_grads
 
