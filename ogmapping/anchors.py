@@ -41,7 +41,8 @@ class AnchorMap(nn.Module):
         """Zero the per-interval refinement statistics (``spawned`` persists: growth is once-only)."""
         self.grad_sum = torch.zeros(len(self), self.n_offsets, device=self.device)
         self.grad_count = torch.zeros(len(self), self.n_offsets, dtype=torch.int64, device=self.device)
-        self.max_opacity = torch.zeros(len(self), device=self.device)
+        # Largest decoded opacity per anchor in this interval; -inf where it was not rendered at all.
+        self.max_opacity = torch.full((len(self),), -torch.inf, device=self.device)
 
     def add(
         self,
@@ -76,7 +77,7 @@ class AnchorMap(nn.Module):
         self.grad_sum = torch.cat([self.grad_sum, torch.zeros(shape, device=device)])
         self.grad_count = torch.cat([self.grad_count, torch.zeros(shape, dtype=torch.int64, device=device)])
         self.spawned = torch.cat([self.spawned, torch.zeros(shape, dtype=torch.bool, device=device)])
-        self.max_opacity = torch.cat([self.max_opacity, torch.zeros(count, device=device)])
+        self.max_opacity = torch.cat([self.max_opacity, torch.full((count,), -torch.inf, device=device)])
         self.observations = torch.cat([self.observations, torch.zeros(count, dtype=torch.int64, device=device)])
 
     def keep(self, mask: torch.Tensor, optimizer: torch.optim.Optimizer | None) -> None:

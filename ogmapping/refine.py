@@ -113,8 +113,17 @@ def grow(anchors: AnchorMap, octree: SparseVoxelOctree, config: RefineConfig, vo
 
 
 def prune(anchors: AnchorMap, config: RefineConfig, optimizer: torch.optim.Optimizer | None) -> int:
-    """Remove anchors seen often enough whose Gaussians all stayed below the opacity threshold."""
-    weak = (anchors.observations >= config.prune_min_observations) & (anchors.max_opacity < config.prune_opacity)
+    """Remove anchors seen often enough whose Gaussians all stayed below the opacity threshold.
+
+    Only anchors rendered in this interval are judged (as Scaffold-GS does): an anchor outside
+    every window view since the last step has no opacity on record, and is not faint for that.
+    """
+    rendered = anchors.max_opacity > -torch.inf
+    weak = (
+        rendered
+        & (anchors.observations >= config.prune_min_observations)
+        & (anchors.max_opacity < config.prune_opacity)
+    )
     removed = int(weak.sum())
     if removed:
         anchors.keep(~weak, optimizer)

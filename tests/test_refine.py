@@ -108,3 +108,12 @@ def test_prune_removes_faint_anchors_and_optimizer_state_follows():
     assert removed == 1 and len(anchors) == 2
     assert optimizer.param_groups[0]["params"][0] is anchors.offsets
     assert optimizer.state[anchors.offsets]["exp_avg"].shape == anchors.offsets.shape
+
+
+def test_prune_keeps_anchors_that_were_not_rendered_in_the_interval():
+    anchors, _ = build_map([[0.1, 0.1, 0.1], [1.0, 1.0, 1.0]], [0, 0])
+    anchors.observations[:] = torch.tensor([20, 20])
+    anchors.max_opacity[0] = 0.001  # rendered this interval, and faint
+    # the second anchor was in no window view since the last step: no opacity on record
+    assert prune(anchors, RefineConfig(prune_opacity=0.01, prune_min_observations=10), None) == 1
+    assert len(anchors) == 1 and torch.allclose(anchors.positions[0], torch.tensor([1.0, 1.0, 1.0]))
