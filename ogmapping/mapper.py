@@ -173,9 +173,8 @@ class Mapper:
         self.optimizer.zero_grad(set_to_none=True)
         renders: list[tuple[GaussianSet, RenderOutput, Keyframe]] = []
         total = torch.zeros((), device=self.device)
-        scale = self.config.keyframes.window_scale
         for position, keyframe in enumerate(window):
-            keyframe = keyframe if position == 0 else keyframe.downscaled(scale)
+            keyframe = keyframe if position == 0 else keyframe.downscaled(self._window_scale(keyframe.intrinsics.width))
             gaussians, output = self._render(keyframe.c2w, keyframe.intrinsics)
             with self._timed("loss"):
                 loss, _ = mapping_loss(output.color, output.depth, keyframe.rgb, keyframe.depth,
@@ -194,6 +193,12 @@ class Mapper:
             self.optimizer.step()
         self.last_gaussians = len(renders[0][0]) if renders else 0
         return float(total.detach())
+
+    def _window_scale(self, width: int) -> float:
+        """Scale for an earlier window keyframe: ``window_scale``, but not below ``window_min_width``
+        pixels (at 160x120 a half-size window cost ~3 dB held-out; at 320x240 it costs ~0.4 dB)."""
+        settings = self.config.keyframes
+        return min(1.0, max(settings.window_scale, settings.window_min_width / width))
 
     def _features(self, rows: torch.Tensor) -> torch.Tensor:
         if self.encoding is not None:

@@ -81,3 +81,15 @@ def test_downscaled_keyframe_matches_a_resized_camera():
     assert half.ssim_reference is not None and half.ssim_reference.mean.shape == (3, 4, 3)
     assert half.index == 3 and torch.equal(half.codes, original.codes)
     assert original.downscaled(0.5) is half and original.downscaled(1.0) is original
+
+
+def test_window_scale_stops_at_the_minimum_width():
+    from ogmapping.config import build
+    from ogmapping.mapper import Mapper
+
+    mapper = Mapper(build("sparse", {"keyframes.window_scale": 0.5, "keyframes.window_min_width": 160}))
+    assert mapper._window_scale(640) == 0.5
+    assert mapper._window_scale(320) == 0.5
+    assert mapper._window_scale(240) == 160 / 240
+    assert mapper._window_scale(160) == 1.0
+    assert mapper._window_scale(80) == 1.0

@@ -26,13 +26,13 @@ from ogclient.local_server import LocalServer
 from ogclient.streaming import stream_frames
 
 # Sized for a 2-core CPU: 160x120 images, 40 frames (36 streamed, 4 held out), 40 iterations on the
-# first keyframe and 8 on each later one, window keyframes at full size (at 160x120 the preset's
-# half-size window lost 3 dB: 29.6 dB against 32.8 held-out): about 25 seconds on an idle machine.
-# With a GPU, raise --scale and the iterations.
+# first keyframe and 8 on each later one (window keyframes stay full size at this width:
+# keyframes.window_min_width): about 25 seconds on an idle machine. With a GPU, raise --scale and
+# the iterations.
 DEFAULT_FRAMES = "0:40"
 DEFAULT_SCALE = 0.5
 DEFAULT_PRESET = "sparse-fast"
-DEFAULT_OVERRIDES = {"keyframes.first_iterations": "40", "keyframes.iterations": "8", "keyframes.window_scale": "1.0"}
+DEFAULT_OVERRIDES = {"keyframes.first_iterations": "40", "keyframes.iterations": "8"}
 
 
 def parser() -> argparse.ArgumentParser:
