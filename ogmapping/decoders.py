@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -11,8 +12,19 @@ from torch import nn
 IDENTITY_QUAT = torch.tensor([1.0, 0.0, 0.0, 0.0])
 
 
-def _mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
-    return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, out_dim))
+def _linear(in_dim: int, out_dim: int, generator: torch.Generator | None) -> nn.Linear:
+    """nn.Linear's own initialisation, drawn from the session's generator, not torch's global one."""
+    layer = nn.Linear(in_dim, out_dim)
+    bound = 1.0 / math.sqrt(in_dim)
+    with torch.no_grad():
+        nn.init.kaiming_uniform_(layer.weight, a=math.sqrt(5), generator=generator)
+        nn.init.uniform_(layer.bias, -bound, bound, generator=generator)
+    return layer
+
+
+def _mlp(in_dim: int, hidden: int, out_dim: int, generator: torch.Generator | None) -> nn.Sequential:
+    return nn.Sequential(_linear(in_dim, hidden, generator), nn.ReLU(inplace=True),
+                         _linear(hidden, out_dim, generator))
 
 
 @dataclass
@@ -28,13 +40,14 @@ class DecodedAttributes:
 class Decoders(nn.Module):
     """F_opacity, F_color and F_cov, each Linear(c + 4, hidden) -> ReLU -> Linear."""
 
-    def __init__(self, feature_dim: int, n_offsets: int, hidden: int) -> None:
+    def __init__(self, feature_dim: int, n_offsets: int, hidden: int,
+                 generator: torch.Generator | None = None) -> None:
         super().__init__()
         self.n = n_offsets
         in_dim = feature_dim + 4
-        self.opacity = _mlp(in_dim, hidden, n_offsets)
-        self.color = _mlp(in_dim, hidden, 3 * n_offsets)
-        self.cov = _mlp(in_dim, hidden, 7 * n_offsets)
+        self.opacity = _mlp(in_dim, hidden, n_offsets, generator)
+        self.color = _mlp(in_dim, hidden, 3 * n_offsets, generator)
+        self.cov = _mlp(in_dim, hidden, 7 * n_offsets, generator)
 
     def forward(self, features: torch.Tensor, view_dirs: torch.Tensor, distances: torch.Tensor) -> DecodedAttributes:
         inputs = torch.cat([features, view_dirs, distances], dim=-1)

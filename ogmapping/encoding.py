@@ -20,15 +20,15 @@ class HashGridEncoding(nn.Module):
     Resolutions are in cells per metre, so no scene bounds are needed in an online setting.
     """
 
-    def __init__(self, config: ModelConfig) -> None:
+    def __init__(self, config: ModelConfig, generator: torch.Generator | None = None) -> None:
         super().__init__()
         self.levels = config.hash_levels
         self.table_size = 2**config.hash_log2_size
         growth = (config.hash_max_resolution / config.hash_min_resolution) ** (1 / max(self.levels - 1, 1))
         resolutions = [config.hash_min_resolution * growth**level for level in range(self.levels)]
         self.register_buffer("resolutions", torch.tensor(resolutions, dtype=torch.float32), persistent=False)
-        table = torch.empty(self.levels, self.table_size, config.hash_features_per_level).uniform_(-1e-4, 1e-4)
-        self.table = nn.Parameter(table)
+        table = torch.empty(self.levels, self.table_size, config.hash_features_per_level)
+        self.table = nn.Parameter(table.uniform_(-1e-4, 1e-4, generator=generator))
 
     @property
     def output_dim(self) -> int:
@@ -63,6 +63,9 @@ def feature_dim(config: ModelConfig) -> int:
     return config.feature_dim
 
 
-def initial_anchor_features(count: int, dim: int, device: torch.device) -> torch.Tensor:
-    """Small random per-anchor features, so the decoders see distinct inputs from the start."""
-    return torch.randn(count, dim, device=device) / math.sqrt(dim)
+def initial_anchor_features(count: int, dim: int, device: torch.device, generator: torch.Generator) -> torch.Tensor:
+    """Small random per-anchor features, so the decoders see distinct inputs from the start.
+
+    Drawn on the CPU from the session's generator: the same seed gives the same map on any device.
+    """
+    return (torch.randn(count, dim, generator=generator) / math.sqrt(dim)).to(device)

@@ -64,12 +64,15 @@ class Mapper:
         self.device = torch.device(device)
         self.backend = resolve_backend(config.backend, self.device)
         self.lock = threading.RLock()
-        torch.manual_seed(config.seed)
+        # Each session draws from its own generator: sessions mapping side by side in one server
+        # would otherwise interleave draws from torch's global one (and reseed it for each other).
+        self.generator = torch.Generator().manual_seed(config.seed)
         model = config.model
         self.octree = SparseVoxelOctree.from_config(config.octree, self.device)
         self.anchors = AnchorMap(model.n_offsets, model.feature_dim, model.encoding == "anchor", self.device)
-        self.encoding = HashGridEncoding(model).to(self.device) if model.encoding == "hash" else None
-        self.decoders = Decoders(feature_dim(model), model.n_offsets, model.hidden_dim).to(self.device)
+        self.encoding = HashGridEncoding(model, self.generator).to(self.device) if model.encoding == "hash" else None
+        self.decoders = Decoders(feature_dim(model), model.n_offsets, model.hidden_dim, self.generator)
+        self.decoders = self.decoders.to(self.device)
         self.keyframes = KeyframeSet(config.keyframes, config.seed)
         self.optimizer = self._make_optimizer()
         self.frames = 0
@@ -148,7 +151,7 @@ class Mapper:
         levels = torch.zeros(count, dtype=torch.int64, device=self.device)
         sizes = torch.full((count,), self.octree.cell_size(0), device=self.device)
         features = (
-            initial_anchor_features(count, self.config.model.feature_dim, self.device)
+            initial_anchor_features(count, self.config.model.feature_dim, self.device, self.generator)
             if self.anchors.with_features else None
         )
         self.anchors.add(codes, levels, self.octree.centers(codes, 0), sizes, features, self.optimizer)

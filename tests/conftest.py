@@ -4,6 +4,8 @@ from pathlib import Path
 
 import pytest
 
+import ogmapping  # noqa: F401 (first, so its OpenMP settings precede torch in any test module)
+
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 SEVEN_SCENES = SHARED_DATA / "7scenes-redkitchen"
 

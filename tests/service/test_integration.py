@@ -201,7 +201,7 @@ def test_replay_beside_a_second_stream(server: ServerHandle, mapped: Mapped) -> 
         original = evaluate(server.stub, mapped.session, mapped.frames, progress=False)
         again = evaluate(server.stub, replayed, mapped.frames, progress=False)
         for split in ("streamed", "heldout"):
-            assert abs(original[split]["psnr"] - again[split]["psnr"]) < 1.5
+            assert again[split]["psnr"] == pytest.approx(original[split]["psnr"], abs=1e-6)
     finally:
         close(server, replayed)
         close(server, second)
