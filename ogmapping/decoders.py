@@ -49,13 +49,23 @@ class Decoders(nn.Module):
         self.color = _mlp(in_dim, hidden, 3 * n_offsets, generator)
         self.cov = _mlp(in_dim, hidden, 7 * n_offsets, generator)
 
-    def forward(self, features: torch.Tensor, view_dirs: torch.Tensor, distances: torch.Tensor) -> DecodedAttributes:
+    def logits(self, features: torch.Tensor, view_dirs: torch.Tensor,
+               distances: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The three MLPs' outputs before activation: opacity (V, n), colour (V, 3n), covariance (V, 7n)."""
         inputs = torch.cat([features, view_dirs, distances], dim=-1)
-        count = inputs.shape[0]
-        cov = self.cov(inputs).view(count, self.n, 7)
-        return DecodedAttributes(
-            opacity=torch.tanh(self.opacity(inputs)),
-            color=torch.sigmoid(self.color(inputs).view(count, self.n, 3)),
-            scale_factor=torch.sigmoid(cov[..., :3]),
-            quat=cov[..., 3:] + IDENTITY_QUAT.to(cov),
-        )
+        return self.opacity(inputs), self.color(inputs), self.cov(inputs)
+
+    def forward(self, features: torch.Tensor, view_dirs: torch.Tensor, distances: torch.Tensor) -> DecodedAttributes:
+        return activate(*self.logits(features, view_dirs, distances), self.n)
+
+
+def activate(opacity: torch.Tensor, color: torch.Tensor, cov: torch.Tensor, n: int) -> DecodedAttributes:
+    """tanh opacity, sigmoid colour and scale factor, identity-offset quaternion."""
+    count = opacity.shape[0]
+    cov = cov.view(count, n, 7)
+    return DecodedAttributes(
+        opacity=torch.tanh(opacity),
+        color=torch.sigmoid(color.view(count, n, 3)),
+        scale_factor=torch.sigmoid(cov[..., :3]),
+        quat=cov[..., 3:] + IDENTITY_QUAT.to(cov),
+    )

@@ -9,7 +9,8 @@ import torch
 
 from ogmapping.anchors import AnchorMap
 from ogmapping.camera import Intrinsics, in_frustum
-from ogmapping.decoders import Decoders
+from ogmapping.decoders import Decoders, activate
+from ogmapping.gaussians_cpu import AssembleGaussians
 
 FRUSTUM_MARGIN = 0.15  # fraction of the image size; anchors just outside still cast Gaussians inside
 
@@ -43,17 +44,31 @@ def generate(
     decoders: Decoders,
     camera_center: torch.Tensor,
     rows: torch.Tensor,
+    fused: bool | None = None,
 ) -> GaussianSet:
-    """Decode the n Gaussians of each anchor in ``rows`` as seen from ``camera_center``."""
-    positions = anchors.positions[rows]
+    """Decode the n Gaussians of each anchor in ``rows`` as seen from ``camera_center``.
+
+    ``fused`` (default: on the CPU) assembles them with the Numba kernel of ``gaussians_cpu``
+    instead of torch ops; both give the same Gaussians and gradients.
+    """
+    positions = anchors.positions.index_select(0, rows)
     to_camera = camera_center.to(positions) - positions
     distances = to_camera.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-    decoded = decoders(features(rows), to_camera / distances, distances)
+    logits = decoders.logits(features(rows), to_camera / distances, distances)
+    if fused is None:
+        fused = positions.device.type == "cpu"
+    return (_assemble_fused if fused else _assemble_torch)(anchors, rows, *logits)
+
+
+def _assemble_torch(anchors: AnchorMap, rows: torch.Tensor, opacity_logits: torch.Tensor,
+                    color_logits: torch.Tensor, cov: torch.Tensor) -> GaussianSet:
+    n = anchors.n_offsets
+    decoded = activate(opacity_logits, color_logits, cov, n)
+    positions = anchors.positions[rows]
     anchor_scale = torch.exp(anchors.log_scales[rows])  # (V, 3)
     means = positions.unsqueeze(1) + anchors.offsets[rows] * anchor_scale.unsqueeze(1)
     scales = anchor_scale.unsqueeze(1) * decoded.scale_factor
     keep = torch.nonzero(decoded.opacity.reshape(-1) > 0).squeeze(-1)  # one nonzero, shared by every gather
-    n = anchors.n_offsets
     return GaussianSet(
         means=means.reshape(-1, 3)[keep],
         quats=decoded.quat.reshape(-1, 4)[keep],
@@ -65,3 +80,11 @@ def generate(
         anchor_rows=rows,
         anchor_opacity=decoded.opacity.detach().amax(dim=1),
     )
+
+
+def _assemble_fused(anchors: AnchorMap, rows: torch.Tensor, opacity_logits: torch.Tensor,
+                    color_logits: torch.Tensor, cov: torch.Tensor) -> GaussianSet:
+    means, quats, scales, opacities, colors, kept_rows, slots, anchor_opacity = AssembleGaussians.apply(
+        opacity_logits, color_logits, cov, anchors.positions, anchors.log_scales, anchors.offsets, rows)
+    return GaussianSet(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
+                       rows=kept_rows, slots=slots, anchor_rows=rows, anchor_opacity=anchor_opacity)
