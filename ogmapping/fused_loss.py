@@ -17,47 +17,12 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from ogmapping.ssim import C1, C2, ReferenceStatistics, gaussian_window, reference_statistics
+from ogmapping.blur import blur
+from ogmapping.ssim import C1, C2, TAPS, ReferenceStatistics, reference_statistics
 
 _C1 = np.float32(C1)
 _C2 = np.float32(C2)
 _TWO = np.float32(2.0)
-_TAPS = gaussian_window().numpy()  # float32, the window ``ogmapping.ssim`` uses
-
-
-@njit(parallel=True, cache=True, error_model="numpy")
-def _blur(maps, taps, channels):
-    """Zero-padded separable blur of every (H, W * C) plane of ``maps`` (M, H, W * C), per channel.
-
-    One task per output row does both passes: the column pass sums whole input rows into a
-    zero-margined buffer, the row pass then sums shifted copies of it. Every loop runs over
-    contiguous memory and unsigned indices (with signed ones Numba adds a negative-index
-    wraparound that stops LLVM vectorising), 4.5x faster than two passes over a stored
-    intermediate (bench/RESULTS.md).
-    """
-    count, height, length = maps.shape
-    n_taps = taps.shape[0]
-    radius = n_taps // 2
-    pad = np.uint64(radius * channels)
-    out = np.empty_like(maps)
-    for job in prange(count * height):
-        m = job // height
-        r = job - m * height
-        column = np.zeros(length + 2 * radius * channels, np.float32)
-        for k in range(n_taps):
-            source = r + k - radius
-            if 0 <= source < height:
-                tap = taps[k]
-                for i in range(length):
-                    column[pad + np.uint64(i)] += tap * maps[m, source, np.uint64(i)]
-        row = np.zeros(length, np.float32)
-        for k in range(n_taps):
-            tap = taps[k]
-            shift = np.uint64(k * channels)
-            for i in range(length):
-                row[np.uint64(i)] += tap * column[shift + np.uint64(i)]
-        out[m, r] = row
-    return out
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -161,12 +126,12 @@ class _ImageTerms(torch.autograd.Function):
     def forward(ctx, color, depth, gt_color, gt_depth, reference):
         height, width, channels = color.shape
         x, y = _planes(color), _planes(gt_color)
-        blurred = _blur(_moments(x, y), _TAPS, channels)
+        blurred = blur(_moments(x, y), TAPS, channels)
         count = x.size
         ssim_sums, partials = _ssim_and_partials(
             blurred, _planes(reference.mean), _planes(reference.square_mean), np.float32(-1.0 / count)
         )
-        l1_sums, grad_l1, grad_ssim = _colour_terms(x, y, _blur(partials, _TAPS, channels), np.float32(1.0 / count))
+        l1_sums, grad_l1, grad_ssim = _colour_terms(x, y, blur(partials, TAPS, channels), np.float32(1.0 / count))
         depth_l1, grad_depth = _depth_terms(
             np.ascontiguousarray(depth.detach().to("cpu", torch.float32).numpy()),
             np.ascontiguousarray(gt_depth.to("cpu", torch.float32).numpy()),

@@ -3,15 +3,20 @@
 One implementation for both keeps "what we optimise" and "what we report" the same quantity:
 an 11x11 Gaussian window (sigma 1.5) applied as two separable 1-D convolutions, with the usual
 constants for images in [0, 1]. Borders use zero padding ("same" size output); the metric drops
-a border afterwards, the loss simply averages the whole map.
+a border afterwards, the loss simply averages the whole map. Where nothing needs a gradient on the
+CPU (the metric, keyframes' cached statistics) the blurs run in the Numba kernel of
+``ogmapping.blur``: the same window and padding, ~10x faster than torch's grouped convolutions.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
+
+from ogmapping.blur import blur
 
 WINDOW_SIZE = 11
 SIGMA = 1.5
@@ -29,6 +34,27 @@ def gaussian_window(
     x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
     taps = torch.exp(-(x**2) / (2 * sigma**2))
     return taps / taps.sum()
+
+
+TAPS = gaussian_window().numpy()  # float32 taps for the Numba blur
+_TAPS_64 = gaussian_window(dtype=torch.float64).numpy()
+
+
+def _compiled(*images: torch.Tensor) -> bool:
+    """Whether the Numba blur may serve: CPU float32/float64 images of one dtype, no gradient wanted."""
+    one_dtype = len({t.dtype for t in images}) == 1 and images[0].dtype in (torch.float32, torch.float64)
+    on_cpu = all(t.device.type == "cpu" for t in images)
+    wants_grad = torch.is_grad_enabled() and any(t.requires_grad for t in images)
+    return one_dtype and on_cpu and not wants_grad
+
+
+def _blur_hwc(*images: torch.Tensor) -> list[torch.Tensor]:
+    """Numba blur of (H, W, C) images of one shape, each channel on its own."""
+    height, width, channels = images[0].shape
+    planes = np.stack([t.detach().reshape(height, width * channels).numpy() for t in images])
+    taps = _TAPS_64 if planes.dtype == np.float64 else TAPS
+    blurred = torch.from_numpy(blur(planes, taps, channels))
+    return [plane.view(height, width, channels) for plane in blurred]
 
 
 def _blur(x: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
@@ -64,6 +90,9 @@ def _hwc(batch: torch.Tensor) -> torch.Tensor:
 
 def reference_statistics(b: torch.Tensor) -> ReferenceStatistics:
     """Statistics of an (H, W, C) image for repeated ``ssim_map`` calls against it."""
+    if _compiled(b):
+        mean, square_mean = _blur_hwc(b, b * b)
+        return ReferenceStatistics(image=b, mean=mean, square_mean=square_mean)
     y = _nchw(b).contiguous()
     taps = gaussian_window(dtype=y.dtype, device=y.device)
     return ReferenceStatistics(image=b, mean=_hwc(_blur(y, taps)), square_mean=_hwc(_blur(y * y, taps)))
@@ -77,13 +106,19 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, reference: ReferenceStatistics | 
     if a.shape != b.shape or a.dim() != 3:
         raise ValueError(f"ssim_map expects two (H, W, C) images of one shape, got {a.shape} and {b.shape}")
     reference = reference if reference is not None else reference_statistics(b)
-    x = _nchw(a)
-    y = _nchw(reference.image)
-    taps = gaussian_window(dtype=x.dtype, device=x.device)
-    mu_x, mu_y = _blur(x, taps), _nchw(reference.mean)
-    var_x = _blur(x * x, taps) - mu_x**2
-    var_y = _nchw(reference.square_mean) - mu_y**2
-    cov = _blur(x * y, taps) - mu_x * mu_y
+    if _compiled(a, reference.image):
+        x, y = a, reference.image
+        mu_x, square_mean_x, mean_xy = _blur_hwc(x, x * x, x * y)
+        mu_y, square_mean_y = reference.mean, reference.square_mean
+    else:
+        x, y = _nchw(a), _nchw(reference.image)
+        taps = gaussian_window(dtype=x.dtype, device=x.device)
+        mu_x, mu_y = _blur(x, taps), _nchw(reference.mean)
+        square_mean_x, square_mean_y, mean_xy = _blur(x * x, taps), _nchw(reference.square_mean), _blur(x * y, taps)
+    var_x = square_mean_x - mu_x**2
+    var_y = square_mean_y - mu_y**2
+    cov = mean_xy - mu_x * mu_y
     numerator = (2 * mu_x * mu_y + C1) * (2 * cov + C2)
     denominator = (mu_x**2 + mu_y**2 + C1) * (var_x + var_y + C2)
-    return _hwc(numerator / denominator)
+    ssim = numerator / denominator
+    return ssim if ssim.dim() == 3 else _hwc(ssim)

@@ -67,3 +67,18 @@ def test_cached_reference_statistics_give_the_same_ssim():
     generator = torch.Generator().manual_seed(3)
     a, b = torch.rand(20, 24, 3, generator=generator), torch.rand(20, 24, 3, generator=generator)
     assert torch.allclose(ssim_map(a, b, reference_statistics(b)), ssim_map(a, b), atol=1e-6)
+
+
+def test_compiled_blur_gives_the_autograd_ssim():
+    """Without a gradient to keep, SSIM blurs in Numba; with one, in torch: the same map."""
+    from ogmapping.ssim import reference_statistics, ssim_map
+
+    generator = torch.Generator().manual_seed(4)
+    a, b = torch.rand(37, 53, 3, generator=generator), torch.rand(37, 53, 3, generator=generator)
+    differentiable = ssim_map(a.clone().requires_grad_(), b.clone().requires_grad_())
+    compiled = ssim_map(a, b)
+    assert differentiable.requires_grad and not compiled.requires_grad
+    torch.testing.assert_close(compiled, differentiable.detach(), rtol=1e-5, atol=1e-5)
+    reference = reference_statistics(b)
+    with torch.no_grad():
+        torch.testing.assert_close(ssim_map(a, b, reference), compiled, rtol=1e-5, atol=1e-5)
