@@ -33,6 +33,9 @@ def parser() -> argparse.ArgumentParser:
                    help="write each session's map into the record dir when it closes")
     p.add_argument("--torch-threads", dest="torch_threads", type=int, help="torch CPU threads (default min(cores, 8))")
     p.add_argument("--grace", dest="grace_seconds", type=float, help="shutdown grace for calls in flight, seconds (5)")
+    p.add_argument("--no-warm-up", dest="warm_up", action="store_false", default=None,
+                   help="serve at once, without first mapping a tiny synthetic scene (which loads the compiled "
+                        "kernels, ~2 s, so the first session does not wait for them)")
     limits = p.add_argument_group("limits (exceeding one gives RESOURCE_EXHAUSTED)")
     limits.add_argument("--max-sessions", dest="max_sessions", type=int, help="open sessions at once (4)")
     limits.add_argument("--queue-depth", dest="queue_depth", type=int,

@@ -6,6 +6,9 @@ import logging
 from concurrent import futures
 from dataclasses import dataclass
 
+import ogmapping  # noqa: F401 (before torch: it sets the OpenMP wait policy torch's pool reads at start)
+
+# isort: split
 import grpc
 import torch
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
@@ -13,6 +16,7 @@ from grpc_reflection.v1alpha import reflection
 from ogapi import SERVICE_NAME
 from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 
+from ogmapping.warmup import warm_up
 from ogserver.registry import Closed, Registry
 from ogserver.service import MappingService
 from ogserver.settings import Settings
@@ -61,6 +65,8 @@ def build(settings: Settings) -> Server:
         ("grpc.max_send_message_length", limits.max_message_bytes),
     ]
     server = grpc.server(futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="grpc"), options=options)
+    if settings.warm_up:
+        log.info("warming up on %s: %.1f s", device, warm_up(device))
     registry = Registry(settings, device)
     pb_grpc.add_MappingServicer_to_server(MappingService(registry), server)
     health_servicer = health.HealthServicer()

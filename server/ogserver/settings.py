@@ -41,6 +41,7 @@ class Settings:
     final_snapshots: bool = False  # write <session>.safetensors next to the recording on close
     torch_threads: int = 0  # 0: min(cpu count, 8)
     grace_seconds: float = 5.0  # how long shutdown waits for calls in flight
+    warm_up: bool = True  # map a tiny synthetic scene before serving, so the first session pays no load costs
     limits: Limits = field(default_factory=Limits)
 
     def validate(self) -> None:

@@ -1,0 +1,32 @@
+"""Pay the engine's one-time costs before the first client does.
+
+A fresh process loads each compiled kernel from Numba's cache on its first call, and torch imports
+its compiler stack the first time an optimiser is built: together about 2 s on the development
+machine (bench/RESULTS.md), which would otherwise land on the first session's first frame.
+"""
+
+from __future__ import annotations
+
+import time
+
+import torch
+
+from ogmapping.config import build
+from ogmapping.datasets.synthetic import SyntheticSource
+from ogmapping.mapper import Mapper
+
+# Small enough to take well under a second once the kernels are loaded.
+_SETTINGS = {"keyframes.first_iterations": 2, "keyframes.iterations": 1}
+
+
+def warm_up(device: str | torch.device = "cpu") -> float:
+    """Map two tiny synthetic frames, render and snapshot a throwaway map; returns the seconds taken."""
+    start = time.perf_counter()
+    source = SyntheticSource(n_frames=2, width=64, height=48)
+    mapper = Mapper(build("sparse", _SETTINGS), device)
+    for position in range(len(source)):
+        mapper.process(source[position])
+    frame = source[0]
+    mapper.render(frame.c2w, frame.color_intrinsics)
+    mapper.snapshot()
+    return time.perf_counter() - start
