@@ -63,7 +63,7 @@ def test_no_valid_depth_gives_zero_and_no_nan() -> None:
     color, depth, gt_color, _ = _views(16, 16, 5)
     _, _, depth_term = image_terms(color, depth, gt_color, torch.zeros(16, 16))
     depth_term.backward()
-    assert float(depth_term) == 0.0 and not bool(torch.isnan(depth.grad).any())
+    assert float(depth_term.detach()) == 0.0 and not bool(torch.isnan(depth.grad).any())
 
 
 def test_identical_images_give_zero_loss() -> None:
