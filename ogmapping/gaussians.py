@@ -57,14 +57,16 @@ def generate(
     logits = decoders.logits(features(rows), to_camera / distances, distances)
     if fused is None:
         fused = positions.device.type == "cpu"
-    return (_assemble_fused if fused else _assemble_torch)(anchors, rows, *logits)
+    if fused:
+        return _assemble_fused(anchors, rows, *logits)
+    return _assemble_torch(anchors, rows, positions, *logits)
 
 
-def _assemble_torch(anchors: AnchorMap, rows: torch.Tensor, opacity_logits: torch.Tensor,
+def _assemble_torch(anchors: AnchorMap, rows: torch.Tensor, positions: torch.Tensor, opacity_logits: torch.Tensor,
                     color_logits: torch.Tensor, cov: torch.Tensor) -> GaussianSet:
+    """``positions``: the anchors' centres, ``anchors.positions[rows]``."""
     n = anchors.n_offsets
     decoded = activate(opacity_logits, color_logits, cov, n)
-    positions = anchors.positions[rows]
     anchor_scale = torch.exp(anchors.log_scales[rows])  # (V, 3)
     means = positions.unsqueeze(1) + anchors.offsets[rows] * anchor_scale.unsqueeze(1)
     scales = anchor_scale.unsqueeze(1) * decoded.scale_factor

@@ -19,6 +19,8 @@ import numpy as np
 import torch
 from numba import njit, prange
 
+from ogmapping.render.cpu_backend import float32_array
+
 _ONE = np.float32(1.0)
 
 
@@ -116,16 +118,12 @@ def assemble_backward(opacity_logits, color_logits, cov, log_scales, offsets, ro
     return grad_opacity_logits, grad_color_logits, grad_cov, grad_log_scales, grad_offsets
 
 
-def _f32(t: torch.Tensor) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().to(torch.float32).numpy())
-
-
 class AssembleGaussians(torch.autograd.Function):
     """(opacity logits, colour logits, covariance outputs, anchor tables, rows) -> kept Gaussians."""
 
     @staticmethod
     def forward(ctx, opacity_logits, color_logits, cov, positions, log_scales, offsets, rows):
-        inputs = [_f32(t) for t in (opacity_logits, color_logits, cov, positions, log_scales, offsets)]
+        inputs = [float32_array(t) for t in (opacity_logits, color_logits, cov, positions, log_scales, offsets)]
         rows_np = np.ascontiguousarray(rows.numpy().astype(np.int64, copy=False))
         starts = _kept_starts(inputs[0])
         *outputs, factors = assemble_forward(*inputs, rows_np, starts)
@@ -142,7 +140,7 @@ class AssembleGaussians(torch.autograd.Function):
         opacities, colors = (t.numpy() for t in ctx.saved_tensors)
         total = int(starts[-1])
         upstream = [
-            np.zeros(shape, np.float32) if g is None else _f32(g)
+            np.zeros(shape, np.float32) if g is None else float32_array(g)
             for g, shape in ((grad_means, (total, 3)), (grad_quats, (total, 4)), (grad_scales, (total, 3)),
                              (grad_opacities, (total,)), (grad_colors, (total, 3)))
         ]

@@ -53,7 +53,10 @@ def test_fused_assembly_matches_torch(count, in_view, opacity_shift, seed):
     anchors = _anchors(count, seed)
     rows = torch.randperm(count, generator=torch.Generator().manual_seed(seed))[:in_view]
     logits = _logits(in_view, seed, opacity_shift)
-    expected, expected_grads = _run(_assemble_torch, anchors, rows, logits, seed)
+    def assemble_torch(anchors, rows, *logits):
+        return _assemble_torch(anchors, rows, anchors.positions[rows], *logits)
+
+    expected, expected_grads = _run(assemble_torch, anchors, rows, logits, seed)
     actual, actual_grads = _run(_assemble_fused, anchors, rows, logits, seed)
     assert len(actual) == len(expected)
     for name in OUTPUTS:

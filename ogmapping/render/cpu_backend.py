@@ -19,7 +19,7 @@ from ogmapping.render.projection import Projection
 from ogmapping.render.torch_backend import finish_output
 
 
-def _f32(t: torch.Tensor) -> np.ndarray:
+def float32_array(t: torch.Tensor) -> np.ndarray:
     """C-contiguous float32 view for the kernels (one compiled signature for every caller)."""
     return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
 
@@ -43,7 +43,7 @@ class _Project(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, viewmat, K, width, height):
-        inputs = [_f32(t) for t in (means, quats, scales, opacities, viewmat, K)]
+        inputs = [float32_array(t) for t in (means, quats, scales, opacities, viewmat, K)]
         means2d, conics, depths, radii = cpu_projection.project_forward(*inputs, width, height)
         ctx.state = (inputs, width, height)
         ctx.dtypes = (means.dtype, quats.dtype, scales.dtype)
@@ -63,7 +63,7 @@ class _Project(torch.autograd.Function):
         inputs, width, height = ctx.state
         n = inputs[0].shape[0]
         upstream = [
-            np.zeros(shape, np.float32) if g is None else _f32(g)
+            np.zeros(shape, np.float32) if g is None else float32_array(g)
             for g, shape in ((grad_means2d, (n, 2)), (grad_conics, (n, 3)), (grad_depths, (n,)))
         ]
         grads = cpu_projection.project_backward(*inputs, width, height, *upstream)
@@ -78,7 +78,7 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, background, radii, width, height):
-        arrays = [_f32(t) for t in (means2d, conics, opacities, colors, depths, background)]
+        arrays = [float32_array(t) for t in (means2d, conics, opacities, colors, depths, background)]
         m2d, con, opa, col, dep, bg = arrays
         radii_np = np.ascontiguousarray(radii.to("cpu", torch.int32).numpy())
         order = _depth_order(dep, np.flatnonzero(radii_np > 0))
@@ -106,7 +106,8 @@ class _Composite(torch.autograd.Function):
         m2d, con, opa, col, dep, bg = arrays
         pair_grads, bg_grads = kernels.render_backward(
             tile_offsets, ids, m2d, con, opa, col, dep, *ellipses, bg, final_t, n_contrib,
-            _f32(grad_color), _f32(grad_depth), _f32(grad_alpha), width, height, numba.get_num_threads(),
+            float32_array(grad_color), float32_array(grad_depth), float32_array(grad_alpha), width, height,
+            numba.get_num_threads(),
         )
         grads = torch.from_numpy(kernels.reduce_pairs(order, pair_start, pair_of, pair_grads, m2d.shape[0]))
         dtype, bg_dtype = ctx.dtypes
