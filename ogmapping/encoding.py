@@ -8,6 +8,7 @@ import torch
 from torch import nn
 
 from ogmapping.config import ModelConfig
+from ogmapping.lazy_adam import SparseRowGather
 
 # Large primes of the spatial hash (Teschner et al.), the first left at 1 as instant-NGP does.
 HASH_PRIMES = (1, 2654435761, 805459861)
@@ -17,7 +18,8 @@ CORNERS = torch.tensor([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], dtyp
 class HashGridEncoding(nn.Module):
     """Multi-resolution hash encoding in world coordinates, trilinearly interpolated.
 
-    Resolutions are in cells per metre, so no scene bounds are needed in an online setting.
+    Resolutions are in cells per metre, so no scene bounds are needed in an online setting. The
+    table's gradient is sparse (the rows a view read); ``ogmapping.lazy_adam`` steps those rows only.
     """
 
     def __init__(self, config: ModelConfig, generator: torch.Generator | None = None) -> None:
@@ -41,8 +43,9 @@ class HashGridEncoding(nn.Module):
         fraction = scaled - base
         corners = base.to(torch.int64).unsqueeze(2) + CORNERS.to(points.device)  # (M, L, 8, 3)
         index = self._hash(corners)  # (M, L, 8)
-        level_index = torch.arange(self.levels, device=points.device).view(1, -1, 1)
-        values = self.table[level_index, index]  # (M, L, 8, F)
+        level_start = torch.arange(self.levels, device=points.device).view(1, -1, 1) * self.table_size
+        rows = (index + level_start).reshape(-1)
+        values = SparseRowGather.apply(self.table, rows).view(*index.shape, -1)  # (M, L, 8, F)
         corner_bits = CORNERS.to(points.device, points.dtype)
         weights = torch.where(
             corner_bits.view(1, 1, 8, 3) > 0, fraction.unsqueeze(2), 1.0 - fraction.unsqueeze(2)

@@ -1,12 +1,21 @@
 """Keyframe insertion by coarse-anchor overlap, and the dynamic keyframe window (paper 3.3).
 
-A frame's footprint is the set of coarsest-level octree cells its depth observes (sorted Morton
-codes): occlusion-aware and cheap, as the cells come straight from back-projected depth.
+``keyframes.window`` picks the window (paper table "keyframe window"): ``dynamic`` (the paper's)
+draws b1 local and b2 global keyframes afresh every iteration; the fixed windows pick b1 + b2
+earlier keyframes once, when a keyframe is inserted, and keep them until the next one:
+``random`` (ESLAM), ``overlap`` (the most overlapping with K_new, SplaTAM / MonoGS) and
+``coverage`` (greedy coverage of coarse cells K_new does not see, H2-Mapping-like).
+
+A frame's footprint is the set of occupied coarsest-level octree cells it sees (sorted Morton
+codes, ``SparseVoxelOctree.seen_from``): each cell is tested once at its centre's pixel against the
+measured depth, so the footprint, and with it keyframe insertion, does not change with the image
+resolution.
 """
 
 from __future__ import annotations
 
 import random
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -25,7 +34,7 @@ class Keyframe:
     depth: torch.Tensor  # (H, W), metres, 0 = invalid
     intrinsics: Intrinsics
     c2w: torch.Tensor  # (4, 4)
-    codes: torch.Tensor  # sorted unique coarsest-cell codes this frame observes
+    codes: torch.Tensor  # sorted unique occupied coarsest-cell codes this frame sees
     ssim_reference: ReferenceStatistics | None = None  # cached SSIM statistics of ``rgb``
     _downscaled: dict[float, Keyframe] = field(default_factory=dict, repr=False)
 
@@ -55,36 +64,106 @@ def overlap_ratio(first: torch.Tensor, second: torch.Tensor) -> float:
     return overlap / (first.numel() + second.numel() - overlap)
 
 
-class KeyframeSet:
-    """The keyframes so far, the newest one's local/global split, and window draws."""
+def _count_missing(sorted_codes: torch.Tensor, codes: torch.Tensor) -> int:
+    """How many of ``codes`` are not in ``sorted_codes``."""
+    if sorted_codes.numel() == 0:
+        return int(codes.numel())
+    positions = torch.searchsorted(sorted_codes, codes).clamp_max(sorted_codes.numel() - 1)
+    return int((sorted_codes[positions] != codes).sum())
 
-    def __init__(self, config: KeyframeConfig, seed: int = 0) -> None:
+
+# Fixed windows: positions of ``count`` earlier keyframes, chosen once per inserted keyframe from
+# the earlier keyframes, the new one and their overlap weights with it.
+def random_window(earlier: list[Keyframe], new: Keyframe, weights: list[float], count: int,
+                  rng: random.Random) -> list[int]:
+    """``count`` earlier keyframes drawn uniformly without replacement (ESLAM)."""
+    return rng.sample(range(len(earlier)), min(count, len(earlier)))
+
+
+def overlap_window(earlier: list[Keyframe], new: Keyframe, weights: list[float], count: int,
+                   rng: random.Random) -> list[int]:
+    """The ``count`` earlier keyframes overlapping K_new most (ties: the newer), SplaTAM / MonoGS."""
+    return sorted(range(len(earlier)), key=lambda position: (-weights[position], -position))[:count]
+
+
+def coverage_window(earlier: list[Keyframe], new: Keyframe, weights: list[float], count: int,
+                    rng: random.Random) -> list[int]:
+    """Greedy coverage (H2-Mapping-like): repeatedly the earlier keyframe that sees the most coarse
+    cells not yet covered by K_new and the keyframes already picked (ties: the newer)."""
+    covered, chosen = new.codes, []
+    remaining = list(range(len(earlier)))
+    for _ in range(min(count, len(earlier))):
+        _, best = max((_count_missing(covered, earlier[position].codes), position) for position in remaining)
+        chosen.append(best)
+        remaining.remove(best)
+        covered = torch.unique(torch.cat([covered, earlier[best].codes]))
+    return chosen
+
+
+FIXED_WINDOWS = {"random": random_window, "overlap": overlap_window, "coverage": coverage_window}
+
+
+class KeyframeSet:
+    """The keyframes so far, the newest one's local/global split, and window draws.
+
+    With a ``footprint`` (a keyframe's seen cells on the map as it is now), stored footprints are
+    refreshed before each comparison, so two views are always compared on the same map: cells a
+    keyframe's own depth was too coarse to allocate, but it sees, then count for it too.
+    """
+
+    def __init__(self, config: KeyframeConfig, seed: int = 0,
+                 footprint: Callable[[Keyframe], torch.Tensor] | None = None) -> None:
         self.config = config
         self.keyframes: list[Keyframe] = []
         self.local: list[int] = []
         self.global_: list[int] = []
         self.random = random.Random(seed)
+        self.footprint = footprint
+        self.fixed: list[int] = []  # a fixed window's earlier keyframes, chosen when K_new came
 
     def __len__(self) -> int:
         return len(self.keyframes)
+
+    def _refresh(self, keyframes: list[Keyframe]) -> None:
+        if self.footprint is not None:
+            for keyframe in keyframes:
+                keyframe.codes = self.footprint(keyframe)
 
     def should_insert(self, codes: torch.Tensor) -> bool:
         """A frame is a keyframe when it overlaps the last keyframe less than the threshold."""
         if not self.keyframes:
             return True
+        self._refresh(self.keyframes[-1:])
         return overlap_ratio(codes, self.keyframes[-1].codes) < self.config.overlap_threshold
 
     def insert(self, keyframe: Keyframe) -> None:
-        """Add K_new and split the earlier keyframes into local and global sets by overlap weight."""
+        """Add K_new and split the earlier keyframes into local and global sets by overlap weight
+        (or, with a fixed window, choose that window once)."""
+        self._refresh(self.keyframes)
         self.local, self.global_ = [], []
+        weights = []
         for position, other in enumerate(self.keyframes):
             weight = overlap_ratio(keyframe.codes, other.codes)
+            weights.append(weight)
             (self.local if weight >= self.config.local_threshold else self.global_).append(position)
+        if self.config.window != "dynamic":
+            choose = FIXED_WINDOWS[self.config.window]
+            count = self.config.local_count + self.config.global_count
+            self.fixed = choose(self.keyframes, keyframe, weights, count, self.random)
         self.keyframes.append(keyframe)
 
-    def draw_window(self) -> list[Keyframe]:
-        """K_new plus b1 local and b2 global keyframes drawn afresh without replacement."""
-        newest = self.keyframes[-1]
-        local = self.random.sample(self.local, min(self.config.local_count, len(self.local)))
+    def draw_window(self, view: Keyframe) -> list[Keyframe]:
+        """``view`` plus b1 local and b2 global keyframes drawn afresh without replacement.
+
+        ``view`` is K_new, or a streamed frame that is not a keyframe: it overlaps the newest
+        keyframe by at least the insertion threshold, so that keyframe joins the local set.
+        With a fixed window, ``view`` plus the b1 + b2 keyframes chosen when the newest keyframe
+        was inserted, the same at every draw until the next keyframe.
+        """
+        if self.config.window != "dynamic":
+            return [view] + [self.keyframes[i] for i in self.fixed]
+        newest = len(self.keyframes) - 1
+        local_set = self.local if view is self.keyframes[newest] else [*self.local, newest]
+        local = self.random.sample(local_set, min(self.config.local_count, len(local_set)))
         global_ = self.random.sample(self.global_, min(self.config.global_count, len(self.global_)))
-        return [newest] + [self.keyframes[i] for i in local + global_]
+        return [view] + [self.keyframes[i] for i in local + global_]

@@ -20,15 +20,16 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ogmapping import refine
+from ogmapping import allocation, refine
 from ogmapping.anchors import AnchorMap
-from ogmapping.camera import Intrinsics, backproject, world_to_camera
-from ogmapping.config import MapperConfig
+from ogmapping.camera import Intrinsics, world_to_camera
+from ogmapping.config import MapperConfig, OctreeConfig
 from ogmapping.decoders import Decoders
 from ogmapping.encoding import HashGridEncoding, feature_dim, initial_anchor_features
 from ogmapping.frame import Frame
 from ogmapping.gaussians import GaussianSet, anchors_in_view, generate
 from ogmapping.keyframes import Keyframe, KeyframeSet
+from ogmapping.lazy_adam import LazyAdam
 from ogmapping.losses import mapping_loss
 from ogmapping.octree import SparseVoxelOctree
 from ogmapping.preprocess import prepare
@@ -73,8 +74,9 @@ class Mapper:
         self.encoding = HashGridEncoding(model, self.generator).to(self.device) if model.encoding == "hash" else None
         self.decoders = Decoders(feature_dim(model), model.n_offsets, model.hidden_dim, self.generator)
         self.decoders = self.decoders.to(self.device)
-        self.keyframes = KeyframeSet(config.keyframes, config.seed)
+        self.keyframes = KeyframeSet(config.keyframes, config.seed, self._footprint)
         self.optimizer = self._make_optimizer()
+        self.hash_optimizer = LazyAdam(self.encoding.table, config.optim.hash_lr) if self.encoding is not None else None
         self.frames = 0
         self.iterations = 0
         self.last_gaussians = 0
@@ -90,9 +92,7 @@ class Mapper:
             {"params": self.decoders.color.parameters(), "lr": lr.color_mlp_lr, "name": "color_mlp"},
             {"params": self.decoders.cov.parameters(), "lr": lr.cov_mlp_lr, "name": "cov_mlp"},
         ]
-        if self.encoding is not None:
-            groups.append({"params": [self.encoding.table], "lr": lr.hash_lr, "name": "hash"})
-        else:
+        if self.encoding is None:
             groups.append({"params": [self.anchors.features], "lr": lr.features_lr, "name": "features"})
         return torch.optim.Adam(groups, eps=1e-15)
 
@@ -117,21 +117,21 @@ class Mapper:
             depth = torch.as_tensor(frame.depth, dtype=torch.float32, device=self.device)
             c2w = torch.as_tensor(frame.c2w, dtype=torch.float32, device=self.device)
         with self.lock, self._timed("allocate"):
-            stride = self.config.octree.allocation_stride
-            points = backproject(_subsampled(depth, stride), frame.color_intrinsics, c2w)
-            codes = self.octree.observed(points)
-            new_codes = self.octree.insert(codes, 0)
+            stride = allocation_stride(self.config.octree, frame.color_intrinsics)
+            new_codes = allocation.allocate(self.config.octree.allocation, self.octree, _subsampled(depth, stride),
+                                            frame.color_intrinsics, c2w,
+                                            lambda: self._render(c2w, frame.color_intrinsics)[1])
             self._add_coarse_anchors(new_codes)
         with self._timed("keyframes"):
+            codes = self.octree.seen_from(depth, frame.color_intrinsics, c2w)
             is_keyframe = self.keyframes.should_insert(codes)
+            iterations = self._iterations_for(is_keyframe)
+            view = None
+            if is_keyframe or iterations:
+                view = Keyframe(frame.index, rgb, depth, frame.color_intrinsics, c2w, codes, reference_statistics(rgb))
             if is_keyframe:
-                self.keyframes.insert(Keyframe(frame.index, rgb, depth, frame.color_intrinsics, c2w, codes,
-                                               reference_statistics(rgb)))
-        iterations, loss, grown = 0, float("nan"), 0
-        if is_keyframe:
-            first = len(self.keyframes) == 1
-            iterations = self.config.keyframes.first_iterations if first else self.config.keyframes.iterations
-            loss, grown = self._optimise(iterations)
+                self.keyframes.insert(view)
+        loss, grown = self._optimise(iterations, view) if iterations else (float("nan"), 0)
         self.frames += 1
         return FrameResult(
             index=frame.index,
@@ -156,15 +156,26 @@ class Mapper:
         )
         self.anchors.add(codes, levels, self.octree.centers(codes, 0), sizes, features, self.optimizer)
 
-    def _optimise(self, iterations: int) -> tuple[float, int]:
-        """k iterations on fresh windows; grow and prune every ``refine.interval`` iterations."""
+    def _footprint(self, keyframe: Keyframe) -> torch.Tensor:
+        return self.octree.seen_from(keyframe.depth, keyframe.intrinsics, keyframe.c2w)
+
+    def _iterations_for(self, is_keyframe: bool) -> int:
+        """k for a keyframe (more for the very first), ``frame_iterations`` for any other frame."""
+        settings = self.config.keyframes
+        if not is_keyframe:
+            return settings.frame_iterations if self.keyframes else 0
+        return settings.first_iterations if not self.keyframes else settings.iterations
+
+    def _optimise(self, iterations: int, view: Keyframe) -> tuple[float, int]:
+        """``iterations`` steps, each on a fresh window around ``view``; grow and prune every
+        ``refine.interval`` steps of the whole session (frames may get fewer steps than that)."""
         loss_value, grown = float("nan"), 0
         interval = self.config.refine.interval
-        for step in range(1, iterations + 1):
+        for _ in range(iterations):
             with self.lock:
-                loss_value = self._iteration(self.keyframes.draw_window())
+                loss_value = self._iteration(self.keyframes.draw_window(view))
                 self.iterations += 1
-                if step % interval == 0:
+                if self.iterations % interval == 0:
                     with self._timed("refine"):
                         grown += refine.grow(self.anchors, self.octree, self.config.refine,
                                              self.config.octree.voxel_size, self.optimizer)
@@ -174,6 +185,8 @@ class Mapper:
 
     def _iteration(self, window: list[Keyframe]) -> float:
         self.optimizer.zero_grad(set_to_none=True)
+        if self.hash_optimizer is not None:
+            self.hash_optimizer.zero_grad()
         renders: list[tuple[GaussianSet, RenderOutput, Keyframe]] = []
         total = torch.zeros((), device=self.device)
         for position, keyframe in enumerate(window):
@@ -194,6 +207,8 @@ class Mapper:
                                   keyframe.intrinsics.width, keyframe.intrinsics.height)
         with self._timed("optimizer"):
             self.optimizer.step()
+            if self.hash_optimizer is not None:
+                self.hash_optimizer.step()
         self.last_gaussians = len(renders[0][0]) if renders else 0
         return float(total.detach())
 
@@ -262,6 +277,16 @@ class Mapper:
         from ogmapping.snapshot import load
 
         return load(data, device)
+
+
+def allocation_stride(settings: OctreeConfig, intrinsics: Intrinsics) -> int:
+    """Pixel stride for allocation: ``octree.allocation_stride``, or with 0 the widest stride whose
+    samples lie at most a quarter voxel apart at ``depth_max``, so every observed coarse cell gets a
+    point at any resolution (a sparser sampling misses cells, and keyframes then depend on it)."""
+    if settings.allocation_stride:
+        return settings.allocation_stride
+    focal = min(intrinsics.fx, intrinsics.fy)
+    return max(1, int(0.25 * settings.voxel_size * focal / settings.depth_max))
 
 
 def _subsampled(depth: torch.Tensor, stride: int) -> torch.Tensor:

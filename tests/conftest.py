@@ -8,6 +8,7 @@ import ogmapping  # noqa: F401 (first, so its OpenMP settings precede torch in a
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 SEVEN_SCENES = SHARED_DATA / "7scenes-redkitchen"
+REPLICA_ROOM0 = SHARED_DATA / "replica-room0" / "data"
 
 
 @pytest.fixture
@@ -15,3 +16,10 @@ def seven_scenes() -> Path:
     if not SEVEN_SCENES.exists():
         pytest.skip(f"real data not found at {SEVEN_SCENES} (CI has ../shared beside the checkout)")
     return SEVEN_SCENES
+
+
+@pytest.fixture
+def replica_room0() -> Path:
+    if not REPLICA_ROOM0.exists():
+        pytest.skip(f"Replica room0 frames not found at {REPLICA_ROOM0} (CI has ../shared beside the checkout)")
+    return REPLICA_ROOM0

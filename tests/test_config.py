@@ -37,3 +37,18 @@ def test_dict_round_trip_and_files(tmp_path):
     yaml_path = tmp_path / "overrides.yaml"
     yaml_path.write_text("keyframes:\n  local_count: 4\n")
     assert build("sparse", load_file(yaml_path)).keyframes.local_count == 4
+
+
+def test_ablation_switches_default_to_the_paper_and_are_validated():
+    config = preset("sparse")
+    assert (config.octree.allocation, config.refine.growth, config.keyframes.window) == ("octree", "anchor", "dynamic")
+    for key, value in (("octree.allocation", "unique"), ("octree.allocation", "projection"),
+                       ("refine.growth", "error"), ("refine.growth", "none"),
+                       ("keyframes.window", "random"), ("keyframes.window", "overlap"),
+                       ("keyframes.window", "coverage")):
+        build("sparse", {key: value})
+    for key, allowed in (("octree.allocation", "octree, unique, projection"),
+                         ("refine.growth", "anchor, error, none"),
+                         ("keyframes.window", "dynamic, random, overlap, coverage")):
+        with pytest.raises(ValueError, match=f"config {key} must be one of {allowed}, got 'bogus'"):
+            build("sparse", {key: "bogus"})

@@ -50,7 +50,7 @@ def test_window_draws_without_replacement_and_changes_between_iterations():
     assert len(frames.local) >= 3 and len(frames.global_) >= 2
     draws = []
     for _ in range(20):
-        window = frames.draw_window()
+        window = frames.draw_window(frames.keyframes[-1])
         indices = [kf.index for kf in window]
         assert indices[0] == 99, "K_new is always in the window"
         assert len(indices) == 1 + 3 + 2
@@ -64,7 +64,7 @@ def test_window_draws_without_replacement_and_changes_between_iterations():
 def test_window_with_few_keyframes_uses_what_exists():
     frames = KeyframeSet(KeyframeConfig(local_count=2, global_count=2))
     frames.insert(keyframe(0, [1, 2]))
-    assert [kf.index for kf in frames.draw_window()] == [0]
+    assert [kf.index for kf in frames.draw_window(frames.keyframes[0])] == [0]
 
 
 def test_downscaled_keyframe_matches_a_resized_camera():
@@ -93,3 +93,69 @@ def test_window_scale_stops_at_the_minimum_width():
     assert mapper._window_scale(240) == 160 / 240
     assert mapper._window_scale(160) == 1.0
     assert mapper._window_scale(80) == 1.0
+
+
+def test_a_frame_between_keyframes_draws_the_newest_keyframe_as_local():
+    frames = KeyframeSet(KeyframeConfig(local_count=1, global_count=0))
+    frames.insert(keyframe(0, [1, 2]))
+    streamed = keyframe(7, [1, 2])
+    assert [kf.index for kf in frames.draw_window(streamed)] == [7, 0]
+
+
+def test_footprints_are_refreshed_on_the_current_map():
+    """With a footprint function, the newest keyframe is compared as it sees the map now."""
+    seen = {0: [1, 2, 3, 4]}
+    frames = KeyframeSet(KeyframeConfig(overlap_threshold=0.8), footprint=lambda kf: torch.tensor(seen[kf.index]))
+    frames.insert(keyframe(0, [1, 2]))
+    assert not frames.should_insert(torch.tensor([1, 2, 3, 4])), "cells allocated later count for the keyframe too"
+    assert frames.keyframes[0].codes.tolist() == [1, 2, 3, 4]
+
+
+# Fixed windows (``keyframes.window``): chosen once per inserted keyframe, the same at every draw.
+def fixed_set(window: str, local: int = 1, global_: int = 2) -> KeyframeSet:
+    return KeyframeSet(KeyframeConfig(window=window, local_count=local, global_count=global_), seed=3)
+
+
+def test_fixed_windows_stay_fixed_between_insertions():
+    for window in ("random", "overlap", "coverage"):
+        frames = fixed_set(window)
+        for index in range(6):
+            frames.insert(keyframe(index, list(range(10 * index, 10 * index + 15))))
+        draws = {tuple(kf.index for kf in frames.draw_window(frames.keyframes[-1])) for _ in range(10)}
+        assert len(draws) == 1, window
+        (indices,) = draws
+        assert indices[0] == 5 and len(indices) == 4 and len(set(indices)) == 4, window
+        streamed = keyframe(50, [55, 56])
+        assert [kf.index for kf in frames.draw_window(streamed)] == [50, *indices[1:]], window
+
+
+def test_random_window_is_redrawn_only_when_a_keyframe_arrives():
+    frames = fixed_set("random", local=1, global_=1)
+    chosen = set()
+    for index in range(12):
+        frames.insert(keyframe(index, [index]))
+        chosen.add(tuple(frames.fixed))
+        assert len(set(frames.fixed)) == min(2, index) and all(p < index for p in frames.fixed)
+    assert len(chosen) > 3
+
+
+def test_overlap_window_picks_the_most_overlapping_keyframes():
+    frames = fixed_set("overlap", local=1, global_=1)
+    frames.insert(keyframe(0, list(range(0, 10))))  # overlap with K_new (cells 3..12): 7/13
+    frames.insert(keyframe(1, list(range(100, 110))))  # 0
+    frames.insert(keyframe(2, list(range(3, 13))))  # 1
+    frames.insert(keyframe(3, list(range(8, 18))))  # 5/15
+    frames.insert(keyframe(4, list(range(5, 15))))  # 8/12
+    frames.insert(keyframe(9, list(range(3, 13))))
+    assert frames.fixed == [2, 4]
+
+
+def test_coverage_window_picks_greedily():
+    frames = fixed_set("coverage", local=2, global_=1)
+    frames.insert(keyframe(0, list(range(0, 15))))  # adds 5 cells K_new does not see
+    frames.insert(keyframe(1, list(range(20, 29))))  # adds 9
+    frames.insert(keyframe(2, [*range(20, 26), 30, 31]))  # adds 8 alone, only 2 after keyframe 1
+    frames.insert(keyframe(3, list(range(40, 44))))  # adds 4
+    frames.insert(keyframe(9, list(range(0, 10))))
+    # Most new cells alone would be 1, 2, 0; greedily, keyframe 2 adds little once 1 is in.
+    assert [frames.keyframes[p].index for p in frames.fixed] == [1, 0, 3]

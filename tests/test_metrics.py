@@ -59,7 +59,7 @@ def test_depth_l1_masks_invalid_measurements():
 
 
 def test_lpips_reports_why_it_is_unavailable(monkeypatch, tmp_path):
-    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path))  # an empty hub cache
+    monkeypatch.setenv("OGMAP_LPIPS_WEIGHTS", str(tmp_path / "absent.safetensors"))
     ok, reason = metrics.lpips_status()
     assert not ok and reason
     scorer = metrics.Lpips()

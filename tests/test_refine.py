@@ -7,7 +7,7 @@ import torch
 from ogmapping.anchors import AnchorMap
 from ogmapping.config import RefineConfig
 from ogmapping.octree import SparseVoxelOctree
-from ogmapping.refine import grow, propose, prune
+from ogmapping.refine import grow, propose, propose_error, prune
 
 VOXEL = 0.4
 CONFIG = RefineConfig(grad_threshold=1.0, min_observations=1, max_new_anchors=100)
@@ -117,3 +117,48 @@ def test_prune_keeps_anchors_that_were_not_rendered_in_the_interval():
     # the second anchor was in no window view since the last step: no opacity on record
     assert prune(anchors, RefineConfig(prune_opacity=0.01, prune_min_observations=10), None) == 1
     assert len(anchors) == 1 and torch.allclose(anchors.positions[0], torch.tensor([1.0, 1.0, 1.0]))
+
+
+# ``refine.growth``: Scaffold-GS's error-based growth and no growth, against the same hand-built maps.
+ERROR = RefineConfig(grad_threshold=1.0, min_observations=1, max_new_anchors=100, growth="error")
+
+
+def test_error_growth_proposes_at_every_level_the_gradient_reaches():
+    anchors, octree = build_map([[0.1, 0.1, 0.1]], [0])
+    with torch.no_grad():
+        anchors.offsets[0, 1] = torch.tensor([1.5, 0.0, 0.0])  # one coarse cell over: a free level-0 cell
+    set_gradient(anchors, 0, 0, 5.0)  # reaches tau_0, 2 tau_0 and 4 tau_0; its own level-0 cell is taken
+    set_gradient(anchors, 0, 1, 2.5)  # reaches tau_0 and 2 tau_0
+    proposals = propose_error(anchors, octree, ERROR)
+    assert sorted(proposals.levels.tolist()) == [0, 1, 1, 2]
+    assert proposals.parents.tolist() == [0, 0, 0, 0]
+    assert grow(anchors, octree, ERROR, VOXEL, None) == 4
+    assert [octree.count(level) for level in range(3)] == [2, 2, 1]
+
+
+def test_error_growth_ignores_the_anchor_level_and_may_go_coarser():
+    anchors, octree = build_map([[0.01, 0.01, 0.01]], [2])
+    set_gradient(anchors, 0, 0, 1.5)  # over tau_0 only: the anchor-based rule would need 4 tau_0 here
+    proposals = propose_error(anchors, octree, ERROR)
+    assert proposals.levels.tolist() == [0]
+    assert propose(anchors, octree, CONFIG).codes.numel() == 0
+
+
+def test_error_growth_spawns_again_in_a_later_interval():
+    anchors, octree = build_map([[0.1, 0.1, 0.1]], [0])
+    set_gradient(anchors, 0, 0, 2.5)  # reaches levels 0 and 1; its level-0 cell is taken
+    assert grow(anchors, octree, ERROR, VOXEL, None) == 1  # its level-1 cell
+    assert not bool(anchors.spawned.any())
+    anchors.reset_statistics()
+    set_gradient(anchors, 0, 0, 2.5)
+    with torch.no_grad():
+        anchors.offsets[0, 0] = torch.tensor([0.3, 0.3, 0.3])  # now in a free level-1 cell
+    assert grow(anchors, octree, ERROR, VOXEL, None) == 1
+
+
+def test_no_growth_grows_nothing():
+    anchors, octree = build_map([[0.1, 0.1, 0.1]], [0])
+    set_gradient(anchors, 0, 0, 100.0)
+    none = RefineConfig(grad_threshold=1.0, min_observations=1, growth="none")
+    assert grow(anchors, octree, none, VOXEL, None) == 0
+    assert len(anchors) == 1 and [octree.count(level) for level in range(3)] == [1, 0, 0]

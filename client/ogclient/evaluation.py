@@ -23,7 +23,7 @@ from ogclient.connection import SessionRef
 from ogclient.frames import FrameSet
 from ogmapping.camera import Intrinsics
 from ogmapping.config import MapperConfig
-from ogmapping.metrics import summarise
+from ogmapping.metrics import Lpips, summarise
 from ogmapping.runner import PREVIEW_COUNT, ground_truth, score, side_by_side
 
 
@@ -66,6 +66,7 @@ def evaluate(
         out.mkdir(parents=True, exist_ok=True)
     results: dict = {}
     render_seconds, renders = 0.0, 0
+    lpips = Lpips()
     for split, positions in (("streamed", selection.streamed), ("heldout", selection.heldout)):
         per_frame = []
         for position in tqdm(positions, desc=f"evaluating {split}", unit="frame", disable=not progress):
@@ -74,7 +75,7 @@ def evaluate(
             rendered = render(stub, session, truth.c2w, truth.color_intrinsics)
             render_seconds += time.perf_counter() - tic
             renders += 1
-            per_frame.append(score(rendered, truth))
+            per_frame.append(score(rendered, truth, lpips))
             if out is not None and position in previews:
                 cv2.imwrite(str(out / f"{split}_{position:06d}.png"), side_by_side(rendered, truth))
         results[split] = summarise(per_frame)
@@ -91,6 +92,7 @@ def evaluate(
         preset=stats.preset,
         resolution=[sample.width, sample.height],
         session_id=session.session_id,
+        lpips="AlexNet v0.1" if lpips.available else f"unavailable: {lpips.reason}",
     )
     if out is not None:
         (out / "results.json").write_text(json.dumps(results, indent=2))

@@ -1,0 +1,83 @@
+"""Map densification: which coarse anchors a frame adds (``octree.allocation``, paper table "map
+densification").
+
+- ``octree`` (the paper's method): the frame's observed coarse cells are looked up in the sorted
+  level-0 codes by binary search and merged in, O(frame + map) with no sort of the map.
+- ``unique`` ("Naive Unique"): the same anchors, found by one ``torch.unique`` over the map's
+  existing coarse codes concatenated with the frame's (new = seen once, and from the frame), so
+  every frame sorts the whole map.
+- ``projection`` (SplaTAM's densification): the map is rendered from the frame's pose and only
+  pixels it does not explain get anchors: rendered alpha below 0.5, or rendered depth behind the
+  measurement by more than 50x the median depth error. Their cells are de-duplicated within the
+  frame but not against the map, so cells that already hold an anchor (object edges, depth noise)
+  get another one. The cells still go into the octree, so refinement sees them.
+
+``depth`` is the frame's depth on the colour grid with the pixels allocation skips already zeroed
+(``mapper._subsampled``); ``render`` renders the current map from the frame's pose, and only
+``projection`` calls it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from ogmapping.camera import Intrinsics, backproject
+from ogmapping.octree import SparseVoxelOctree
+from ogmapping.render import RenderOutput
+
+SILHOUETTE_THRESHOLD = 0.5  # SplaTAM's sil_thres
+DEPTH_ERROR_FACTOR = 50.0  # SplaTAM: depth error above 50x its median marks a pixel as unexplained
+
+
+def allocate(strategy: str, octree: SparseVoxelOctree, depth: torch.Tensor, intrinsics: Intrinsics,
+             c2w: torch.Tensor, render: Callable[[], RenderOutput] | None = None) -> torch.Tensor:
+    """Occupy the coarse cells ``strategy`` picks for this frame; returns the codes that get a new
+    coarse anchor (sorted, unique within the frame)."""
+    if strategy == "octree":
+        return octree_allocation(octree, backproject(depth, intrinsics, c2w))
+    if strategy == "unique":
+        return unique_allocation(octree, backproject(depth, intrinsics, c2w))
+    if strategy == "projection":
+        if render is None:
+            raise ValueError("projection allocation needs a render of the current map")
+        return projection_allocation(octree, depth, intrinsics, c2w, render)
+    raise ValueError(f"unknown allocation strategy {strategy!r}")
+
+
+def octree_allocation(octree: SparseVoxelOctree, points: torch.Tensor) -> torch.Tensor:
+    """Observed coarse cells not in the octree yet (binary search and a linear merge)."""
+    return octree.insert(octree.observed(points), 0)
+
+
+def unique_allocation(octree: SparseVoxelOctree, points: torch.Tensor) -> torch.Tensor:
+    """The same cells as ``octree_allocation``, by a unique over all map codes plus the frame's."""
+    existing = octree.keys(0)
+    observed = octree.observed(points)
+    union, inverse, counts = torch.unique(torch.cat([existing, observed]), return_inverse=True, return_counts=True)
+    new = observed[counts[inverse[existing.numel():]] == 1]
+    octree.assign(union, 0)  # the union is the level's new sorted code set
+    return new
+
+
+def unexplained_pixels(depth: torch.Tensor, output: RenderOutput) -> torch.Tensor:
+    """SplaTAM's non-presence mask: silhouette < 0.5, or rendered depth behind the measured one by
+    more than 50x the median depth error (median over the whole image, unmeasured pixels as 0)."""
+    error = (depth - output.depth).abs() * (depth > 0)
+    behind = (output.depth > depth) & (error > DEPTH_ERROR_FACTOR * error.median())
+    return ((output.alpha < SILHOUETTE_THRESHOLD) | behind) & (depth > 0)
+
+
+def projection_allocation(octree: SparseVoxelOctree, depth: torch.Tensor, intrinsics: Intrinsics,
+                          c2w: torch.Tensor, render: Callable[[], RenderOutput]) -> torch.Tensor:
+    """Coarse cells of the pixels the current map does not explain, new or not."""
+    if octree.count(0) == 0:
+        selected = depth  # an empty map explains nothing
+    else:
+        with torch.no_grad():
+            output = render()
+        selected = torch.where(unexplained_pixels(depth, output), depth, torch.zeros_like(depth))
+    codes = octree.observed(backproject(selected, intrinsics, c2w))
+    octree.insert(codes, 0)
+    return codes

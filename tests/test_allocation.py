@@ -1,0 +1,98 @@
+"""Map densification strategies (``octree.allocation``): octree, naive unique, projection."""
+
+import torch
+
+from ogmapping.allocation import allocate, projection_allocation, unexplained_pixels
+from ogmapping.camera import Intrinsics, backproject
+from ogmapping.config import build
+from ogmapping.datasets.synthetic import SyntheticSource
+from ogmapping.mapper import Mapper
+from ogmapping.octree import SparseVoxelOctree
+from ogmapping.render import RenderOutput
+
+VOXEL = 0.1
+# 8 x 4 pixels looking down +z; at depth 1 a pixel spans 0.1 m (one coarse cell).
+INTRINSICS = Intrinsics(10.0, 10.0, 4.0, 2.0, 8, 4)
+POSE = torch.eye(4)
+
+
+def render_of(alpha: torch.Tensor, depth: torch.Tensor):
+    def render() -> RenderOutput:
+        empty = torch.zeros(0, 2)
+        return RenderOutput(torch.zeros(*alpha.shape, 3), depth, alpha, empty, torch.zeros(0, dtype=torch.bool))
+    return render
+
+
+def test_unique_allocation_gives_the_octree_allocation():
+    generator = torch.Generator().manual_seed(3)
+    fast, naive = SparseVoxelOctree(VOXEL, 2), SparseVoxelOctree(VOXEL, 2)
+    for step in range(6):
+        depth = 0.5 + torch.rand(4, 8, generator=generator) * (1 + step)
+        depth[0, step % 8] = 0.0
+        pose = torch.eye(4)
+        pose[:3, 3] = torch.rand(3, generator=generator) * 0.3 * step
+        expected = allocate("octree", fast, depth, INTRINSICS, pose)
+        got = allocate("unique", naive, depth, INTRINSICS, pose)
+        assert torch.equal(got, expected) and torch.equal(naive.keys(0), fast.keys(0))
+
+
+def test_unique_and_octree_mappers_build_the_same_map():
+    source = SyntheticSource(n_frames=2, width=24, height=18)
+    settings = {"keyframes.iterations": 1, "keyframes.first_iterations": 1}
+    maps = [Mapper(build("sparse", {**settings, "octree.allocation": kind})) for kind in ("octree", "unique")]
+    for mapper in maps:
+        for position in range(len(source)):
+            mapper.process(source[position])
+    assert torch.equal(maps[0].anchors.codes, maps[1].anchors.codes)
+    assert torch.equal(maps[0].anchors.offsets, maps[1].anchors.offsets)
+
+
+def test_projection_on_an_empty_map_allocates_every_observed_cell():
+    depth = torch.ones(4, 8)
+    expected = allocate("octree", SparseVoxelOctree(VOXEL, 2), depth, INTRINSICS, POSE)
+    never = render_of(torch.zeros(4, 8), torch.zeros(4, 8))
+    assert torch.equal(projection_allocation(SparseVoxelOctree(VOXEL, 2), depth, INTRINSICS, POSE, never), expected)
+
+
+def test_projection_adds_where_the_map_is_empty_and_duplicates_at_edges():
+    depth = torch.ones(4, 8)
+    octree = SparseVoxelOctree(VOXEL, 2)
+    left = depth.clone()
+    left[:, 4:] = 0
+    mapped = allocate("octree", octree, left, INTRINSICS, POSE)  # the map covers the left half
+    alpha = torch.ones(4, 8)
+    alpha[:, 4:] = 0.0  # ...and renders nothing on the right
+    alpha[:, 3] = 0.3  # its edge column renders faint
+    rendered_depth = torch.where(alpha > 0, depth, torch.zeros_like(depth))
+    added = projection_allocation(octree, depth, INTRINSICS, POSE, render_of(alpha, rendered_depth))
+    right = depth.clone()
+    right[:, :3] = 0  # the edge column and the empty half
+    expected = octree.observed(backproject(right, INTRINSICS, POSE))
+    assert torch.equal(added, expected)
+    duplicated = added[torch.isin(added, mapped)]
+    assert duplicated.numel() == 4, "the faint edge column gets anchors again where cells hold one"
+    assert torch.equal(octree.keys(0), torch.unique(torch.cat([mapped, added])))
+
+
+def test_projection_depth_rule_catches_surfaces_in_front_of_the_map():
+    depth = torch.ones(4, 8)
+    depth[0, 0] = 0.0  # unmeasured: never selected
+    rendered = depth + 1e-3  # a slight disagreement everywhere sets the median error
+    rendered[1, 1] = 1.04  # behind, but by less than 50x the median
+    rendered[2, 2] = 3.0  # the map's surface lies far behind this measurement: something new in front
+    rendered[3, 6] = 0.2  # rendered in front of the measurement: not the depth rule's case
+    output = render_of(torch.ones(4, 8), rendered)()
+    mask = unexplained_pixels(depth, output)
+    assert mask.nonzero().tolist() == [[2, 2]]
+
+
+def test_mapper_runs_every_switch_off_the_defaults():
+    source = SyntheticSource(n_frames=2, width=24, height=18)
+    overrides = {"keyframes.iterations": 1, "keyframes.first_iterations": 1, "refine.interval": 1,
+                 "refine.min_observations": 1, "refine.grad_threshold": 1e-9, "keyframes.overlap_threshold": 1.0,
+                 "octree.allocation": "projection", "refine.growth": "error", "keyframes.window": "coverage"}
+    mapper = Mapper(build("sparse", overrides))
+    results = [mapper.process(source[position]) for position in range(len(source))]
+    assert all(result.keyframe for result in results)
+    assert len(mapper.anchors) >= mapper.octree.count(0) > 0
+    assert max(mapper.anchors.level_counts(2)[1:]) > 0, "error-based growth added finer anchors"
