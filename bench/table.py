@@ -8,8 +8,9 @@ from pathlib import Path
 from typing import Any
 
 HEADER = ("run", "preset", "resolution", "streamed/held-out frames", "processing FPS", "render FPS",
-          "PSNR streamed / held-out", "SSIM streamed / held-out", "depth L1 cm streamed / held-out",
-          "keyframes", "anchors (per level)", "snapshot KB", "peak RSS MB")
+          "PSNR streamed / held-out", "SSIM streamed / held-out", "LPIPS streamed / held-out",
+          "depth L1 cm streamed / held-out", "keyframes / iterations", "anchors (per level)", "snapshot KB",
+          "peak RSS MB")
 
 
 def load(path: str) -> dict[str, Any]:
@@ -18,7 +19,8 @@ def load(path: str) -> dict[str, Any]:
 
 
 def pair(result: dict[str, Any], key: str, digits: int) -> str:
-    return " / ".join(f"{result[split][key]:.{digits}f}" for split in ("streamed", "heldout"))
+    values = [result[split].get(key) for split in ("streamed", "heldout")]
+    return " / ".join("n/a" if value is None else f"{value:.{digits}f}" for value in values)
 
 
 def row(name: str, r: dict[str, Any]) -> list[str]:
@@ -26,8 +28,9 @@ def row(name: str, r: dict[str, Any]) -> list[str]:
         name, r["preset"], "x".join(map(str, r["resolution"])),
         f"{r['streamed']['frames']} / {r['heldout']['frames']}",
         f"{r['processing_fps']:.2f}", f"{r['render_fps']:.1f}",
-        pair(r, "psnr", 2), pair(r, "ssim", 3), pair(r, "depth_l1_cm", 2),
-        str(r["keyframes"]), f"{r['anchors']} ({', '.join(map(str, r['anchors_per_level']))})",
+        pair(r, "psnr", 2), pair(r, "ssim", 3), pair(r, "lpips", 3), pair(r, "depth_l1_cm", 2),
+        f"{r['keyframes']} / {r.get('iterations', 'n/a')}",
+        f"{r['anchors']} ({', '.join(map(str, r['anchors_per_level']))})",
         f"{r['snapshot_bytes'] / 1024:.0f}", f"{r['peak_rss_bytes'] / 2**20:.0f}",
     ]
 

@@ -121,7 +121,9 @@ def preset(name: str) -> MapperConfig:
         # 320x240, 1.9x the speed of a full-size window for ~0.4 dB held-out PSNR (bench/RESULTS.md).
         config.keyframes.window_scale = 0.5
         config.keyframes.iterations = 11
-        config.keyframes.frame_iterations = 3
+        # Two steps per streamed frame keep 7-Scenes 0-299 at 320x240 above 5 FPS; three gave
+        # +0.3 dB there (+0.6 dB on Replica room0 at 600x340) at 3.8-4.7 FPS (bench/RESULTS.md).
+        config.keyframes.frame_iterations = 2
         if name == "sparse-fast":
             # Half of sparse's iterations, as the paper's sparse-fast.
             config.keyframes.iterations = 6
