@@ -16,7 +16,7 @@ import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts
 # isort: split
 import torch
 
-from ogmapping.lazy_adam import LazyAdam, SparseRowGather
+from ogmapping.lazy_adam import LazyAdam, RowGradients, SparseRowGather
 
 LEVELS, SIZE, FEATURES, ANCHORS, REPEATS = 8, 2**19, 4, 4000, 20
 
@@ -32,11 +32,12 @@ def main() -> None:
     start = torch.randn(LEVELS, SIZE, FEATURES, generator=generator) * 1e-4
     for name in ("lazy", "dense"):
         table = torch.nn.Parameter(start.clone())
-        optimizer = LazyAdam(table, 0.01) if name == "lazy" else torch.optim.Adam([table], lr=0.01, eps=1e-15)
+        sink = RowGradients()
+        optimizer = LazyAdam(table, sink, 0.01) if name == "lazy" else torch.optim.Adam([table], lr=0.01, eps=1e-15)
         forward_backward, step = [], []
         for _ in range(REPEATS):
             tic = time.perf_counter()
-            values = SparseRowGather.apply(table, rows) if name == "lazy" else table.view(-1, FEATURES)[rows]
+            values = SparseRowGather.apply(table, rows, sink) if name == "lazy" else table.view(-1, FEATURES)[rows]
             values.sum().backward()
             toc = time.perf_counter()
             optimizer.step()

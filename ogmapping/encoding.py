@@ -8,7 +8,8 @@ import torch
 from torch import nn
 
 from ogmapping.config import ModelConfig
-from ogmapping.lazy_adam import SparseRowGather
+from ogmapping.encoding_cpu import HashEncode
+from ogmapping.lazy_adam import RowGradients, SparseRowGather
 
 # Large primes of the spatial hash (Teschner et al.), the first left at 1 as instant-NGP does.
 HASH_PRIMES = (1, 2654435761, 805459861)
@@ -19,7 +20,7 @@ class HashGridEncoding(nn.Module):
     """Multi-resolution hash encoding in world coordinates, trilinearly interpolated.
 
     Resolutions are in cells per metre, so no scene bounds are needed in an online setting. The
-    table's gradient is sparse (the rows a view read); ``ogmapping.lazy_adam`` steps those rows only.
+    table's gradient is the rows a view read, kept in ``gradients``; ``lazy_adam`` steps those only.
     """
 
     def __init__(self, config: ModelConfig, generator: torch.Generator | None = None) -> None:
@@ -31,13 +32,22 @@ class HashGridEncoding(nn.Module):
         self.register_buffer("resolutions", torch.tensor(resolutions, dtype=torch.float32), persistent=False)
         table = torch.empty(self.levels, self.table_size, config.hash_features_per_level)
         self.table = nn.Parameter(table.uniform_(-1e-4, 1e-4, generator=generator))
+        self.gradients = RowGradients()  # the table's gradient rows, for ``lazy_adam.LazyAdam``
 
     @property
     def output_dim(self) -> int:
         return self.levels * self.table.shape[-1]
 
-    def forward(self, points: torch.Tensor) -> torch.Tensor:
-        """Features of world points (M, 3) -> (M, levels * features_per_level)."""
+    def forward(self, points: torch.Tensor, fused: bool | None = None) -> torch.Tensor:
+        """Features of world points (M, 3) -> (M, levels * features_per_level).
+
+        ``fused`` (default: for float32 on the CPU) runs the Numba kernel of ``encoding_cpu``; both
+        give the same rows and features (to float32 rounding) and the same sparse table gradient.
+        """
+        if fused is None:
+            fused = points.device.type == "cpu" and points.dtype == self.table.dtype == torch.float32
+        if fused:
+            return HashEncode.apply(points, self.table, self.resolutions, HASH_PRIMES, self.gradients)
         scaled = points.unsqueeze(1) * self.resolutions.view(1, -1, 1)  # (M, L, 3)
         base = torch.floor(scaled)
         fraction = scaled - base
@@ -45,7 +55,7 @@ class HashGridEncoding(nn.Module):
         index = self._hash(corners)  # (M, L, 8)
         level_start = torch.arange(self.levels, device=points.device).view(1, -1, 1) * self.table_size
         rows = (index + level_start).reshape(-1)
-        values = SparseRowGather.apply(self.table, rows).view(*index.shape, -1)  # (M, L, 8, F)
+        values = SparseRowGather.apply(self.table, rows, self.gradients).view(*index.shape, -1)  # (M, L, 8, F)
         corner_bits = CORNERS.to(points.device, points.dtype)
         weights = torch.where(
             corner_bits.view(1, 1, 8, 3) > 0, fraction.unsqueeze(2), 1.0 - fraction.unsqueeze(2)

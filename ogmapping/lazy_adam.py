@@ -2,10 +2,11 @@
 
 The dense version's hash table holds levels x 2^19 rows, of which one iteration reads a few
 hundred thousand. Dense Adam rewrote all of them every step and autograd built a dense gradient
-of the whole table (~140 ms per iteration at 320x240 on two cores). Here the gather's backward
-returns a sparse gradient (as ``nn.Embedding(sparse=True)`` does) and the step updates the moments
-and values of the touched rows only, with the global step count for bias correction (TensorFlow's
-LazyAdam): rows that are not read keep their moments instead of decaying them.
+of the whole table (~140 ms per iteration at 320x240 on two cores). Here the gathers' backward
+deposits (row, gradient) pairs in a ``RowGradients`` sink instead of a gradient tensor (a sparse
+gradient would be summed by autograd across the window's views: a sort per view), and the step
+updates the moments and values of the touched rows only, with the global step count for bias
+correction (TensorFlow's LazyAdam): rows that are not read keep their moments instead of decaying.
 """
 
 from __future__ import annotations
@@ -15,29 +16,60 @@ import torch
 from numba import njit, prange
 
 
+class RowGradients:
+    """Gradient rows of one table, as deposited by backward passes since the last ``clear``."""
+
+    def __init__(self) -> None:
+        self.rows: list[torch.Tensor] = []
+        self.values: list[torch.Tensor] = []
+
+    def add(self, rows: torch.Tensor, values: torch.Tensor) -> None:
+        self.rows.append(rows.reshape(-1))
+        self.values.append(values.reshape(rows.numel(), -1))
+
+    def clear(self) -> None:
+        self.rows, self.values = [], []
+
+    def summed(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """Unique flat rows (sorted) and their summed gradients; None when nothing was deposited."""
+        if not self.rows:
+            return None
+        rows, inverse = torch.unique(torch.cat(self.rows), return_inverse=True)
+        values = torch.cat(self.values)
+        return rows, values.new_zeros(rows.numel(), values.shape[1]).index_add_(0, inverse, values)
+
+    def dense(self, shape: torch.Size) -> torch.Tensor:
+        """The same gradient as a dense tensor of the table's shape (for tests)."""
+        total = torch.zeros(shape[0] * shape[1], shape[2])
+        summed = self.summed()
+        if summed is not None:
+            total.index_add_(0, *summed)
+        return total.view(shape)
+
+
 class SparseRowGather(torch.autograd.Function):
-    """``table.view(-1, F)[rows]`` whose gradient for ``table`` (L, T, F) is a sparse COO tensor."""
+    """``table.view(-1, F)[rows]``; the table's gradient goes to ``sink``, not to ``table.grad``."""
 
     @staticmethod
-    def forward(ctx, table: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    def forward(ctx, table: torch.Tensor, rows: torch.Tensor, sink: RowGradients) -> torch.Tensor:
         ctx.save_for_backward(rows)
-        ctx.shape = table.shape
+        ctx.sink = sink
         return table.view(-1, table.shape[-1]).index_select(0, rows)
 
     @staticmethod
-    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
+    def backward(ctx, grad: torch.Tensor) -> tuple[None, None, None]:
         (rows,) = ctx.saved_tensors
-        size = ctx.shape[1]
-        indices = torch.stack([torch.div(rows, size, rounding_mode="floor"), rows % size])
-        return torch.sparse_coo_tensor(indices, grad, ctx.shape, check_invariants=False), None
+        ctx.sink.add(rows, grad)
+        return None, None, None
 
 
 class LazyAdam:
-    """Adam (as ``torch.optim.Adam``, no weight decay) applied row-wise to a table with sparse grads."""
+    """Adam (as ``torch.optim.Adam``, no weight decay) applied to the rows ``gradients`` holds."""
 
-    def __init__(self, table: torch.nn.Parameter, lr: float, betas: tuple[float, float] = (0.9, 0.999),
-                 eps: float = 1e-15) -> None:
+    def __init__(self, table: torch.nn.Parameter, gradients: RowGradients, lr: float,
+                 betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15) -> None:
         self.table = table
+        self.gradients = gradients
         self.lr = lr
         self.betas = betas
         self.eps = eps
@@ -46,23 +78,16 @@ class LazyAdam:
         self.exp_avg_sq = torch.zeros_like(table)
 
     def zero_grad(self) -> None:
-        self.table.grad = None
+        self.gradients.clear()
 
     @torch.no_grad()
     def step(self) -> None:
-        grad = self.table.grad
-        if grad is None:
+        summed = self.gradients.summed()
+        if summed is None:
             return
+        rows, values = summed
         self.step_count += 1
         width = self.table.shape[-1]
-        if grad.is_sparse:
-            # Uncoalesced entries (one per lookup); unique + index_add is ~5x faster than coalesce().
-            level, row = grad._indices()
-            rows, inverse = torch.unique(level * self.table.shape[1] + row, return_inverse=True)
-            values = grad._values().new_zeros(rows.numel(), width).index_add_(0, inverse, grad._values())
-        else:
-            rows = torch.nonzero(grad.reshape(-1, width).abs().sum(-1)).squeeze(-1)
-            values = grad.reshape(-1, width)[rows]
         beta1, beta2 = self.betas
         correction1 = 1 - beta1**self.step_count
         correction2 = 1 - beta2**self.step_count
@@ -93,3 +118,4 @@ def _adam_rows(table, exp_avg, exp_avg_sq, rows, values, step_size, correction2,
             exp_avg[row, j] = m
             exp_avg_sq[row, j] = v
             table[row, j] -= step_size * m / (np.sqrt(v / correction2) + eps)
+

@@ -76,7 +76,8 @@ class Mapper:
         self.decoders = self.decoders.to(self.device)
         self.keyframes = KeyframeSet(config.keyframes, config.seed, self._footprint)
         self.optimizer = self._make_optimizer()
-        self.hash_optimizer = LazyAdam(self.encoding.table, config.optim.hash_lr) if self.encoding is not None else None
+        self.hash_optimizer = (LazyAdam(self.encoding.table, self.encoding.gradients, config.optim.hash_lr)
+                               if self.encoding is not None else None)
         self.frames = 0
         self.iterations = 0
         self.last_gaussians = 0
