@@ -48,7 +48,7 @@ class KeyframeConfig:
     iterations: int = 15  # k: optimisation iterations per new keyframe
     first_iterations: int = 60  # iterations on the very first keyframe
     frame_iterations: int = 2  # iterations on a streamed frame that is not a keyframe (window around it)
-    window_scale: float = 1.0  # image scale for the window's earlier keyframes (K_new stays full size)
+    window_scale: float = 1.0  # image scale for the window's global keyframes (the view and local ones: full)
     window_min_width: int = 160  # ...but never narrower than this many pixels (or the keyframe itself)
     window: str = "dynamic"  # dynamic (paper), or a fixed window: random (ESLAM), overlap, coverage
 
@@ -117,10 +117,10 @@ def preset(name: str) -> MapperConfig:
     if name in ("sparse", "sparse-fast"):
         config.model.encoding = "anchor"
         config.refine.prune_opacity = 0.05
-        # The window's earlier keyframes at half size (K_new full size): on 7-Scenes 0-299 at
-        # 320x240, 1.9x the speed of a full-size window for ~0.4 dB held-out PSNR (bench/RESULTS.md).
+        # The window's global keyframes at half size, 9 steps per keyframe: on 7-Scenes 0-299 at
+        # 320x240 above 5 FPS (bench/RESULTS.md).
         config.keyframes.window_scale = 0.5
-        config.keyframes.iterations = 11
+        config.keyframes.iterations = 9
         # Two steps per streamed frame keep 7-Scenes 0-299 at 320x240 above 5 FPS; three gave
         # +0.3 dB there (+0.6 dB on Replica room0 at 600x340) at 3.8-4.7 FPS (bench/RESULTS.md).
         config.keyframes.frame_iterations = 2

@@ -152,6 +152,11 @@ class KeyframeSet:
             self.fixed = choose(self.keyframes, keyframe, weights, count, self.random)
         self.keyframes.append(keyframe)
 
+    def is_local(self, keyframe: Keyframe) -> bool:
+        """Whether ``keyframe`` sees much of what the current view sees: the newest keyframe, or
+        one in its local set (overlap weight >= ``local_threshold``)."""
+        return keyframe is self.keyframes[-1] or any(keyframe is self.keyframes[i] for i in self.local)
+
     def draw_window(self, view: Keyframe) -> list[Keyframe]:
         """``view`` plus b1 local and b2 global keyframes drawn afresh without replacement.
 

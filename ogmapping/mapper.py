@@ -191,7 +191,8 @@ class Mapper:
         renders: list[tuple[GaussianSet, RenderOutput, Keyframe]] = []
         total = torch.zeros((), device=self.device)
         for position, keyframe in enumerate(window):
-            keyframe = keyframe if position == 0 else keyframe.downscaled(self._window_scale(keyframe.intrinsics.width))
+            if position > 0 and not self.keyframes.is_local(keyframe):
+                keyframe = keyframe.downscaled(self._window_scale(keyframe.intrinsics.width))
             gaussians, output = self._render(keyframe.c2w, keyframe.intrinsics)
             with self._timed("loss"):
                 loss, _ = mapping_loss(output.color, output.depth, keyframe.rgb, keyframe.depth,
@@ -214,8 +215,9 @@ class Mapper:
         return float(total.detach())
 
     def _window_scale(self, width: int) -> float:
-        """Scale for an earlier window keyframe: ``window_scale``, but not below ``window_min_width``
-        pixels (at 160x120 a half-size window cost ~3 dB held-out; at 320x240 it costs ~0.4 dB)."""
+        """Scale for a global window keyframe: ``window_scale``, but not below ``window_min_width``
+        pixels. The view and local keyframes stay full size: they supervise what the view sees
+        (half-size local keyframes cost 1.6 dB on Replica room0 at 600x340, bench/RESULTS.md)."""
         settings = self.config.keyframes
         return min(1.0, max(settings.window_scale, settings.window_min_width / width))
 

@@ -159,3 +159,13 @@ def test_coverage_window_picks_greedily():
     frames.insert(keyframe(9, list(range(0, 10))))
     # Most new cells alone would be 1, 2, 0; greedily, keyframe 2 adds little once 1 is in.
     assert [frames.keyframes[p].index for p in frames.fixed] == [1, 0, 3]
+
+
+def test_local_keyframes_are_told_apart_from_global_ones():
+    frames = KeyframeSet(KeyframeConfig(local_threshold=0.5))
+    frames.insert(keyframe(0, [1, 2, 3]))
+    frames.insert(keyframe(1, [50, 51]))
+    frames.insert(keyframe(2, [1, 2, 3, 4]))
+    assert frames.is_local(frames.keyframes[0]), "overlaps K_new"
+    assert not frames.is_local(frames.keyframes[1]), "sees none of what K_new sees"
+    assert frames.is_local(frames.keyframes[2]), "the newest keyframe itself"

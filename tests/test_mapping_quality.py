@@ -15,13 +15,13 @@ from ogmapping.runner import RunOptions, run
 
 RESULT_KEYS = {"streamed", "heldout", "processing_fps", "snapshot_bytes", "anchors", "gaussians", "device",
                "preset", "resolution"}
-SYNTHETIC_PSNR_FLOOR = 33.0  # measured 34.26 dB streamed (31.9 before every frame was optimised)
+SYNTHETIC_PSNR_FLOOR = 33.0  # measured 33.77 dB streamed (31.9 before every frame was optimised)
 TSDF_HELDOUT_PSNR_0_99_160 = 18.67  # Open3D TSDF fusion of frames 0-99 at 160x120 (SOURCE.md)
-REAL_160_PSNR_FLOOR = 24.9  # measured 25.36 dB held-out, 25.18 streamed (bench/RESULTS.md)
-REPLICA_STREAMED_PSNR_FLOOR = 30.0  # measured 30.50 dB (22.39 before every frame was optimised)
-REPLICA_HELDOUT_PSNR_FLOOR = 30.0  # measured 30.58 dB
-REPLICA_SSIM_FLOOR = 0.925  # measured 0.933
-REAL_320_PSNR_FLOOR = 24.5  # measured 24.85 dB held-out, 24.94 streamed on frames 0-59
+REAL_160_PSNR_FLOOR = 24.9  # measured 25.32 dB held-out, 25.14 streamed (bench/RESULTS.md)
+REPLICA_STREAMED_PSNR_FLOOR = 31.6  # measured 32.07 dB (22.39 before every frame was optimised)
+REPLICA_HELDOUT_PSNR_FLOOR = 31.6  # measured 32.17 dB
+REPLICA_SSIM_FLOOR = 0.935  # measured 0.941
+REAL_320_PSNR_FLOOR = 24.9  # measured 25.28 dB held-out, 25.36 streamed on frames 0-59
 
 
 def test_synthetic_scene_reaches_30_db(tmp_path):
