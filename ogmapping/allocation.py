@@ -13,7 +13,7 @@ densification").
   get another one. The cells still go into the octree, so refinement sees them.
 
 ``depth`` is the frame's depth on the colour grid with the pixels allocation skips already zeroed
-(``mapper._subsampled``); ``render`` renders the current map from the frame's pose, and only
+(``sampled_depth``); ``render`` renders the current map from the frame's pose, and only
 ``projection`` calls it.
 """
 
@@ -24,11 +24,32 @@ from collections.abc import Callable
 import torch
 
 from ogmapping.camera import Intrinsics, backproject
+from ogmapping.config import OctreeConfig
 from ogmapping.octree import SparseVoxelOctree
 from ogmapping.render import RenderOutput
 
 SILHOUETTE_THRESHOLD = 0.5  # SplaTAM's sil_thres
 DEPTH_ERROR_FACTOR = 50.0  # SplaTAM: depth error above 50x its median marks a pixel as unexplained
+
+
+def allocation_stride(settings: OctreeConfig, intrinsics: Intrinsics) -> int:
+    """Pixel stride for allocation: ``octree.allocation_stride``, or with 0 the widest stride whose
+    samples lie at most a quarter voxel apart at ``depth_max``, so every observed coarse cell gets a
+    point at any resolution (a sparser sampling misses cells, and keyframes then depend on it)."""
+    if settings.allocation_stride:
+        return settings.allocation_stride
+    focal = min(intrinsics.fx, intrinsics.fy)
+    return max(1, int(0.25 * settings.voxel_size * focal / settings.depth_max))
+
+
+def sampled_depth(settings: OctreeConfig, depth: torch.Tensor, intrinsics: Intrinsics) -> torch.Tensor:
+    """Depth with only every ``allocation_stride``-th pixel per axis kept (others marked invalid)."""
+    stride = allocation_stride(settings, intrinsics)
+    if stride == 1:
+        return depth
+    kept = torch.zeros_like(depth)
+    kept[stride // 2 :: stride, stride // 2 :: stride] = depth[stride // 2 :: stride, stride // 2 :: stride]
+    return kept
 
 
 def allocate(strategy: str, octree: SparseVoxelOctree, depth: torch.Tensor, intrinsics: Intrinsics,

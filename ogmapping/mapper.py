@@ -23,7 +23,7 @@ import torch
 from ogmapping import allocation, refine
 from ogmapping.anchors import AnchorMap
 from ogmapping.camera import Intrinsics, world_to_camera
-from ogmapping.config import MapperConfig, OctreeConfig
+from ogmapping.config import MapperConfig
 from ogmapping.decoders import Decoders
 from ogmapping.encoding import HashGridEncoding, feature_dim, initial_anchor_features
 from ogmapping.frame import Frame
@@ -118,8 +118,8 @@ class Mapper:
             depth = torch.as_tensor(frame.depth, dtype=torch.float32, device=self.device)
             c2w = torch.as_tensor(frame.c2w, dtype=torch.float32, device=self.device)
         with self.lock, self._timed("allocate"):
-            stride = allocation_stride(self.config.octree, frame.color_intrinsics)
-            new_codes = allocation.allocate(self.config.octree.allocation, self.octree, _subsampled(depth, stride),
+            sampled = allocation.sampled_depth(self.config.octree, depth, frame.color_intrinsics)
+            new_codes = allocation.allocate(self.config.octree.allocation, self.octree, sampled,
                                             frame.color_intrinsics, c2w,
                                             lambda: self._render(c2w, frame.color_intrinsics)[1])
             self._add_coarse_anchors(new_codes)
@@ -281,21 +281,3 @@ class Mapper:
 
         return load(data, device)
 
-
-def allocation_stride(settings: OctreeConfig, intrinsics: Intrinsics) -> int:
-    """Pixel stride for allocation: ``octree.allocation_stride``, or with 0 the widest stride whose
-    samples lie at most a quarter voxel apart at ``depth_max``, so every observed coarse cell gets a
-    point at any resolution (a sparser sampling misses cells, and keyframes then depend on it)."""
-    if settings.allocation_stride:
-        return settings.allocation_stride
-    focal = min(intrinsics.fx, intrinsics.fy)
-    return max(1, int(0.25 * settings.voxel_size * focal / settings.depth_max))
-
-
-def _subsampled(depth: torch.Tensor, stride: int) -> torch.Tensor:
-    """Depth with only every ``stride``-th pixel per axis kept (others marked invalid)."""
-    if stride == 1:
-        return depth
-    kept = torch.zeros_like(depth)
-    kept[stride // 2 :: stride, stride // 2 :: stride] = depth[stride // 2 :: stride, stride // 2 :: stride]
-    return kept

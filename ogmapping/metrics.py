@@ -152,6 +152,11 @@ class Lpips:
         self.available = model is not None
         self.model: LpipsAlexNet | None = None if model is None else model.to(device)
 
+    @property
+    def description(self) -> str:
+        """What results files say about LPIPS: the network, or why it did not run."""
+        return "AlexNet v0.1" if self.available else f"unavailable: {self.reason}"
+
     @torch.no_grad()
     def __call__(self, pred: ArrayLike, gt: ArrayLike) -> float | None:
         """LPIPS distance of two (H, W, 3) images in [0, 1], or None when unavailable."""

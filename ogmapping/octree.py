@@ -131,8 +131,9 @@ class SparseVoxelOctree:
 
         Each cell is tested once, at its centre's pixel, so the set depends on the camera path and
         the voxel size but not on the image resolution or on how densely pixels sample the cells.
-        A cell counts as seen where its centre lies no deeper than the measured surface plus half a
-        cell diagonal; pixels without a measurement see nothing.
+        A cell counts as seen where its centre lies no deeper than the measured surface plus two
+        voxels (a centre below a surface seen at a grazing angle lies well behind it along the
+        ray); pixels without a measurement see nothing.
         """
         keys = self.keys(0)
         if keys.numel() == 0:
@@ -142,8 +143,7 @@ class SparseVoxelOctree:
         row = torch.floor(uv[:, 1]).to(torch.int64)
         inside = (z > 0) & (column >= 0) & (column < intrinsics.width) & (row >= 0) & (row < intrinsics.height)
         measured = depth[row.clamp(0, intrinsics.height - 1), column.clamp(0, intrinsics.width - 1)]
-        tolerance = 2.0 * self.voxel_size
-        seen = inside & (measured > 0) & (z <= measured + tolerance)
+        seen = inside & (measured > 0) & (z <= measured + 2.0 * self.voxel_size)
         return keys[seen]
 
     def state_dict(self) -> dict[str, torch.Tensor]:

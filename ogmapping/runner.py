@@ -181,7 +181,7 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
         "resolution": [sample.color_intrinsics.width, sample.color_intrinsics.height],
         "frames": {"streamed": len(selection.streamed), "heldout": len(selection.heldout),
                    "range": options.frames, "stride": options.stride, "scale": options.scale},
-        "lpips": "AlexNet v0.1" if lpips.available else f"unavailable: {lpips.reason}",
+        "lpips": lpips.description,
         "config": config.to_dict(),
     }
     (out / "results.json").write_text(json.dumps(results, indent=2))

@@ -49,11 +49,15 @@ def test_seven_scenes_0_99_at_160x120_beats_tsdf_clearly(seven_scenes, tmp_path)
     assert results["heldout"]["depth_l1_cm"] < 3.5
 
 
+def run_sparse(data, frames: str, scale: float, out) -> dict:
+    """``ogmap run`` of the ``sparse`` preset, in process and without progress bars."""
+    options = RunOptions(data=str(data), frames=frames, scale=scale, preset="sparse", out=out, progress=False)
+    return run(options, build("sparse"))
+
+
 @pytest.mark.realdata
 def test_seven_scenes_320x240_holds_its_quality(seven_scenes, tmp_path):
-    options = RunOptions(data=str(seven_scenes), frames="0:60", scale=0.5, preset="sparse", out=tmp_path,
-                         progress=False)
-    results = run(options, build("sparse"))
+    results = run_sparse(seven_scenes, "0:60", 0.5, tmp_path)
     assert results["resolution"] == [320, 240]
     assert results["heldout"]["psnr"] >= REAL_320_PSNR_FLOOR
     assert results["streamed"]["psnr"] >= REAL_320_PSNR_FLOOR
@@ -62,9 +66,7 @@ def test_seven_scenes_320x240_holds_its_quality(seven_scenes, tmp_path):
 @pytest.mark.realdata
 def test_replica_room0_at_600x340_is_sharp_and_learns_from_every_frame(replica_room0, tmp_path):
     """The paper's own scene: every streamed frame teaches the map, so no floaters or washed-out colour."""
-    options = RunOptions(data=str(replica_room0), frames="0:20", scale=0.5, preset="sparse", out=tmp_path,
-                         progress=False)
-    results = run(options, build("sparse"))
+    results = run_sparse(replica_room0, "0:20", 0.5, tmp_path)
     assert results["resolution"] == [600, 340]
     assert results["iterations"] > 60 + results["frames"]["streamed"], "non-keyframes are optimised too"
     assert results["streamed"]["psnr"] >= REPLICA_STREAMED_PSNR_FLOOR

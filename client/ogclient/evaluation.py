@@ -92,7 +92,7 @@ def evaluate(
         preset=stats.preset,
         resolution=[sample.width, sample.height],
         session_id=session.session_id,
-        lpips="AlexNet v0.1" if lpips.available else f"unavailable: {lpips.reason}",
+        lpips=lpips.description,
     )
     if out is not None:
         (out / "results.json").write_text(json.dumps(results, indent=2))
