@@ -72,7 +72,7 @@ def parser() -> argparse.ArgumentParser:
 
     replay = sub.add_parser(
         "replay", help="stream a session recording (.mcap) into a new session",
-        description="Create a session with the recorded preset and overrides and stream the recorded "
+        description="Create a session with the recorded preset and resolved config and stream the recorded "
         "frames, unchanged, as fast as the server takes them (or --realtime at the recorded rate).",
     )
     replay.add_argument("recording", help="an .mcap file from the server's record dir (crashed ones work too)")

@@ -14,15 +14,15 @@ from ogmapping.config import flatten
 
 
 def session_request(config: pb.SessionConfig | None, label: str = "") -> pb.CreateSessionRequest:
-    """The recorded preset and overrides; a restored session's full config when it had no preset."""
+    """The recorded session's whole resolved config, on top of its preset: a replay rebuilds the
+    recorded map even after a later version changed the preset's defaults. A recording without
+    the resolved config (none, or an empty one) falls back to its preset and overrides."""
     if config is None:
         return pb.CreateSessionRequest(label=label)
-    if config.preset:
-        return pb.CreateSessionRequest(preset=config.preset, overrides=dict(config.overrides), label=label)
-    full = flatten(json.loads(config.config_json)) if config.config_json else {}
-    return pb.CreateSessionRequest(
-        preset="dense", overrides={key: str(value) for key, value in full.items()}, label=label
-    )
+    overrides = dict(config.overrides)
+    if config.config_json:
+        overrides.update({key: str(value) for key, value in flatten(json.loads(config.config_json)).items()})
+    return pb.CreateSessionRequest(preset=config.preset or "dense", overrides=overrides, label=label)
 
 
 def recorded_times(recording: Recording) -> list[float]:

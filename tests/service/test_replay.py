@@ -25,10 +25,15 @@ def test_arrival_times_set_the_pace_otherwise() -> None:
 
 
 def test_session_request_repeats_the_recorded_config() -> None:
-    fresh = pb.SessionConfig(preset="sparse-fast", overrides={"keyframes.iterations": "3"})
+    recorded = {"keyframes": {"iterations": 3, "window_scale": 0.5}, "seed": 0}
+    fresh = pb.SessionConfig(preset="sparse-fast", overrides={"keyframes.iterations": "3"},
+                             config_json=json.dumps(recorded))
     request = session_request(fresh, "again")
-    assert (request.preset, dict(request.overrides), request.label) == ("sparse-fast", {"keyframes.iterations": "3"},
-                                                                          "again")
+    assert (request.preset, request.label) == ("sparse-fast", "again")
+    # Every resolved value is pinned, so later changes to the preset's defaults do not change a replay.
+    assert dict(request.overrides) == {"keyframes.iterations": "3", "keyframes.window_scale": "0.5", "seed": "0"}
     restored = pb.SessionConfig(config_json=json.dumps({"keyframes": {"iterations": 7}, "seed": 0}))
     request = session_request(restored)
     assert request.preset == "dense" and dict(request.overrides) == {"keyframes.iterations": "7", "seed": "0"}
+    legacy = pb.SessionConfig(preset="sparse", overrides={"seed": "2"})
+    assert dict(session_request(legacy).overrides) == {"seed": "2"}
