@@ -1,7 +1,7 @@
 """Export the decoded Gaussians as a standard 3DGS ``.ply`` (binary little-endian).
 
 Colours and opacities depend on the viewpoint through the decoders, so the export decodes every
-anchor as seen from one camera position (by default the centroid of the map's keyframe poses).
+anchor as seen from one camera position (by default ``Mapper.keyframe_centroid``).
 """
 
 from __future__ import annotations
@@ -11,21 +11,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ogmapping.gaussians import generate
+from ogmapping.mapper import Mapper
 
 SH_C0 = 0.28209479177387814  # zeroth spherical-harmonic basis constant, 3DGS's colour encoding
 
 
-def export_ply(mapper, path: str | Path, camera_center: np.ndarray | None = None) -> int:
+def export_ply(mapper: Mapper, path: str | Path, camera_center: np.ndarray | None = None) -> int:
     """Write the map's Gaussians to ``path``; returns how many were written."""
-    with mapper.lock, torch.no_grad():
-        if camera_center is None:
-            poses = [kf.c2w[:3, 3] for kf in mapper.keyframes.keyframes]
-            center = torch.stack(poses).mean(0) if poses else mapper.anchors.positions.mean(0)
-        else:
-            center = torch.as_tensor(camera_center, dtype=torch.float32, device=mapper.device)
-        rows = torch.arange(len(mapper.anchors), device=mapper.device)
-        gaussians = generate(mapper.anchors, mapper._features, mapper.decoders, center, rows)
+    center = mapper.keyframe_centroid() if camera_center is None else camera_center
+    gaussians = mapper.decode_at(center)
     means = gaussians.means.cpu().numpy().astype(np.float32)
     count = means.shape[0]
     opacity = gaussians.opacities.clamp(1e-6, 1 - 1e-6).cpu().numpy()

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ogmapping import allocation, refine
+from ogmapping import allocation, refine, snapshot
 from ogmapping.anchors import AnchorMap
 from ogmapping.camera import Intrinsics, world_to_camera
 from ogmapping.config import MapperConfig
@@ -35,6 +35,7 @@ from ogmapping.octree import SparseVoxelOctree
 from ogmapping.preprocess import prepare
 from ogmapping.render import RenderOutput, rasterize, resolve_backend
 from ogmapping.ssim import reference_statistics
+from ogmapping.state import MapState
 from ogmapping.threads import mapping_threads, torch_threads
 
 
@@ -267,17 +268,102 @@ class Mapper:
                 "timings": dict(self.timings),
             }
 
+    def decode_at(self, camera_center: np.ndarray) -> GaussianSet:
+        """Every anchor's Gaussians as seen from ``camera_center`` (colours and opacities depend on
+        the viewpoint through the decoders); no frustum culling, no gradients."""
+        center = torch.as_tensor(np.asarray(camera_center), dtype=torch.float32, device=self.device)
+        with self.lock, torch.no_grad(), torch_threads(self.threads):
+            rows = torch.arange(len(self.anchors), device=self.device)
+            return generate(self.anchors, self._features, self.decoders, center, rows)
+
+    def keyframe_centroid(self) -> np.ndarray:
+        """Mean camera position of the keyframes (the anchors' mean where there are none, as after a
+        restore: snapshots keep no keyframes)."""
+        with self.lock:
+            poses = [keyframe.c2w[:3, 3] for keyframe in self.keyframes.keyframes]
+            center = torch.stack(poses).mean(0) if poses else self.anchors.positions.mean(0)
+            return center.cpu().numpy()
+
+    # ------------------------------------------------------------------ state
+
+    def state(self) -> MapState:
+        """The map as plain tensors and counters (see ``ogmapping.state``), detached copies."""
+        with self.lock:
+            anchors = self.anchors
+            tensors: dict[str, torch.Tensor] = {
+                "anchors.codes": anchors.codes,
+                "anchors.levels": anchors.levels,
+                "anchors.log_scales": anchors.log_scales,
+                "anchors.offsets": anchors.offsets,
+                "anchors.spawned": anchors.spawned.to(torch.uint8),
+                "anchors.observations": anchors.observations,
+            }
+            if anchors.with_features:
+                tensors["anchors.features"] = anchors.features
+            if self.encoding is not None:
+                tensors["encoding.table"] = self.encoding.table
+            tensors.update({f"decoders.{name}": value for name, value in self.decoders.state_dict().items()})
+            tensors.update({f"octree.{name}": value for name, value in self.octree.state_dict().items()})
+            tensors = {name: value.detach().clone() for name, value in tensors.items()}
+            return MapState(self.config, tensors, self.frames, self.iterations)
+
+    @classmethod
+    def from_state(cls, state: MapState, device: str | torch.device = "cpu") -> Mapper:
+        """A mapper holding ``state``'s map; mapping can continue from it. ValueError when the
+        tensors do not fit the config (states may come from outside, in snapshots)."""
+        mapper = cls(state.config, device)
+        try:
+            mapper._load(state)
+        except (KeyError, RuntimeError, ValueError) as error:
+            raise ValueError(f"map state does not match its config: {error}") from error
+        mapper.frames = state.frames
+        mapper.iterations = state.iterations
+        return mapper
+
+    def _load(self, state: MapState) -> None:
+        self.octree.load_state_dict(state.section("octree"))
+        self.octree.device = self.device
+        self.decoders.load_state_dict(state.section("decoders"))
+        anchors = self.anchors
+        count = state.tensors["anchors.codes"].numel()
+        n_offsets, feature_dim = anchors.n_offsets, anchors.feature_dim
+        tensor = _checked_shapes(state.tensors, {
+            "anchors.codes": (count,), "anchors.levels": (count,), "anchors.log_scales": (count, 3),
+            "anchors.offsets": (count, n_offsets, 3), "anchors.spawned": (count, n_offsets),
+            "anchors.observations": (count,),
+            **({"anchors.features": (count, feature_dim)} if anchors.with_features else {}),
+            **({"encoding.table": tuple(self.encoding.table.shape)} if self.encoding is not None else {}),
+        }, self.device)
+        if self.encoding is not None:
+            self.encoding.table.data.copy_(tensor["encoding.table"])
+        codes, levels = tensor["anchors.codes"], tensor["anchors.levels"]
+        features = tensor["anchors.features"] if anchors.with_features else None
+        anchors.add(codes, levels, self.octree.centers_by_level(codes, levels),
+                    torch.ones(count, device=self.device), features, self.optimizer)
+        anchors.log_scales.data.copy_(tensor["anchors.log_scales"])
+        anchors.offsets.data.copy_(tensor["anchors.offsets"])
+        anchors.spawned = tensor["anchors.spawned"].bool()
+        anchors.observations = tensor["anchors.observations"]
+
     def snapshot(self) -> bytes:
         """The map as safetensors bytes (see ``ogmapping.snapshot``)."""
-        from ogmapping.snapshot import dump
-
-        with self.lock:
-            return dump(self)
+        return snapshot.encode(self.state())
 
     @classmethod
     def restore(cls, data: bytes, device: str | torch.device = "cpu") -> Mapper:
         """A mapper from snapshot bytes; mapping can continue from it."""
-        from ogmapping.snapshot import load
+        return cls.from_state(snapshot.decode(data), device)
 
-        return load(data, device)
 
+def _checked_shapes(
+    tensors: dict[str, torch.Tensor], shapes: dict[str, tuple[int, ...]], device: torch.device
+) -> dict[str, torch.Tensor]:
+    """The named tensors on ``device`` (floating ones as float32), each exactly of its shape: a
+    copy into a parameter would otherwise broadcast a tensor that is too small."""
+    checked = {}
+    for name, shape in shapes.items():
+        value = tensors[name]
+        if tuple(value.shape) != shape:
+            raise ValueError(f"{name} has shape {tuple(value.shape)}, expected {shape}")
+        checked[name] = value.to(device, torch.float32 if value.is_floating_point() else value.dtype)
+    return checked

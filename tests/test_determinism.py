@@ -10,15 +10,8 @@ OVERRIDES = {"keyframes.iterations": 2, "keyframes.first_iterations": 4, "refine
              "refine.min_observations": 1}
 
 
-def _state(mapper: Mapper) -> dict[str, torch.Tensor]:
-    state = {f"decoders.{name}": value for name, value in mapper.decoders.state_dict().items()}
-    state["features"] = mapper.anchors.features.detach()
-    state["offsets"] = mapper.anchors.offsets.detach()
-    return state
-
-
 def _assert_same(left: Mapper, right: Mapper) -> None:
-    first, second = _state(left), _state(right)
+    first, second = left.state().tensors, right.state().tensors
     assert first.keys() == second.keys()
     for name, value in first.items():
         assert torch.equal(value, second[name]), name

@@ -1,0 +1,34 @@
+"""A map's state as plain data: what defines the map, apart from how it is being optimised.
+
+``Mapper.state()`` produces it and ``Mapper.from_state`` rebuilds a mapper from it; snapshots
+(``ogmapping.snapshot``) are this record written as safetensors, and anything else that stores or
+moves a map (export, checkpoints, a session placed elsewhere) goes through the same two calls
+rather than into the mapper's parts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ogmapping.config import MapperConfig
+
+
+@dataclass
+class MapState:
+    """``tensors`` are keyed ``anchors.*``, ``encoding.table``, ``decoders.*`` and ``octree.*``:
+    anchor codes and levels (their centres follow from them), the learnable per-anchor tensors,
+    the hash table (dense maps), the decoder weights and the octree's occupied cells. Keyframe
+    images and optimiser moments are not part of it: a map rebuilt from it renders the same
+    images, and mapping continues with a fresh keyframe set and fresh Adam moments."""
+
+    config: MapperConfig
+    tensors: dict[str, torch.Tensor]
+    frames: int = 0
+    iterations: int = 0
+
+    def section(self, prefix: str) -> dict[str, torch.Tensor]:
+        """The tensors under ``prefix.``, with the prefix removed."""
+        start = f"{prefix}."
+        return {name[len(start):]: value for name, value in self.tensors.items() if name.startswith(start)}
