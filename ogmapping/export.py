@@ -25,7 +25,8 @@ def export_ply(mapper, path: str | Path, camera_center: np.ndarray | None = None
         else:
             center = torch.as_tensor(camera_center, dtype=torch.float32, device=mapper.device)
         rows = torch.arange(len(mapper.anchors), device=mapper.device)
-        gaussians = generate(mapper.anchors, mapper._features, mapper.decoders, center, rows)
+        gaussians = generate(mapper.anchors, mapper._features, mapper.decoders, center, rows,
+                             compiled=mapper.profile.compiled)
     means = gaussians.means.cpu().numpy().astype(np.float32)
     count = means.shape[0]
     opacity = gaussians.opacities.clamp(1e-6, 1 - 1e-6).cpu().numpy()
