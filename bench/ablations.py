@@ -43,7 +43,8 @@ from ogmapping.datasets import open_dataset
 from ogmapping.mapper import Mapper
 from ogmapping.metrics import Lpips, summarise
 from ogmapping.preprocess import resize_frame
-from ogmapping.runner import ground_truth, pick_device, score
+from ogmapping.profile import resolve_device
+from ogmapping.runner import ground_truth, score
 from ogmapping.selection import select
 
 
@@ -175,7 +176,7 @@ def main() -> None:
     args = parse_args()
     tables = [table for table in TABLES if not args.only or table.key in args.only]
     settings = list(dict.fromkeys(row.overrides for table in tables for row in table.rows))  # paper's once
-    device = pick_device(args.device)
+    device = resolve_device(args.device)
     source = open_dataset(args.data)
     selection = select(len(source), args.frames, 1)
     streamed = [resize_frame(source[i], args.scale) for i in selection.streamed]

@@ -26,7 +26,7 @@ import torch
 from ogmapping.camera import Intrinsics, backproject
 from ogmapping.config import OctreeConfig
 from ogmapping.octree import SparseVoxelOctree
-from ogmapping.render import RenderOutput
+from ogmapping.render.output import RenderOutput
 
 SILHOUETTE_THRESHOLD = 0.5  # SplaTAM's sil_thres
 DEPTH_ERROR_FACTOR = 50.0  # SplaTAM: depth error above 50x its median marks a pixel as unexplained

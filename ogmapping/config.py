@@ -15,6 +15,8 @@ from typing import Any
 
 import yaml
 
+from ogmapping.backends import BACKENDS
+
 
 @dataclass
 class ModelConfig:
@@ -93,7 +95,7 @@ class MapperConfig:
     refine: RefineConfig = field(default_factory=RefineConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
-    backend: str = "auto"  # rasterizer: auto, torch, cpu, gsplat
+    backend: str = "auto"  # auto or one of backends.BACKENDS; on the CPU only "cpu" runs the compiled kernels
     seed: int = 0
 
     def to_dict(self) -> dict[str, Any]:
@@ -243,5 +245,6 @@ def validate(config: MapperConfig) -> None:
     ):
         if value not in allowed:
             raise ValueError(f"config {key} must be one of {', '.join(allowed)}, got {value!r}")
-    if config.backend not in ("auto", "torch", "cpu", "gsplat"):
-        raise ValueError(f"backend must be auto, torch, cpu or gsplat, got {config.backend!r}")
+    backends = ("auto", *BACKENDS)
+    if config.backend not in backends:
+        raise ValueError(f"backend must be {', '.join(backends[:-1])} or {backends[-1]}, got {config.backend!r}")

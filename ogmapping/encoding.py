@@ -38,15 +38,13 @@ class HashGridEncoding(nn.Module):
     def output_dim(self) -> int:
         return self.levels * self.table.shape[-1]
 
-    def forward(self, points: torch.Tensor, fused: bool | None = None) -> torch.Tensor:
+    def forward(self, points: torch.Tensor, *, compiled: bool) -> torch.Tensor:
         """Features of world points (M, 3) -> (M, levels * features_per_level).
 
-        ``fused`` (default: for float32 on the CPU) runs the Numba kernel of ``encoding_cpu``; both
-        give the same rows and features (to float32 rounding) and the same sparse table gradient.
+        ``compiled`` runs the Numba kernel of ``encoding_cpu`` (float32 on the CPU); both give the
+        same rows and features (to float32 rounding) and the same sparse table gradient.
         """
-        if fused is None:
-            fused = points.device.type == "cpu" and points.dtype == self.table.dtype == torch.float32
-        if fused:
+        if compiled:
             return HashEncode.apply(points, self.table, self.resolutions, HASH_PRIMES, self.gradients)
         scaled = points.unsqueeze(1) * self.resolutions.view(1, -1, 1)  # (M, L, 3)
         base = torch.floor(scaled)

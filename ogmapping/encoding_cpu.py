@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
+from ogmapping.arrays import float32_array
 from ogmapping.lazy_adam import RowGradients
 
 _ONE = np.float32(1.0)
@@ -74,9 +75,8 @@ class HashEncode(torch.autograd.Function):
         rows = np.empty((count, levels, 8), np.int64)
         weights = np.empty((count, levels, 8), np.float32)
         features = np.empty((count, levels * width), np.float32)
-        _encode(np.ascontiguousarray(points.detach().numpy(), np.float32),
-                np.ascontiguousarray(resolutions.numpy(), np.float32),
-                table.detach().numpy(), np.int64(primes[1]), np.int64(primes[2]), rows, weights, features)
+        _encode(float32_array(points), float32_array(resolutions), float32_array(table),
+                np.int64(primes[1]), np.int64(primes[2]), rows, weights, features)
         ctx.lookups = (torch.from_numpy(rows), weights)
         ctx.sink = sink
         return torch.from_numpy(features)
@@ -86,6 +86,6 @@ class HashEncode(torch.autograd.Function):
         rows, weights = ctx.lookups
         width = grad.shape[1] // rows.shape[1]
         values = np.empty((rows.numel(), width), np.float32)
-        _row_gradients(np.ascontiguousarray(grad.numpy(), np.float32), weights, values)
+        _row_gradients(float32_array(grad), weights, values)
         ctx.sink.add(rows, torch.from_numpy(values))
         return None, None, None, None, None

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
+from ogmapping.arrays import float32_array, image_planes
 from ogmapping.blur import blur
 from ogmapping.ssim import C1, C2, TAPS, ReferenceStatistics, reference_statistics
 
@@ -113,29 +114,20 @@ def _depth_terms(depth, gt_depth):
     return (sums.sum() / valid if valid > 0 else 0.0), grad
 
 
-def _planes(t: torch.Tensor) -> np.ndarray:
-    """(H, W, C) tensor -> C-contiguous float32 (H, W * C) array."""
-    height = t.shape[0]
-    return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy()).reshape(height, -1)
-
-
 class _ImageTerms(torch.autograd.Function):
     """(render colour, render depth) -> (colour L1, 1 - SSIM, depth L1), gradients precomputed."""
 
     @staticmethod
     def forward(ctx, color, depth, gt_color, gt_depth, reference):
         height, width, channels = color.shape
-        x, y = _planes(color), _planes(gt_color)
+        x, y = image_planes(color), image_planes(gt_color)
         blurred = blur(_moments(x, y), TAPS, channels)
         count = x.size
         ssim_sums, partials = _ssim_and_partials(
-            blurred, _planes(reference.mean), _planes(reference.square_mean), np.float32(-1.0 / count)
+            blurred, image_planes(reference.mean), image_planes(reference.square_mean), np.float32(-1.0 / count)
         )
         l1_sums, grad_l1, grad_ssim = _colour_terms(x, y, blur(partials, TAPS, channels), np.float32(1.0 / count))
-        depth_l1, grad_depth = _depth_terms(
-            np.ascontiguousarray(depth.detach().to("cpu", torch.float32).numpy()),
-            np.ascontiguousarray(gt_depth.to("cpu", torch.float32).numpy()),
-        )
+        depth_l1, grad_depth = _depth_terms(float32_array(depth), float32_array(gt_depth))
         shape = (height, width, channels)
         like = {"dtype": color.dtype, "device": color.device}
         ctx.grads = (
@@ -168,5 +160,5 @@ def image_terms(
     Shapes and rules as ``ogmapping.losses.mapping_loss``; ``reference`` is
     ``reference_statistics(gt_color)`` when the caller has it cached.
     """
-    reference = reference if reference is not None else reference_statistics(gt_color)
+    reference = reference if reference is not None else reference_statistics(gt_color, compiled=True)
     return _ImageTerms.apply(render_color, render_depth, gt_color, gt_depth, reference)

@@ -44,21 +44,20 @@ def generate(
     decoders: Decoders,
     camera_center: torch.Tensor,
     rows: torch.Tensor,
-    fused: bool | None = None,
+    *,
+    compiled: bool,
 ) -> GaussianSet:
     """Decode the n Gaussians of each anchor in ``rows`` as seen from ``camera_center``.
 
-    ``fused`` (default: on the CPU) assembles them with the Numba kernel of ``gaussians_cpu``
-    instead of torch ops; both give the same Gaussians and gradients.
+    ``compiled`` assembles them with the Numba kernel of ``gaussians_cpu`` (CPU tensors) instead
+    of torch ops; both give the same Gaussians and gradients.
     """
     positions = anchors.positions.index_select(0, rows)
     to_camera = camera_center.to(positions) - positions
     distances = to_camera.norm(dim=-1, keepdim=True).clamp_min(1e-6)
     logits = decoders.logits(features(rows), to_camera / distances, distances)
-    if fused is None:
-        fused = positions.device.type == "cpu"
-    if fused:
-        return _assemble_fused(anchors, rows, *logits)
+    if compiled:
+        return _assemble_compiled(anchors, rows, *logits)
     return _assemble_torch(anchors, rows, positions, *logits)
 
 
@@ -84,8 +83,8 @@ def _assemble_torch(anchors: AnchorMap, rows: torch.Tensor, positions: torch.Ten
     )
 
 
-def _assemble_fused(anchors: AnchorMap, rows: torch.Tensor, opacity_logits: torch.Tensor,
-                    color_logits: torch.Tensor, cov: torch.Tensor) -> GaussianSet:
+def _assemble_compiled(anchors: AnchorMap, rows: torch.Tensor, opacity_logits: torch.Tensor,
+                       color_logits: torch.Tensor, cov: torch.Tensor) -> GaussianSet:
     means, quats, scales, opacities, colors, kept_rows, slots, anchor_opacity = AssembleGaussians.apply(
         opacity_logits, color_logits, cov, anchors.positions, anchors.log_scales, anchors.offsets, rows)
     return GaussianSet(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,

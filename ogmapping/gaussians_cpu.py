@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from ogmapping.render.cpu_backend import float32_array
+from ogmapping.arrays import float32_array
 
 _ONE = np.float32(1.0)
 

@@ -38,8 +38,9 @@ class Keyframe:
     ssim_reference: ReferenceStatistics | None = None  # cached SSIM statistics of ``rgb``
     _downscaled: dict[float, Keyframe] = field(default_factory=dict, repr=False)
 
-    def downscaled(self, scale: float) -> Keyframe:
-        """This keyframe with its images resized by ``scale`` (colour by area, depth nearest), cached."""
+    def downscaled(self, scale: float, *, compiled: bool) -> Keyframe:
+        """This keyframe with its images resized by ``scale`` (colour by area, depth nearest), cached;
+        ``compiled`` as ``ssim.reference_statistics``."""
         if scale == 1.0:
             return self
         if scale not in self._downscaled:
@@ -49,7 +50,7 @@ class Keyframe:
             rgb = torch.as_tensor(rgb, device=self.rgb.device).clamp(0.0, 1.0)
             depth = torch.as_tensor(resize_depth(self.depth.cpu().numpy(), *size), device=self.depth.device)
             self._downscaled[scale] = Keyframe(self.index, rgb, depth, intrinsics, self.c2w, self.codes,
-                                               reference_statistics(rgb))
+                                               reference_statistics(rgb, compiled=compiled))
         return self._downscaled[scale]
 
 

@@ -64,11 +64,15 @@ class SparseRowGather(torch.autograd.Function):
 
 
 class LazyAdam:
-    """Adam (as ``torch.optim.Adam``, no weight decay) applied to the rows ``gradients`` holds."""
+    """Adam (as ``torch.optim.Adam``, no weight decay) applied to the rows ``gradients`` holds.
 
-    def __init__(self, table: torch.nn.Parameter, gradients: RowGradients, lr: float,
+    ``compiled`` steps with one Numba pass (a float32 CPU table) instead of torch ops.
+    """
+
+    def __init__(self, table: torch.nn.Parameter, gradients: RowGradients, lr: float, *, compiled: bool,
                  betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15) -> None:
         self.table = table
+        self.compiled = compiled
         self.gradients = gradients
         self.lr = lr
         self.betas = betas
@@ -94,7 +98,7 @@ class LazyAdam:
         table = self.table.view(-1, width)
         exp_avg = self.exp_avg.view(-1, width)
         exp_avg_sq = self.exp_avg_sq.view(-1, width)
-        if table.device.type == "cpu" and table.dtype == torch.float32:
+        if self.compiled:
             _adam_rows(table.numpy(), exp_avg.numpy(), exp_avg_sq.numpy(), rows.numpy(),
                        values.contiguous().numpy(), self.lr / correction1, correction2, beta1, beta2, self.eps)
             return

@@ -1,8 +1,9 @@
 """The mapping loss of the paper: colour L1, (1 - SSIM), depth L1 on valid pixels, volume regulariser.
 
 Each term is returned on its own as well, so the mapper can log them and tests can check that
-every term reacts to its own input only. On the CPU the three image terms come from one compiled
-pass (``ogmapping.fused_loss``); elsewhere from the autograd definitions below.
+every term reacts to its own input only. In a compiled execution profile (the CPU with the ``cpu``
+backend, ``ogmapping.profile``) the three image terms come from one compiled pass
+(``ogmapping.fused_loss``); otherwise from the autograd definitions below.
 """
 
 from __future__ import annotations
@@ -30,18 +31,21 @@ def mapping_loss(
     scales: torch.Tensor,
     weights: LossConfig,
     gt_statistics: ReferenceStatistics | None = None,
+    *,
+    compiled: bool,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Weighted sum of the four terms for one view.
 
     ``render_color``/``gt_color`` (H, W, 3) in [0, 1], depths (H, W) in metres (gt 0 = no
     measurement), ``scales`` (N, 3) of the Gaussians that were rendered; ``gt_statistics`` is the
-    cached SSIM side of ``gt_color`` when the caller has it.
+    cached SSIM side of ``gt_color`` when the caller has it. ``compiled`` takes the image terms from
+    ``fused_loss`` (CPU tensors) instead of autograd; both give the same values and gradients.
     """
-    if render_color.device.type == "cpu":
+    if compiled:
         color, ssim, depth = image_terms(render_color, render_depth, gt_color, gt_depth, gt_statistics)
     else:
         color = (render_color - gt_color).abs().mean()
-        ssim = 1.0 - ssim_map(render_color, gt_color, gt_statistics).mean()
+        ssim = 1.0 - ssim_map(render_color, gt_color, gt_statistics, compiled=False).mean()
         depth = depth_l1(render_depth, gt_depth)
     parts = {
         "color": color,

@@ -5,7 +5,8 @@ the frame is a keyframe, and if so optimise k iterations, each on a freshly draw
 window, growing and pruning anchors every m iterations.
 
 All public methods are thread-safe: ``lock`` is held per optimisation iteration, so a render or a
-stats request from another thread is served between iterations.
+stats request from another thread is served between iterations. Device, backend, torch threads and
+whether the compiled CPU kernels run are fixed once, in ``profile`` (``ogmapping.profile``).
 """
 
 from __future__ import annotations
@@ -33,10 +34,12 @@ from ogmapping.lazy_adam import LazyAdam
 from ogmapping.losses import mapping_loss
 from ogmapping.octree import SparseVoxelOctree
 from ogmapping.preprocess import prepare
-from ogmapping.render import RenderOutput, rasterize, resolve_backend
+from ogmapping.profile import execution_profile
+from ogmapping.render import rasterize
+from ogmapping.render.output import RenderOutput
 from ogmapping.ssim import reference_statistics
 from ogmapping.state import MapState
-from ogmapping.threads import mapping_threads, torch_threads
+from ogmapping.threads import torch_threads
 
 
 @dataclass
@@ -63,8 +66,7 @@ class Mapper:
 
     def __init__(self, config: MapperConfig, device: str | torch.device = "cpu") -> None:
         self.config = config
-        self.device = torch.device(device)
-        self.backend = resolve_backend(config.backend, self.device)
+        self.profile = execution_profile(device, config.backend, config.model.encoding)
         self.lock = threading.RLock()
         # Each session draws from its own generator: sessions mapping side by side in one server
         # would otherwise interleave draws from torch's global one (and reseed it for each other).
@@ -77,13 +79,21 @@ class Mapper:
         self.decoders = self.decoders.to(self.device)
         self.keyframes = KeyframeSet(config.keyframes, config.seed, self._footprint)
         self.optimizer = self._make_optimizer()
-        self.hash_optimizer = (LazyAdam(self.encoding.table, self.encoding.gradients, config.optim.hash_lr)
+        self.hash_optimizer = (LazyAdam(self.encoding.table, self.encoding.gradients, config.optim.hash_lr,
+                                        compiled=self.profile.compiled)
                                if self.encoding is not None else None)
         self.frames = 0
         self.iterations = 0
         self.last_gaussians = 0
         self.timings: dict[str, float] = defaultdict(float)
-        self.threads = mapping_threads(self.device, model.encoding)
+
+    @property
+    def device(self) -> torch.device:
+        return self.profile.device
+
+    @property
+    def backend(self) -> str:
+        return self.profile.backend
 
     def _make_optimizer(self) -> torch.optim.Adam:
         lr = self.config.optim
@@ -108,16 +118,16 @@ class Mapper:
 
     def process(self, frame: Frame) -> FrameResult:
         """Map one frame; returns what happened to it."""
-        with torch_threads(self.threads):
+        with torch_threads(self.profile.threads):
             return self._process(frame)
 
     def _process(self, frame: Frame) -> FrameResult:
         start = time.perf_counter()
         with self._timed("preprocess"):
             frame = prepare(frame, self.config.octree.depth_min, self.config.octree.depth_max)
-            rgb = torch.as_tensor(frame.rgb, dtype=torch.float32, device=self.device)
-            depth = torch.as_tensor(frame.depth, dtype=torch.float32, device=self.device)
-            c2w = torch.as_tensor(frame.c2w, dtype=torch.float32, device=self.device)
+            rgb = torch.as_tensor(frame.rgb, dtype=self.profile.precision, device=self.device)
+            depth = torch.as_tensor(frame.depth, dtype=self.profile.precision, device=self.device)
+            c2w = torch.as_tensor(frame.c2w, dtype=self.profile.precision, device=self.device)
         with self.lock, self._timed("allocate"):
             sampled = allocation.sampled_depth(self.config.octree, depth, frame.color_intrinsics)
             new_codes = allocation.allocate(self.config.octree.allocation, self.octree, sampled,
@@ -130,7 +140,8 @@ class Mapper:
             iterations = self._iterations_for(is_keyframe)
             view = None
             if is_keyframe or iterations:
-                view = Keyframe(frame.index, rgb, depth, frame.color_intrinsics, c2w, codes, reference_statistics(rgb))
+                view = Keyframe(frame.index, rgb, depth, frame.color_intrinsics, c2w, codes,
+                                reference_statistics(rgb, compiled=self.profile.compiled))
             if is_keyframe:
                 self.keyframes.insert(view)
         loss, grown = self._optimise(iterations, view) if iterations else (float("nan"), 0)
@@ -193,11 +204,13 @@ class Mapper:
         total = torch.zeros((), device=self.device)
         for position, keyframe in enumerate(window):
             if position > 0 and not self.keyframes.is_local(keyframe):
-                keyframe = keyframe.downscaled(self._window_scale(keyframe.intrinsics.width))
+                keyframe = keyframe.downscaled(self._window_scale(keyframe.intrinsics.width),
+                                               compiled=self.profile.compiled)
             gaussians, output = self._render(keyframe.c2w, keyframe.intrinsics)
             with self._timed("loss"):
                 loss, _ = mapping_loss(output.color, output.depth, keyframe.rgb, keyframe.depth,
-                                       gaussians.scales, self.config.loss, keyframe.ssim_reference)
+                                       gaussians.scales, self.config.loss, keyframe.ssim_reference,
+                                       compiled=self.profile.compiled)
             total = total + loss / len(window)
             renders.append((gaussians, output, keyframe))
         with self._timed("backward"):
@@ -224,13 +237,14 @@ class Mapper:
 
     def _features(self, rows: torch.Tensor) -> torch.Tensor:
         if self.encoding is not None:
-            return self.encoding(self.anchors.positions.index_select(0, rows))
+            return self.encoding(self.anchors.positions.index_select(0, rows), compiled=self.profile.compiled)
         return self.anchors.features.index_select(0, rows)  # index_add_ backward: faster than [rows]
 
     def _render(self, c2w: torch.Tensor, intrinsics: Intrinsics) -> tuple[GaussianSet, RenderOutput]:
         with self._timed("decode"):
             rows = anchors_in_view(self.anchors, intrinsics, c2w, far=self.config.octree.depth_max * 2)
-            gaussians = generate(self.anchors, self._features, self.decoders, c2w[:3, 3], rows)
+            gaussians = generate(self.anchors, self._features, self.decoders, c2w[:3, 3], rows,
+                                 compiled=self.profile.compiled)
         with self._timed("rasterize"):
             output = rasterize(
                 gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.colors,
@@ -243,8 +257,8 @@ class Mapper:
 
     def render(self, c2w: np.ndarray, intrinsics: Intrinsics) -> Rendered:
         """Colour, depth and alpha from any pose (camera-to-world) and intrinsics."""
-        pose = torch.as_tensor(np.asarray(c2w), dtype=torch.float32, device=self.device)
-        with self.lock, torch.no_grad(), torch_threads(self.threads):
+        pose = torch.as_tensor(np.asarray(c2w), dtype=self.profile.precision, device=self.device)
+        with self.lock, torch.no_grad(), torch_threads(self.profile.threads):
             _, output = self._render(pose, intrinsics)
         return Rendered(
             color=output.color.clamp(0, 1).cpu().numpy().astype(np.float32),
@@ -272,9 +286,9 @@ class Mapper:
         """Every anchor's Gaussians as seen from ``camera_center`` (colours and opacities depend on
         the viewpoint through the decoders); no frustum culling, no gradients."""
         center = torch.as_tensor(np.asarray(camera_center), dtype=torch.float32, device=self.device)
-        with self.lock, torch.no_grad(), torch_threads(self.threads):
+        with self.lock, torch.no_grad(), torch_threads(self.profile.threads):
             rows = torch.arange(len(self.anchors), device=self.device)
-            return generate(self.anchors, self._features, self.decoders, center, rows)
+            return generate(self.anchors, self._features, self.decoders, center, rows, compiled=self.profile.compiled)
 
     def keyframe_centroid(self) -> np.ndarray:
         """Mean camera position of the keyframes (the anchors' mean where there are none, as after a

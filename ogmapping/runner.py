@@ -22,6 +22,7 @@ from ogmapping.frame import Frame
 from ogmapping.mapper import Mapper, Rendered
 from ogmapping.metrics import Lpips, depth_l1_cm, psnr, ssim, summarise
 from ogmapping.preprocess import prepare, resize_frame
+from ogmapping.profile import resolve_device
 from ogmapping.selection import select
 
 PREVIEW_COUNT = 3
@@ -40,16 +41,6 @@ class RunOptions:
     out: Path = Path("runs/latest")
     dataset_options: dict = field(default_factory=dict)
     progress: bool = True
-
-
-def pick_device(name: str) -> torch.device:
-    """``auto`` is CUDA when present, else the CPU; an explicit ``cuda`` without CUDA is an error."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    device = torch.device(name)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError("--device cuda was asked for but this machine has no CUDA device")
-    return device
 
 
 def ground_truth(frame: Frame, config: MapperConfig) -> Frame:
@@ -108,7 +99,7 @@ def prefetched(load: Callable[[int], Frame], positions: Iterable[int], depth: in
 
 def run(options: RunOptions, config: MapperConfig) -> dict:
     """Map, evaluate and write results.json, previews and the snapshot into ``options.out``."""
-    device = pick_device(options.device)
+    device = resolve_device(options.device)
     source = open_dataset(options.data, options.format, **options.dataset_options)
     selection = select(len(source), options.frames, options.stride)
     if not selection.streamed:

@@ -3,9 +3,10 @@
 One implementation for both keeps "what we optimise" and "what we report" the same quantity:
 an 11x11 Gaussian window (sigma 1.5) applied as two separable 1-D convolutions, with the usual
 constants for images in [0, 1]. Borders use zero padding ("same" size output); the metric drops
-a border afterwards, the loss simply averages the whole map. Where nothing needs a gradient on the
-CPU (the metric, keyframes' cached statistics) the blurs run in the Numba kernel of
-``ogmapping.blur``: the same window and padding, ~10x faster than torch's grouped convolutions.
+a border afterwards, the loss simply averages the whole map. With ``compiled`` (the caller's
+choice: CPU images, nothing needing a gradient, e.g. the metric or keyframes' cached statistics
+in a compiled execution profile) the blurs run in the Numba kernel of ``ogmapping.blur``: the
+same window and padding, ~10x faster than torch's grouped convolutions.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ogmapping.arrays import image_planes
 from ogmapping.blur import blur
 
 WINDOW_SIZE = 11
@@ -40,18 +42,13 @@ TAPS = gaussian_window().numpy()  # float32 taps for the Numba blur
 _TAPS_64 = gaussian_window(dtype=torch.float64).numpy()
 
 
-def _compiled(*images: torch.Tensor) -> bool:
-    """Whether the Numba blur may serve: CPU float32/float64 images of one dtype, no gradient wanted."""
-    one_dtype = len({t.dtype for t in images}) == 1 and images[0].dtype in (torch.float32, torch.float64)
-    on_cpu = all(t.device.type == "cpu" for t in images)
-    wants_grad = torch.is_grad_enabled() and any(t.requires_grad for t in images)
-    return one_dtype and on_cpu and not wants_grad
-
-
 def _blur_hwc(*images: torch.Tensor) -> list[torch.Tensor]:
-    """Numba blur of (H, W, C) images of one shape, each channel on its own."""
+    """Numba blur of (H, W, C) CPU images of one shape and dtype (float32 or float64), each channel
+    on its own; the Numba blur has no backward, so asking for a gradient is an error."""
+    if torch.is_grad_enabled() and any(t.requires_grad for t in images):
+        raise ValueError("the compiled SSIM blur has no gradient; pass compiled=False where one is needed")
     height, width, channels = images[0].shape
-    planes = np.stack([t.detach().reshape(height, width * channels).numpy() for t in images])
+    planes = np.stack([image_planes(t, t.dtype) for t in images])
     taps = _TAPS_64 if planes.dtype == np.float64 else TAPS
     blurred = torch.from_numpy(blur(planes, taps, channels))
     return [plane.view(height, width, channels) for plane in blurred]
@@ -88,9 +85,10 @@ def _hwc(batch: torch.Tensor) -> torch.Tensor:
     return batch[0].permute(1, 2, 0).contiguous()
 
 
-def reference_statistics(b: torch.Tensor) -> ReferenceStatistics:
-    """Statistics of an (H, W, C) image for repeated ``ssim_map`` calls against it."""
-    if _compiled(b):
+def reference_statistics(b: torch.Tensor, *, compiled: bool) -> ReferenceStatistics:
+    """Statistics of an (H, W, C) image for repeated ``ssim_map`` calls against it; ``compiled``
+    blurs it in Numba (a CPU image)."""
+    if compiled:
         mean, square_mean = _blur_hwc(b, b * b)
         return ReferenceStatistics(image=b, mean=mean, square_mean=square_mean)
     y = _nchw(b).contiguous()
@@ -98,15 +96,18 @@ def reference_statistics(b: torch.Tensor) -> ReferenceStatistics:
     return ReferenceStatistics(image=b, mean=_hwc(_blur(y, taps)), square_mean=_hwc(_blur(y * y, taps)))
 
 
-def ssim_map(a: torch.Tensor, b: torch.Tensor, reference: ReferenceStatistics | None = None) -> torch.Tensor:
+def ssim_map(a: torch.Tensor, b: torch.Tensor, reference: ReferenceStatistics | None = None, *,
+             compiled: bool) -> torch.Tensor:
     """Per-pixel, per-channel SSIM of two (H, W, C) images in [0, 1]; returns (H, W, C).
 
-    ``reference``, when given, must be ``reference_statistics(b)``.
+    ``reference``, when given, must be ``reference_statistics(b)`` (blurred either way).
+    ``compiled`` blurs in Numba: CPU images of one dtype, no gradient; otherwise in torch,
+    differentiable, on any device.
     """
     if a.shape != b.shape or a.dim() != 3:
         raise ValueError(f"ssim_map expects two (H, W, C) images of one shape, got {a.shape} and {b.shape}")
-    reference = reference if reference is not None else reference_statistics(b)
-    if _compiled(a, reference.image):
+    reference = reference if reference is not None else reference_statistics(b, compiled=compiled)
+    if compiled:
         x, y = a, reference.image
         mu_x, square_mean_x, mean_xy = _blur_hwc(x, x * x, x * y)
         mu_y, square_mean_y = reference.mean, reference.square_mean

@@ -1,11 +1,8 @@
-"""Torch threads for the mapper's own calls: one where every op is small.
+"""Torch threads for one block of calls on the calling thread only.
 
-A sparse map on the CPU runs only small torch ops around the compiled kernels (decoders over a few
-thousand anchors, gathers, Adam over the anchors); with a second torch thread each of them pays to
-wake it, and a (1800 x 36) @ (36 x 32) matmul takes 3-4x longer than on one thread
-(bench/RESULTS.md). A dense map's hash table (2^19 entries per level) is large enough to want
-every thread, as does anything on CUDA. torch's OpenMP build keeps the thread count per calling
-thread, so a mapper changes it only for its own calls, not for the rest of the process.
+torch's OpenMP build keeps the thread count per calling thread, so a mapper changes it for its own
+calls (``ExecutionProfile.threads``) without changing it for the rest of the process: the server's
+other sessions, evaluation.
 """
 
 from __future__ import annotations
@@ -14,11 +11,6 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 import torch
-
-
-def mapping_threads(device: torch.device, encoding: str) -> int | None:
-    """Torch threads for a mapper's calls, or None to leave the caller's setting alone."""
-    return 1 if device.type == "cpu" and encoding == "anchor" else None
 
 
 @contextmanager

@@ -8,7 +8,7 @@ from ogmapping.config import build
 from ogmapping.datasets.synthetic import SyntheticSource
 from ogmapping.mapper import Mapper
 from ogmapping.octree import SparseVoxelOctree
-from ogmapping.render import RenderOutput
+from ogmapping.render.output import RenderOutput
 
 VOXEL = 0.1
 # 8 x 4 pixels looking down +z; at depth 1 a pixel spans 0.1 m (one coarse cell).

@@ -17,18 +17,18 @@ def encoding_and_points(count: int = 300) -> tuple[HashGridEncoding, torch.Tenso
 
 def test_features_match_the_torch_encoding():
     encoding, points = encoding_and_points()
-    fused = encoding(points, fused=True)
-    reference = encoding(points, fused=False)
-    torch.testing.assert_close(fused, reference, rtol=1e-5, atol=1e-6)
+    compiled = encoding(points, compiled=True)
+    reference = encoding(points, compiled=False)
+    torch.testing.assert_close(compiled, reference, rtol=1e-5, atol=1e-6)
 
 
 def test_table_gradient_matches_the_torch_encoding():
     encoding, points = encoding_and_points()
     weights = torch.randn(points.shape[0], encoding.output_dim, generator=torch.Generator().manual_seed(1))
     gradients = []
-    for fused in (True, False):
+    for compiled in (True, False):
         encoding.gradients.clear()
-        (encoding(points, fused=fused) * weights).sum().backward()
+        (encoding(points, compiled=compiled) * weights).sum().backward()
         gradients.append(encoding.gradients.dense(encoding.table.shape))
     assert gradients[0].abs().sum() > 0
     torch.testing.assert_close(gradients[0], gradients[1], rtol=1e-5, atol=1e-6)

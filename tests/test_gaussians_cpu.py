@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from ogmapping.anchors import AnchorMap
-from ogmapping.gaussians import _assemble_fused, _assemble_torch
+from ogmapping.gaussians import _assemble_compiled, _assemble_torch
 
 N_OFFSETS = 10
 OUTPUTS = ("means", "quats", "scales", "opacities", "colors")
@@ -57,7 +57,7 @@ def test_fused_assembly_matches_torch(count, in_view, opacity_shift, seed):
         return _assemble_torch(anchors, rows, anchors.positions[rows], *logits)
 
     expected, expected_grads = _run(assemble_torch, anchors, rows, logits, seed)
-    actual, actual_grads = _run(_assemble_fused, anchors, rows, logits, seed)
+    actual, actual_grads = _run(_assemble_compiled, anchors, rows, logits, seed)
     assert len(actual) == len(expected)
     for name in OUTPUTS:
         torch.testing.assert_close(getattr(actual, name), getattr(expected, name), rtol=1e-5, atol=1e-6)

@@ -73,14 +73,14 @@ def test_downscaled_keyframe_matches_a_resized_camera():
     depth = 1.0 + torch.rand(6, 8, generator=generator)
     depth[0, 0] = 0.0
     original = Keyframe(3, rgb, depth, INTRINSICS, torch.eye(4), torch.tensor([1, 2]))
-    half = original.downscaled(0.5)
+    half = original.downscaled(0.5, compiled=True)
     assert half.intrinsics == INTRINSICS.scaled(0.5)
     assert half.rgb.shape == (3, 4, 3) and half.depth.shape == (3, 4)
     torch.testing.assert_close(half.rgb, rgb.reshape(3, 2, 4, 2, 3).mean(dim=(1, 3)))  # area average
     assert set(half.depth.flatten().tolist()) <= set(depth.flatten().tolist())  # measured values only
     assert half.ssim_reference is not None and half.ssim_reference.mean.shape == (3, 4, 3)
     assert half.index == 3 and torch.equal(half.codes, original.codes)
-    assert original.downscaled(0.5) is half and original.downscaled(1.0) is original
+    assert original.downscaled(0.5, compiled=True) is half and original.downscaled(1.0, compiled=True) is original
 
 
 def test_window_scale_stops_at_the_minimum_width():

@@ -22,18 +22,18 @@ def test_gather_matches_indexing_and_deposits_its_gradient_rows():
     assert torch.allclose(summed[2], weights[1] + weights[2])
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["compiled", "torch-ops"])
-def test_steps_equal_torch_adam_when_every_row_is_touched(dtype):
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "torch-ops"])
+def test_steps_equal_torch_adam_when_every_row_is_touched(compiled):
     torch.manual_seed(0)
-    start = torch.randn(2, 4, 3, dtype=dtype)
+    start = torch.randn(2, 4, 3)
     lazy_table = torch.nn.Parameter(start.clone())
     dense_table = torch.nn.Parameter(start.clone())
     sink = RowGradients()
-    lazy = LazyAdam(lazy_table, sink, lr=0.01)
+    lazy = LazyAdam(lazy_table, sink, lr=0.01, compiled=compiled)
     dense = torch.optim.Adam([dense_table], lr=0.01, eps=1e-15)
     every_row = torch.arange(8).repeat(2)
     for _ in range(5):
-        target = torch.randn(16, 3, dtype=dtype)
+        target = torch.randn(16, 3)
         lazy.zero_grad()
         dense.zero_grad()
         ((SparseRowGather.apply(lazy_table, every_row, sink) - target) ** 2).sum().backward()
@@ -47,7 +47,7 @@ def test_untouched_rows_keep_their_values_and_moments():
     table = torch.nn.Parameter(torch.randn(1, 6, 2))
     before = table.detach().clone()
     sink = RowGradients()
-    optimizer = LazyAdam(table, sink, lr=0.1)
+    optimizer = LazyAdam(table, sink, lr=0.1, compiled=True)
     touched = torch.tensor([1, 4])
     SparseRowGather.apply(table, touched, sink).sum().backward()
     optimizer.step()

@@ -17,43 +17,47 @@ def _scene(seed: int = 0):
     return color, depth, scales
 
 
-def test_perfect_render_leaves_only_the_scale_term():
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "autograd"])
+def test_perfect_render_leaves_only_the_scale_term(compiled):
     color, depth, scales = _scene()
-    total, parts = mapping_loss(color, depth, color, depth, scales, LossConfig())
+    total, parts = mapping_loss(color, depth, color, depth, scales, LossConfig(), compiled=compiled)
     assert parts["color"] == 0 and parts["depth"] == 0
     assert parts["ssim"] == pytest.approx(0.0, abs=1e-6)
     assert parts["scale"] == pytest.approx(float(scales.prod(-1).mean()))
     assert total == pytest.approx(LossConfig().scale * float(parts["scale"]), abs=1e-6)
 
 
-def test_terms_are_separate():
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "autograd"])
+def test_terms_are_separate(compiled):
     color, depth, scales = _scene()
     wrong_depth = depth + 0.3
-    _, parts = mapping_loss(color, wrong_depth, color, depth, scales, LossConfig())
+    _, parts = mapping_loss(color, wrong_depth, color, depth, scales, LossConfig(), compiled=compiled)
     assert parts["depth"] == pytest.approx(0.3, abs=1e-5) and parts["color"] == 0
-    _, parts = mapping_loss(color * 0.5, depth, color, depth, scales, LossConfig())
+    _, parts = mapping_loss(color * 0.5, depth, color, depth, scales, LossConfig(), compiled=compiled)
     assert parts["color"] > 0 and parts["ssim"] > 0 and parts["depth"] == 0
 
 
-def test_depth_uses_valid_pixels_only():
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "autograd"])
+def test_depth_uses_valid_pixels_only(compiled):
     color, depth, scales = _scene()
     gt = depth.clone()
     gt[:8] = 0.0
     render = depth.clone()
     render[:8] = 9.0  # wrong only where there is no measurement
-    _, parts = mapping_loss(color, render, color, gt, scales, LossConfig())
+    _, parts = mapping_loss(color, render, color, gt, scales, LossConfig(), compiled=compiled)
     assert parts["depth"] == 0
-    _, parts = mapping_loss(color, render, color, torch.zeros_like(gt), scales, LossConfig())
+    _, parts = mapping_loss(color, render, color, torch.zeros_like(gt), scales, LossConfig(), compiled=compiled)
     assert parts["depth"] == 0
 
 
-def test_weights_and_gradients():
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "autograd"])
+def test_weights_and_gradients(compiled):
     color, depth, scales = _scene()
     render_color = (color * 0.8).requires_grad_()
     render_depth = (depth + 0.1).requires_grad_()
     scales = scales.clone().requires_grad_()
     weights = LossConfig(color=1.0, ssim=2.0, depth=3.0, scale=4.0)
-    total, parts = mapping_loss(render_color, render_depth, color, depth, scales, weights)
+    total, parts = mapping_loss(render_color, render_depth, color, depth, scales, weights, compiled=compiled)
     expected = parts["color"] + 2 * parts["ssim"] + 3 * parts["depth"] + 4 * parts["scale"]
     assert float(total.detach()) == pytest.approx(float(expected.detach()))
     total.backward()
@@ -66,19 +70,22 @@ def test_cached_reference_statistics_give_the_same_ssim():
 
     generator = torch.Generator().manual_seed(3)
     a, b = torch.rand(20, 24, 3, generator=generator), torch.rand(20, 24, 3, generator=generator)
-    assert torch.allclose(ssim_map(a, b, reference_statistics(b)), ssim_map(a, b), atol=1e-6)
+    for compiled in (True, False):
+        cached = ssim_map(a, b, reference_statistics(b, compiled=compiled), compiled=compiled)
+        assert torch.allclose(cached, ssim_map(a, b, compiled=compiled), atol=1e-6)
 
 
 def test_compiled_blur_gives_the_autograd_ssim():
-    """Without a gradient to keep, SSIM blurs in Numba; with one, in torch: the same map."""
+    """The Numba blur and torch's differentiable one give the same map; the Numba one refuses a gradient."""
     from ogmapping.ssim import reference_statistics, ssim_map
 
     generator = torch.Generator().manual_seed(4)
     a, b = torch.rand(37, 53, 3, generator=generator), torch.rand(37, 53, 3, generator=generator)
-    differentiable = ssim_map(a.clone().requires_grad_(), b.clone().requires_grad_())
-    compiled = ssim_map(a, b)
+    differentiable = ssim_map(a.clone().requires_grad_(), b.clone().requires_grad_(), compiled=False)
+    compiled = ssim_map(a, b, compiled=True)
     assert differentiable.requires_grad and not compiled.requires_grad
     torch.testing.assert_close(compiled, differentiable.detach(), rtol=1e-5, atol=1e-5)
-    reference = reference_statistics(b)
-    with torch.no_grad():
-        torch.testing.assert_close(ssim_map(a, b, reference), compiled, rtol=1e-5, atol=1e-5)
+    reference = reference_statistics(b, compiled=True)
+    torch.testing.assert_close(ssim_map(a, b, reference, compiled=False), compiled, rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="no gradient"):
+        ssim_map(a.clone().requires_grad_(), b, compiled=True)

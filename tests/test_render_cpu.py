@@ -18,7 +18,8 @@ import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts
 import pytest
 import torch
 
-from ogmapping.render import ALPHA_MIN, cpu_backend, cpu_kernels, torch_backend
+from ogmapping.render import cpu_backend, cpu_kernels, torch_backend
+from ogmapping.render.rules import ALPHA_MIN
 
 TOLERANCE = 1e-4
 PARAMS = ("means", "quats", "scales", "opacities", "colors")

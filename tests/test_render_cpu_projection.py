@@ -16,8 +16,9 @@ import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts
 import pytest
 import torch
 
-from ogmapping.render import ALPHA_MIN, cpu_backend, cpu_projection
+from ogmapping.render import cpu_backend, cpu_projection
 from ogmapping.render.projection import FOV_MARGIN, project_gaussians
+from ogmapping.render.rules import ALPHA_MIN
 
 TOLERANCE = 1e-4
 WIDTH, HEIGHT = 96, 72

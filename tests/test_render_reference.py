@@ -10,8 +10,8 @@ import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts
 import pytest
 import torch
 
-from ogmapping.render import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN
 from ogmapping.render.projection import project_gaussians
+from ogmapping.render.rules import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN
 from ogmapping.render.torch_backend import rasterize
 
 WIDTH, HEIGHT = 8, 6

@@ -4,13 +4,14 @@ import threading
 
 import torch
 
-from ogmapping.threads import mapping_threads, torch_threads
+from ogmapping.profile import execution_profile
+from ogmapping.threads import torch_threads
 
 
 def test_sparse_cpu_maps_use_one_thread_others_keep_the_callers():
-    assert mapping_threads(torch.device("cpu"), "anchor") == 1
-    assert mapping_threads(torch.device("cpu"), "hash") is None
-    assert mapping_threads(torch.device("cuda"), "anchor") is None
+    assert execution_profile("cpu", "auto", "anchor").threads == 1
+    assert execution_profile("cpu", "auto", "hash").threads is None
+    assert execution_profile("cuda", "auto", "anchor").threads is None
 
 
 def test_setting_is_restored_and_stays_on_the_calling_thread():

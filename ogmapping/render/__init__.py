@@ -4,42 +4,19 @@ Backends (all render colour, expected depth and alpha, and expose the screen-spa
 - ``torch``: pure PyTorch through autograd; the reference the others are checked against.
 - ``cpu``: compiled CPU kernels with a hand-written backward (Numba).
 - ``gsplat``: CUDA through ``gsplat.rasterization``.
-``auto`` picks ``gsplat`` for CUDA tensors when it is installed and ``cpu`` otherwise.
+``auto`` picks ``cpu`` for CPU tensors and, for CUDA tensors, ``gsplat`` when it is installed,
+else ``torch``. What every backend implements and returns lives in ``rules.py`` and ``output.py``,
+which the backends import instead of this entry.
 """
 
 from __future__ import annotations
 
 import importlib
-from dataclasses import dataclass
 
 import torch
 
-BACKENDS = ("torch", "cpu", "gsplat")
-
-# Shared compositing rules: every backend must implement exactly these.
-ALPHA_MIN = 1.0 / 255.0
-ALPHA_MAX = 0.99
-TRANSMITTANCE_MIN = 1e-4
-COVARIANCE_BLUR = 0.3
-NEAR_PLANE = 0.01
-
-
-@dataclass
-class RenderOutput:
-    """What a backend returns.
-
-    ``color`` (H, W, 3) is composited over ``background``; ``depth`` (H, W) is the expected depth
-    (accumulated z divided by alpha, 0 where alpha is 0); ``alpha`` (H, W) the accumulated opacity.
-    ``means2d`` (N, 2) holds the projected centres in pixels; after ``loss.backward()`` its
-    ``.grad`` is the per-Gaussian screen-space gradient refinement uses. ``visible`` (N,) marks
-    Gaussians that touched the image.
-    """
-
-    color: torch.Tensor
-    depth: torch.Tensor
-    alpha: torch.Tensor
-    means2d: torch.Tensor
-    visible: torch.Tensor
+from ogmapping.backends import BACKENDS
+from ogmapping.render.output import RenderOutput
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:

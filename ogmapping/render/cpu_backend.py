@@ -13,15 +13,11 @@ import numba
 import numpy as np
 import torch
 
-from ogmapping.render import RenderOutput, cpu_projection
+from ogmapping.arrays import float32_array
 from ogmapping.render import cpu_kernels as kernels
+from ogmapping.render import cpu_projection
+from ogmapping.render.output import RenderOutput, finish_output
 from ogmapping.render.projection import Projection
-from ogmapping.render.torch_backend import finish_output
-
-
-def float32_array(t: torch.Tensor) -> np.ndarray:
-    """C-contiguous float32 view for the kernels (one compiled signature for every caller)."""
-    return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
 
 
 def _depth_order(depths: np.ndarray, visible: np.ndarray) -> np.ndarray:

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from ogmapping.render import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN
+from ogmapping.render.rules import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN
 
 TILE = 16
 # Gradient columns per Gaussian: mean x, mean y, conic a, b, c, opacity, colour r, g, b, depth.

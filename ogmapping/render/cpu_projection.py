@@ -19,8 +19,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from ogmapping.render import ALPHA_MIN, COVARIANCE_BLUR, NEAR_PLANE
 from ogmapping.render.projection import FOV_MARGIN, RADIUS_CAP
+from ogmapping.render.rules import ALPHA_MIN, COVARIANCE_BLUR, NEAR_PLANE
 
 _ZERO = np.float32(0.0)
 _ONE = np.float32(1.0)

@@ -25,7 +25,8 @@ from __future__ import annotations
 
 import torch
 
-from ogmapping.render import COVARIANCE_BLUR, NEAR_PLANE, RenderOutput
+from ogmapping.render.output import RenderOutput
+from ogmapping.render.rules import COVARIANCE_BLUR, NEAR_PLANE
 
 INSTALL_HINT = (
     "the gsplat backend needs the gsplat package and a CUDA build of PyTorch: "

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ogmapping.render import ALPHA_MIN, COVARIANCE_BLUR, NEAR_PLANE
+from ogmapping.render.rules import ALPHA_MIN, COVARIANCE_BLUR, NEAR_PLANE
 
 # Off-axis limit of the Jacobian, as a fraction of the half field of view beyond the image edge:
 # far off-screen Gaussians would otherwise get wildly stretched 2D footprints (as in 3DGS).

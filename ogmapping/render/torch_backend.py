@@ -13,8 +13,9 @@ from __future__ import annotations
 import torch
 from torch.utils.checkpoint import checkpoint
 
-from ogmapping.render import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN, RenderOutput
-from ogmapping.render.projection import Projection, project_gaussians, tile_grid
+from ogmapping.render.output import RenderOutput, finish_output
+from ogmapping.render.projection import project_gaussians, tile_grid
+from ogmapping.render.rules import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN
 from ogmapping.render.tiles import TILE_SIZE, tile_lists
 
 
@@ -121,11 +122,3 @@ def rasterize(
         transmittance_final[y0:y1, x0:x1] = t_final.reshape(shape)
     return finish_output(color, accum_depth, 1.0 - transmittance_final, proj)
 
-
-def finish_output(
-    color: torch.Tensor, accum_depth: torch.Tensor, alpha: torch.Tensor, proj: Projection
-) -> RenderOutput:
-    """Assemble the shared output; expected depth is accumulated depth over alpha, in torch."""
-    covered = alpha > 0
-    depth = torch.where(covered, accum_depth / torch.where(covered, alpha, torch.ones_like(alpha)), 0.0)
-    return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=proj.means2d, visible=proj.radii > 0)

@@ -16,28 +16,13 @@ from grpc_reflection.v1alpha import reflection
 from ogapi import SERVICE_NAME
 from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 
+from ogmapping.profile import resolve_device
 from ogmapping.warmup import warm_up
 from ogserver.registry import Closed, Registry
 from ogserver.service import MappingService
 from ogserver.settings import Settings
 
 log = logging.getLogger(__name__)
-
-
-def resolve_device(name: str) -> str:
-    """``auto`` picks the first GPU when there is one; an unusable explicit choice fails now, not per session."""
-    if name == "auto":
-        return "cuda:0" if torch.cuda.is_available() else "cpu"
-    device = torch.device(name)
-    if device.type == "cuda":
-        if not torch.cuda.is_available():
-            raise ValueError(f"device {name!r} requested but CUDA is not available")
-        if (device.index or 0) >= torch.cuda.device_count():
-            raise ValueError(f"device {name!r} requested but only {torch.cuda.device_count()} GPU(s) exist")
-        return f"cuda:{device.index or 0}"
-    if device.type != "cpu":
-        raise ValueError(f"device must be auto, cpu, cuda or cuda:N (got {name!r})")
-    return "cpu"
 
 
 @dataclass
@@ -56,7 +41,7 @@ class Server:
 
 def build(settings: Settings) -> Server:
     """A started server; ``port`` is the bound one (useful with port 0)."""
-    device = resolve_device(settings.device)
+    device = str(resolve_device(settings.device))
     torch.set_num_threads(settings.threads())
     limits = settings.limits
     workers = 2 * limits.max_sessions + 8  # each frame stream holds a thread for its lifetime

@@ -1,0 +1,70 @@
+"""How a mapper runs, chosen once: device, rasterizer backend, precision, torch threads, compiled kernels.
+
+Every choice that depends on where the map lives is made here, when the mapper is built, and
+passed down as flags: the modules the mapper calls never look at a tensor's device to pick a code
+path, so one session cannot mix the two halves of a choice. The rule for the Numba kernels
+(rasterizer, Gaussian assembly, hash encoding, fused loss, SSIM blur, lazy Adam's step): they run
+iff the device is the CPU and the backend resolves to ``cpu``, so ``backend="torch"`` on the CPU
+runs the pure-torch reference end to end. ``auto`` resolves as ``render.resolve_backend`` does:
+``cpu`` on the CPU, ``gsplat`` on CUDA when importable, else ``torch``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ogmapping.render import resolve_backend
+
+
+@dataclass(frozen=True)
+class ExecutionProfile:
+    """One mapper's execution choices; built by ``execution_profile``."""
+
+    device: torch.device
+    backend: str  # concrete rasterizer backend: one of backends.BACKENDS
+    compiled: bool  # whether the Numba CPU kernels run instead of their torch definitions
+    threads: int | None  # torch threads for the mapper's calls; None leaves the caller's setting
+    precision: torch.dtype = torch.float32  # of frames and poses; the only one the compiled kernels take
+
+
+def execution_profile(device: str | torch.device, backend: str, encoding: str) -> ExecutionProfile:
+    """The profile of a mapper on ``device`` with ``config.backend`` and ``config.model.encoding``."""
+    device = torch.device(device)
+    concrete = resolve_backend(backend, device)
+    return ExecutionProfile(
+        device=device,
+        backend=concrete,
+        compiled=device.type == "cpu" and concrete == "cpu",
+        threads=_mapping_threads(device, encoding),
+    )
+
+
+def _mapping_threads(device: torch.device, encoding: str) -> int | None:
+    """One torch thread where every op is small: a sparse map on the CPU.
+
+    A sparse map on the CPU runs only small torch ops around the compiled kernels (decoders over a
+    few thousand anchors, gathers, Adam over the anchors); with a second torch thread each of them
+    pays to wake it, and a (1800 x 36) @ (36 x 32) matmul takes 3-4x longer than on one thread
+    (bench/RESULTS.md). A dense map's hash table (2^19 entries per level) is large enough to want
+    every thread, as does anything on CUDA.
+    """
+    return 1 if device.type == "cpu" and encoding == "anchor" else None
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` is the first GPU when there is one, else the CPU; an unusable explicit choice fails
+    now (``ValueError``), not when the first frame arrives."""
+    if name == "auto":
+        return torch.device("cuda:0" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {name!r} requested but CUDA is not available")
+        if (device.index or 0) >= torch.cuda.device_count():
+            raise ValueError(f"device {name!r} requested but only {torch.cuda.device_count()} GPU(s) exist")
+        return torch.device("cuda", device.index or 0)
+    if device.type != "cpu":
+        raise ValueError(f"device must be auto, cpu, cuda or cuda:N (got {name!r})")
+    return torch.device("cpu")

@@ -1,0 +1,36 @@
+"""What every backend returns, and the one way to finish it from composited sums."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ogmapping.render.projection import Projection
+
+
+@dataclass
+class RenderOutput:
+    """What a backend returns.
+
+    ``color`` (H, W, 3) is composited over ``background``; ``depth`` (H, W) is the expected depth
+    (accumulated z divided by alpha, 0 where alpha is 0); ``alpha`` (H, W) the accumulated opacity.
+    ``means2d`` (N, 2) holds the projected centres in pixels; after ``loss.backward()`` its
+    ``.grad`` is the per-Gaussian screen-space gradient refinement uses. ``visible`` (N,) marks
+    Gaussians that touched the image.
+    """
+
+    color: torch.Tensor
+    depth: torch.Tensor
+    alpha: torch.Tensor
+    means2d: torch.Tensor
+    visible: torch.Tensor
+
+
+def finish_output(
+    color: torch.Tensor, accum_depth: torch.Tensor, alpha: torch.Tensor, proj: Projection
+) -> RenderOutput:
+    """Assemble the shared output; expected depth is accumulated depth over alpha, in torch."""
+    covered = alpha > 0
+    depth = torch.where(covered, accum_depth / torch.where(covered, alpha, torch.ones_like(alpha)), 0.0)
+    return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=proj.means2d, visible=proj.radii > 0)
