@@ -84,8 +84,9 @@ def depth_image(message: pb.DepthImage, camera: Intrinsics, field: str) -> np.nd
 
 def frame(message: pb.Frame, max_pixels: int) -> Frame:
     """A fully checked and decoded engine Frame; cheap checks run before any decoding."""
-    if not math.isfinite(message.timestamp):
-        raise invalid("frame.timestamp", f"must be finite (got {message.timestamp})")
+    timestamp = float(message.timestamp) if message.HasField("timestamp") else None
+    if timestamp is not None and not math.isfinite(timestamp):
+        raise invalid("frame.timestamp", f"must be finite (got {timestamp})")
     c2w = pose(message.c2w, "frame.c2w")
     if not message.HasField("color_intrinsics"):
         raise invalid("frame.color_intrinsics", "is required")
@@ -103,7 +104,7 @@ def frame(message: pb.Frame, max_pixels: int) -> Frame:
     depth = depth_image(message.depth, depth_camera, "frame.depth")
     return Frame(
         index=int(message.index), rgb=rgb, depth=depth, color_intrinsics=color_camera,
-        depth_intrinsics=depth_camera, c2w=c2w, timestamp=float(message.timestamp),
+        depth_intrinsics=depth_camera, c2w=c2w, timestamp=timestamp,
         depth_to_color=depth_to_color,
     )
 
