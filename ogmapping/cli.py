@@ -87,13 +87,32 @@ def command_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def parse_center(text: str) -> np.ndarray:
+    try:
+        center = np.array([float(v) for v in text.split(",")], dtype=np.float64)
+    except ValueError as error:
+        raise ValueError(f"--center must be X,Y,Z in metres, got {text!r}") from error
+    if center.shape != (3,) or not np.isfinite(center).all():
+        raise ValueError(f"--center must be three finite numbers X,Y,Z, got {text!r}")
+    return center
+
+
 def command_export(args: argparse.Namespace) -> int:
-    from ogmapping.export import export_ply
+    from ogmapping.export import Viewpoint, default_viewpoint, export_ply
     from ogmapping.mapper import Mapper
 
     mapper = Mapper.restore(Path(args.snapshot).read_bytes(), "cpu")
-    count = export_ply(mapper, args.out)
-    print(f"wrote {count} Gaussians to {args.out}")
+    if args.center:
+        viewpoint = Viewpoint(parse_center(args.center), "--center")
+    elif args.pose:
+        pose = validate_pose(np.loadtxt(args.pose).reshape(4, 4), "--pose")
+        viewpoint = Viewpoint(pose[:3, 3], f"the camera centre of {args.pose}")
+    else:
+        viewpoint = default_viewpoint(mapper)
+    count = export_ply(mapper, args.out, viewpoint.center)
+    x, y, z = viewpoint.center
+    print(f"wrote {count} Gaussians to {args.out}; view-dependent colour baked at ({x:.3f}, {y:.3f}, {z:.3f}), "
+          f"{viewpoint.origin}")
     return 0
 
 
@@ -120,9 +139,19 @@ def parser() -> argparse.ArgumentParser:
     render.add_argument("--device", default="cpu")
     render.add_argument("--out", default="renders", help="output folder for color.png and depth.png")
     render.set_defaults(handler=command_render)
-    export = commands.add_parser("export", help="export a snapshot's Gaussians as a 3DGS .ply")
-    export.add_argument("--snapshot", required=True)
+    export = commands.add_parser(
+        "export", help="export a snapshot's Gaussians as a 3DGS .ply",
+        description="Write the map's Gaussians as a standard 3DGS .ply (SH degree 0). The map's colours and "
+        "opacities depend on the viewpoint, a .ply holds one colour per Gaussian: the export fixes them as seen "
+        "from ONE point, by default the centroid of the camera positions the map was built from. Renders of the "
+        ".ply agree best with the map's own renders near that point; choose another with --center or --pose.",
+    )
+    export.add_argument("--snapshot", required=True, help="map.safetensors written by ogmap run or ogclient snapshot")
     export.add_argument("--out", required=True, help="path of the .ply to write")
+    viewpoint = export.add_mutually_exclusive_group()
+    viewpoint.add_argument("--center", metavar="X,Y,Z", help="bake view-dependent colour as seen from this world point")
+    viewpoint.add_argument("--pose", metavar="FILE",
+                           help="bake it as seen from this camera (text file, 4x4 camera-to-world matrix)")
     export.set_defaults(handler=command_export)
     return root
 

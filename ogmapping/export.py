@@ -1,11 +1,15 @@
 """Export the decoded Gaussians as a standard 3DGS ``.ply`` (binary little-endian).
 
-Colours and opacities depend on the viewpoint through the decoders, so the export decodes every
-anchor as seen from one camera position (by default ``Mapper.keyframe_centroid``).
+A .ply holds one colour per Gaussian, but this map's colours and opacities depend on the viewpoint
+through the decoders, so an export fixes them as seen from one point. By default that point is
+the centroid of every camera position the map was built from (kept in snapshots): renders of the
+.ply then agree with the map's own renders near the trajectory. A point inside the scene (the
+anchors' mean, all that older snapshots allow) is seen from no camera and agrees far less.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -16,10 +20,26 @@ from ogmapping.mapper import Mapper
 SH_C0 = 0.28209479177387814  # zeroth spherical-harmonic basis constant, 3DGS's colour encoding
 
 
-def export_ply(mapper: Mapper, path: str | Path, camera_center: np.ndarray | None = None) -> int:
-    """Write the map's Gaussians to ``path``; returns how many were written."""
-    center = mapper.keyframe_centroid() if camera_center is None else camera_center
-    gaussians = mapper.decode_at(center)
+@dataclass(frozen=True)
+class Viewpoint:
+    """Where view-dependent colour is baked, and why there (for the user's message)."""
+
+    center: np.ndarray
+    origin: str
+
+
+def default_viewpoint(mapper: Mapper) -> Viewpoint:
+    """The mapped cameras' centroid, or the anchors' mean for a snapshot that has none on record."""
+    centroid = mapper.camera_centroid()
+    if centroid is not None:
+        return Viewpoint(centroid, "the centroid of the mapped camera positions")
+    return Viewpoint(mapper.anchor_centroid(), "the anchors' mean: this snapshot records no camera positions, "
+                     "pass --center or --pose for a point near the views you care about")
+
+
+def export_ply(mapper: Mapper, path: str | Path, camera_center: np.ndarray) -> int:
+    """Write the map's Gaussians, decoded as seen from ``camera_center``, to ``path``; returns how many."""
+    gaussians = mapper.decode_at(camera_center)
     means = gaussians.means.cpu().numpy().astype(np.float32)
     count = means.shape[0]
     opacity = gaussians.opacities.clamp(1e-6, 1 - 1e-6).cpu().numpy()

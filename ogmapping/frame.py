@@ -25,7 +25,7 @@ class Frame:
     color_intrinsics: Intrinsics
     depth_intrinsics: Intrinsics
     c2w: np.ndarray
-    timestamp: float = 0.0
+    timestamp: float | None = None  # seconds on the sensor clock; None when the source gave none
     depth_to_color: np.ndarray | None = None
 
     @property

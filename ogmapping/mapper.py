@@ -84,6 +84,10 @@ class Mapper:
                                if self.encoding is not None else None)
         self.frames = 0
         self.iterations = 0
+        # Sum of the mapped frames' camera centres (float64): their mean is where a .ply export
+        # bakes view-dependent colour by default, and it survives snapshots.
+        self.camera_position_sum = torch.zeros(3, dtype=torch.float64)
+        self.camera_positions = 0
         self.last_gaussians = 0
         self.timings: dict[str, float] = defaultdict(float)
 
@@ -146,6 +150,8 @@ class Mapper:
                 self.keyframes.insert(view)
         loss, grown = self._optimise(iterations, view) if iterations else (float("nan"), 0)
         self.frames += 1
+        self.camera_position_sum += torch.as_tensor(frame.c2w[:3, 3], dtype=torch.float64)
+        self.camera_positions += 1
         return FrameResult(
             index=frame.index,
             keyframe=is_keyframe,
@@ -290,13 +296,20 @@ class Mapper:
             rows = torch.arange(len(self.anchors), device=self.device)
             return generate(self.anchors, self._features, self.decoders, center, rows, compiled=self.profile.compiled)
 
-    def keyframe_centroid(self) -> np.ndarray:
-        """Mean camera position of the keyframes (the anchors' mean where there are none, as after a
-        restore: snapshots keep no keyframes)."""
+    def camera_centroid(self) -> np.ndarray | None:
+        """Mean camera position of every frame mapped into this map (across snapshots), or None
+        for a map that has none on record (an empty one, or a snapshot written before it was kept)."""
         with self.lock:
-            poses = [keyframe.c2w[:3, 3] for keyframe in self.keyframes.keyframes]
-            center = torch.stack(poses).mean(0) if poses else self.anchors.positions.mean(0)
-            return center.cpu().numpy()
+            if not self.camera_positions:
+                return None
+            return (self.camera_position_sum / self.camera_positions).numpy()
+
+    def anchor_centroid(self) -> np.ndarray:
+        """Mean anchor centre (the origin for an empty map)."""
+        with self.lock:
+            if not len(self.anchors):
+                return np.zeros(3)
+            return self.anchors.positions.mean(0).double().cpu().numpy()
 
     # ------------------------------------------------------------------ state
 
@@ -318,6 +331,8 @@ class Mapper:
                 tensors["encoding.table"] = self.encoding.table
             tensors.update({f"decoders.{name}": value for name, value in self.decoders.state_dict().items()})
             tensors.update({f"octree.{name}": value for name, value in self.octree.state_dict().items()})
+            tensors["trajectory.camera_position_sum"] = self.camera_position_sum
+            tensors["trajectory.camera_positions"] = torch.tensor([self.camera_positions], dtype=torch.int64)
             tensors = {name: value.detach().clone() for name, value in tensors.items()}
             return MapState(self.config, tensors, self.frames, self.iterations)
 
@@ -358,6 +373,15 @@ class Mapper:
         anchors.offsets.data.copy_(tensor["anchors.offsets"])
         anchors.spawned = tensor["anchors.spawned"].bool()
         anchors.observations = tensor["anchors.observations"]
+        if "trajectory.camera_position_sum" in state.tensors:  # absent in snapshots written before it was kept
+            trajectory = _checked_shapes(
+                state.tensors, {"trajectory.camera_position_sum": (3,), "trajectory.camera_positions": (1,)}, "cpu"
+            )
+            position_sum = trajectory["trajectory.camera_position_sum"].double()
+            positions = int(trajectory["trajectory.camera_positions"][0])
+            if not bool(torch.isfinite(position_sum).all()) or positions < 0:
+                raise ValueError("trajectory: the camera position sum must be finite and the count non-negative")
+            self.camera_position_sum, self.camera_positions = position_sum, positions
 
     def snapshot(self) -> bytes:
         """The map as safetensors bytes (see ``ogmapping.snapshot``)."""
@@ -372,12 +396,12 @@ class Mapper:
 def _checked_shapes(
     tensors: dict[str, torch.Tensor], shapes: dict[str, tuple[int, ...]], device: torch.device
 ) -> dict[str, torch.Tensor]:
-    """The named tensors on ``device`` (floating ones as float32), each exactly of its shape: a
-    copy into a parameter would otherwise broadcast a tensor that is too small."""
+    """The named tensors on ``device``, each exactly of its shape: a copy into a parameter would
+    otherwise broadcast a tensor that is too small."""
     checked = {}
     for name, shape in shapes.items():
         value = tensors[name]
         if tuple(value.shape) != shape:
             raise ValueError(f"{name} has shape {tuple(value.shape)}, expected {shape}")
-        checked[name] = value.to(device, torch.float32 if value.is_floating_point() else value.dtype)
+        checked[name] = value.to(device)
     return checked

@@ -17,9 +17,10 @@ from ogmapping.config import MapperConfig
 
 @dataclass
 class MapState:
-    """``tensors`` are keyed ``anchors.*``, ``encoding.table``, ``decoders.*`` and ``octree.*``:
-    anchor codes and levels (their centres follow from them), the learnable per-anchor tensors,
-    the hash table (dense maps), the decoder weights and the octree's occupied cells. Keyframe
+    """``tensors`` are keyed ``anchors.*``, ``encoding.table``, ``decoders.*``, ``octree.*`` and
+    ``trajectory.*``: anchor codes and levels (their centres follow from them), the learnable
+    per-anchor tensors, the hash table (dense maps), the decoder weights, the octree's occupied
+    cells and the sum of the mapped frames' camera centres (where an export bakes colour). Keyframe
     images and optimiser moments are not part of it: a map rebuilt from it renders the same
     images, and mapping continues with a fresh keyframe set and fresh Adam moments."""
 

@@ -60,11 +60,11 @@ def test_snapshot_metadata_and_corruption(mapped):
 
 
 def test_ply_export_has_the_3dgs_layout(mapped, tmp_path):
-    from ogmapping.export import export_ply
+    from ogmapping.export import default_viewpoint, export_ply
 
     mapper, _ = mapped
     path = tmp_path / "map.ply"
-    count = export_ply(mapper, path)
+    count = export_ply(mapper, path, default_viewpoint(mapper).center)
     raw = path.read_bytes()
     header, _, body = raw.partition(b"end_header\n")
     assert b"element vertex %d" % count in header
@@ -89,3 +89,25 @@ def test_a_state_that_does_not_fit_its_config_is_refused(mapped):
     state.tensors["anchors.offsets"] = state.tensors["anchors.offsets"][:, :1]
     with pytest.raises(ValueError, match="does not match its config"):
         Mapper.from_state(state)
+
+
+def test_snapshots_keep_the_camera_centroid_for_export(mapped):
+    mapper, source = mapped
+    centres = np.stack([source[position].c2w[:3, 3] for position in range(len(source))])
+    assert np.allclose(mapper.camera_centroid(), centres.mean(0))
+    restored = Mapper.restore(mapper.snapshot())
+    assert np.allclose(restored.camera_centroid(), centres.mean(0))
+    restored.process(source[0])
+    assert np.allclose(restored.camera_centroid(), np.vstack([centres, centres[:1]]).mean(0))
+
+
+def test_a_snapshot_without_camera_positions_falls_back_to_the_anchors(mapped):
+    from ogmapping.export import default_viewpoint
+
+    mapper, _ = mapped
+    state = mapper.state()
+    del state.tensors["trajectory.camera_position_sum"], state.tensors["trajectory.camera_positions"]
+    older = Mapper.from_state(state)
+    assert older.camera_centroid() is None
+    viewpoint = default_viewpoint(older)
+    assert np.allclose(viewpoint.center, mapper.anchor_centroid()) and "--center" in viewpoint.origin

@@ -26,9 +26,11 @@ def session_request(config: pb.SessionConfig | None, label: str = "") -> pb.Crea
 
 
 def recorded_times(recording: Recording) -> list[float]:
-    """Seconds from the first frame: sensor timestamps when they increase, else arrival times."""
-    stamps = [frame.timestamp for _, frame in recording.frames]
-    if stamps and all(b > a for a, b in itertools.pairwise(stamps)) and stamps[0] > 0:
+    """Seconds from the first frame: sensor timestamps when every frame has one and they
+    increase, else arrival times."""
+    frames = [frame for _, frame in recording.frames]
+    stamps = [frame.timestamp for frame in frames]
+    if all(frame.HasField("timestamp") for frame in frames) and all(b > a for a, b in itertools.pairwise(stamps)):
         return [s - stamps[0] for s in stamps]
     arrivals = [log_ns for log_ns, _ in recording.frames]
     return [(t - arrivals[0]) / 1e9 for t in arrivals]

@@ -38,7 +38,6 @@ def frame_to_proto(frame: Frame, encoding: FrameEncoding = FrameEncoding()) -> p
     """An engine Frame as the message StreamFrames expects."""
     message = pb.Frame(
         index=frame.index,
-        timestamp=frame.timestamp,
         color=pb.ColorImage(
             encoding=encoding.color, data=encode_color(frame.rgb, encoding.color, encoding.jpeg_quality)
         ),
@@ -50,6 +49,8 @@ def frame_to_proto(frame: Frame, encoding: FrameEncoding = FrameEncoding()) -> p
         color_intrinsics=intrinsics_to_proto(frame.color_intrinsics),
         c2w=matrix_to_list(frame.c2w),
     )
+    if frame.timestamp is not None:
+        message.timestamp = frame.timestamp
     if frame.depth_intrinsics != frame.color_intrinsics:
         message.depth_intrinsics.CopyFrom(intrinsics_to_proto(frame.depth_intrinsics))
     if frame.depth_to_color is not None:

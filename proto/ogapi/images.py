@@ -1,6 +1,7 @@
 """Encode and decode the colour and depth images carried by frames and renders.
 
-Decoders raise ValueError with a short reason (the caller prefixes the field name). Compressed
+Decoders raise ValueError with a short reason (the caller prefixes the field name) that names
+encodings as the .proto spells them (``COLOR_JPEG``, ``DEPTH_PNG16``). Compressed
 images are sniffed before decoding so that a mislabelled or oversized image is refused without
 spending memory on it.
 """
@@ -23,13 +24,19 @@ JPEG_SOF_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
 JPEG_STANDALONE_MARKERS = frozenset({0x01, *range(0xD0, 0xD9)})
 MAX_DEPTH_UNITS = 65535
 DEFAULT_JPEG_QUALITY = 90
-COLOR_NAMES = {
-    pb.COLOR_JPEG: "jpeg",
-    pb.COLOR_PNG: "png",
-    pb.COLOR_RAW_RGB8: "raw_rgb8",
-    pb.COLOR_RAW_F32: "raw_f32",
-}
-DEPTH_NAMES = {pb.DEPTH_PNG16: "png16", pb.DEPTH_RAW_F32: "raw_f32"}
+COLOR_ENCODINGS = (pb.COLOR_JPEG, pb.COLOR_PNG, pb.COLOR_RAW_RGB8, pb.COLOR_RAW_F32)
+DEPTH_ENCODINGS = (pb.DEPTH_PNG16, pb.DEPTH_RAW_F32)
+COMPRESSED_FORMATS = {pb.COLOR_JPEG: "jpeg", pb.COLOR_PNG: "png"}  # as ``sniff`` names them
+
+
+def color_name(encoding: int) -> str:
+    """The .proto's name of a colour encoding number (the number itself when it has none)."""
+    return pb.ColorEncoding.Name(encoding) if encoding in pb.ColorEncoding.values() else str(encoding)
+
+
+def depth_name(encoding: int) -> str:
+    """The .proto's name of a depth encoding number (the number itself when it has none)."""
+    return pb.DepthEncoding.Name(encoding) if encoding in pb.DepthEncoding.values() else str(encoding)
 
 
 @dataclass(frozen=True)
@@ -99,7 +106,7 @@ def encode_color(rgb: np.ndarray, encoding: int, jpeg_quality: int = DEFAULT_JPE
     elif encoding == pb.COLOR_JPEG:
         ok, buffer = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
     else:
-        raise ValueError(f"unknown colour encoding {encoding}")
+        raise ValueError(f"unknown colour encoding {color_name(encoding)}")
     if not ok:
         raise ValueError("colour encoding failed")
     return buffer.tobytes()
@@ -108,24 +115,24 @@ def encode_color(rgb: np.ndarray, encoding: int, jpeg_quality: int = DEFAULT_JPE
 def decode_color(data: bytes, encoding: int, width: int, height: int) -> np.ndarray:
     """Colour bytes of a known size to float32 (H, W, 3) in [0, 1]."""
     if encoding == pb.COLOR_RAW_RGB8:
-        _check_length(data, height * width * 3, "RGB8")
+        _check_length(data, height * width * 3, encoding)
         return np.frombuffer(data, np.uint8).reshape(height, width, 3).astype(np.float32) / 255.0
     if encoding == pb.COLOR_RAW_F32:
-        _check_length(data, height * width * 3 * 4, "float32 RGB")
+        _check_length(data, height * width * 3 * 4, encoding)
         rgb = np.frombuffer(data, "<f4").reshape(height, width, 3).astype(np.float32)
         if not np.all(np.isfinite(rgb)):
-            raise ValueError("raw colour holds non-finite values")
+            raise ValueError("COLOR_RAW_F32 data holds non-finite values")
         return np.clip(rgb, 0.0, 1.0)
-    expected = COLOR_NAMES.get(encoding)
-    if expected not in ("png", "jpeg"):
-        raise ValueError(f"unknown colour encoding {encoding}")
+    expected = COMPRESSED_FORMATS.get(encoding)
+    if expected is None:
+        raise ValueError(f"unknown colour encoding {color_name(encoding)}")
     header = sniff(data)
     if header.format != expected:
-        raise ValueError(f"data is {header.format.upper()} but the encoding says {expected.upper()}")
+        raise ValueError(f"data is {header.format.upper()} but the encoding says {color_name(encoding)}")
     _check_size(header, width, height)
     bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     if bgr is None:
-        raise ValueError(f"{expected.upper()} data could not be decoded")
+        raise ValueError(f"{color_name(encoding)} data could not be decoded")
     _check_size(ImageHeader(expected, bgr.shape[1], bgr.shape[0]), width, height)
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
 
@@ -136,7 +143,7 @@ def encode_depth(depth: np.ndarray, encoding: int, depth_scale: float = 1000.0) 
     if encoding == pb.DEPTH_RAW_F32:
         return np.ascontiguousarray(depth, dtype="<f4").tobytes()
     if encoding != pb.DEPTH_PNG16:
-        raise ValueError(f"unknown depth encoding {encoding}")
+        raise ValueError(f"unknown depth encoding {depth_name(encoding)}")
     units = np.where(np.isfinite(depth), depth, 0.0) * depth_scale
     units = np.where((units > 0) & (units <= MAX_DEPTH_UNITS), np.rint(units), 0).astype(np.uint16)
     ok, buffer = cv2.imencode(".png", units)
@@ -148,29 +155,30 @@ def encode_depth(depth: np.ndarray, encoding: int, depth_scale: float = 1000.0) 
 def decode_depth(data: bytes, encoding: int, depth_scale: float, width: int, height: int) -> np.ndarray:
     """Depth bytes of a known size to float32 metres, 0 where invalid."""
     if encoding == pb.DEPTH_RAW_F32:
-        _check_length(data, height * width * 4, "float32 depth")
+        _check_length(data, height * width * 4, encoding, depth=True)
         depth = np.frombuffer(data, "<f4").reshape(height, width).astype(np.float32)
         depth[~np.isfinite(depth)] = 0.0
         if np.any(depth < 0):
-            raise ValueError("raw depth holds negative values")
+            raise ValueError("DEPTH_RAW_F32 data holds negative values")
         return depth
     if encoding != pb.DEPTH_PNG16:
-        raise ValueError(f"unknown depth encoding {encoding}")
+        raise ValueError(f"unknown depth encoding {depth_name(encoding)}")
     if not (np.isfinite(depth_scale) and depth_scale > 0):
-        raise ValueError(f"depth_scale must be positive and finite for PNG16 depth (got {depth_scale})")
+        raise ValueError(f"depth_scale must be positive and finite for DEPTH_PNG16 (got {depth_scale})")
     header = sniff(data)
     if header.format != "png" or header.bit_depth != 16 or not header.gray:
-        raise ValueError("PNG16 depth must be a single-channel 16-bit PNG")
+        raise ValueError("DEPTH_PNG16 data must be a single-channel 16-bit PNG")
     _check_size(header, width, height)
     units = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if units is None or units.dtype != np.uint16 or units.ndim != 2:
-        raise ValueError("PNG16 depth data could not be decoded")
+        raise ValueError("DEPTH_PNG16 data could not be decoded")
     return units.astype(np.float32) / np.float32(depth_scale)
 
 
-def _check_length(data: bytes, expected: int, what: str) -> None:
+def _check_length(data: bytes, expected: int, encoding: int, depth: bool = False) -> None:
     if len(data) != expected:
-        raise ValueError(f"raw {what} data has {len(data)} bytes, the image size needs {expected}")
+        name = depth_name(encoding) if depth else color_name(encoding)
+        raise ValueError(f"{name} data has {len(data)} bytes, the image size needs {expected}")
 
 
 def _check_size(header: ImageHeader, width: int, height: int) -> None:

@@ -12,12 +12,12 @@ import ogmapping  # noqa: F401 (before torch: it sets the OpenMP wait policy tor
 import grpc
 import torch
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
-from grpc_reflection.v1alpha import reflection
 from ogapi import SERVICE_NAME
 from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 
 from ogmapping.profile import resolve_device
 from ogmapping.warmup import warm_up
+from ogserver import reflection
 from ogserver.registry import Closed, Registry
 from ogserver.service import MappingService
 from ogserver.settings import Settings
@@ -58,9 +58,7 @@ def build(settings: Settings) -> Server:
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     for name in ("", SERVICE_NAME):
         health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
-    reflection.enable_server_reflection(
-        (SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME), server
-    )
+    reflection.enable(server, (SERVICE_NAME, health.SERVICE_NAME))
     port = server.add_insecure_port(settings.address)
     if port == 0:
         raise ValueError(f"could not bind {settings.address}")

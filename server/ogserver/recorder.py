@@ -95,7 +95,7 @@ class Recorder:
 
     def write_frame(self, message: pb.Frame, frame: Frame, received_ns: int) -> None:
         """The frame as received, then its Foxglove views, then a flush to disk."""
-        sensor_ns = int(frame.timestamp * 1e9) if frame.timestamp > 0 else received_ns
+        sensor_ns = round(frame.timestamp * 1e9) if frame.timestamp is not None else received_ns
         stamp = _timestamp(sensor_ns)
         if message.color.encoding in (pb.COLOR_JPEG, pb.COLOR_PNG):
             color_data = message.color.data

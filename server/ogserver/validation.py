@@ -1,18 +1,28 @@
 """Turn untrusted messages into engine values, or refuse them naming the field.
 
 Everything a client sends passes through here before it reaches a mapper or a recording, so a
-refused frame leaves its session exactly as it was.
+refused frame leaves its session exactly as it was. Each refusal starts with the field's path in
+the request message, spelled as the .proto spells it (``color_intrinsics.fx``, ``depth.encoding``),
+and names enum values by their .proto names (``COLOR_PNG``): clients in any language map it back.
 """
 
 from __future__ import annotations
 
 import math
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from ogapi.images import COLOR_NAMES, DEFAULT_JPEG_QUALITY, DEPTH_NAMES, decode_color, decode_depth
+from ogapi.images import (
+    COLOR_ENCODINGS,
+    DEFAULT_JPEG_QUALITY,
+    DEPTH_ENCODINGS,
+    color_name,
+    decode_color,
+    decode_depth,
+    depth_name,
+)
 from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.camera import Intrinsics, validate_pose
@@ -59,8 +69,9 @@ def intrinsics(message: pb.CameraIntrinsics, field: str, max_pixels: int) -> Int
 
 
 def color_image(message: pb.ColorImage, camera: Intrinsics, field: str) -> np.ndarray:
-    if message.encoding not in COLOR_NAMES:
-        raise invalid(f"{field}.encoding", f"must be one of {sorted(COLOR_NAMES.values())} (got {message.encoding})")
+    if message.encoding not in COLOR_ENCODINGS:
+        raise invalid(f"{field}.encoding", f"must be one of {_names(COLOR_ENCODINGS, color_name)} "
+                                           f"(got {color_name(message.encoding)})")
     if not message.data:
         raise invalid(f"{field}.data", "is empty")
     try:
@@ -70,10 +81,12 @@ def color_image(message: pb.ColorImage, camera: Intrinsics, field: str) -> np.nd
 
 
 def depth_image(message: pb.DepthImage, camera: Intrinsics, field: str) -> np.ndarray:
-    if message.encoding not in DEPTH_NAMES:
-        raise invalid(f"{field}.encoding", f"must be one of {sorted(DEPTH_NAMES.values())} (got {message.encoding})")
+    if message.encoding not in DEPTH_ENCODINGS:
+        raise invalid(f"{field}.encoding", f"must be one of {_names(DEPTH_ENCODINGS, depth_name)} "
+                                           f"(got {depth_name(message.encoding)})")
     if message.encoding == pb.DEPTH_PNG16 and not (math.isfinite(message.depth_scale) and message.depth_scale > 0):
-        raise invalid(f"{field}.depth_scale", f"must be positive and finite for PNG16 (got {message.depth_scale})")
+        raise invalid(f"{field}.depth_scale",
+                      f"must be positive and finite for DEPTH_PNG16 (got {message.depth_scale})")
     if not message.data:
         raise invalid(f"{field}.data", "is empty")
     try:
@@ -84,26 +97,27 @@ def depth_image(message: pb.DepthImage, camera: Intrinsics, field: str) -> np.nd
 
 def frame(message: pb.Frame, max_pixels: int) -> Frame:
     """A fully checked and decoded engine Frame; cheap checks run before any decoding."""
-    if not math.isfinite(message.timestamp):
-        raise invalid("frame.timestamp", f"must be finite (got {message.timestamp})")
-    c2w = pose(message.c2w, "frame.c2w")
+    timestamp = float(message.timestamp) if message.HasField("timestamp") else None
+    if timestamp is not None and not math.isfinite(timestamp):
+        raise invalid("timestamp", f"must be finite (got {timestamp})")
+    c2w = pose(message.c2w, "c2w")
     if not message.HasField("color_intrinsics"):
-        raise invalid("frame.color_intrinsics", "is required")
-    color_camera = intrinsics(message.color_intrinsics, "frame.color_intrinsics", max_pixels)
+        raise invalid("color_intrinsics", "is required")
+    color_camera = intrinsics(message.color_intrinsics, "color_intrinsics", max_pixels)
     depth_camera = (
-        intrinsics(message.depth_intrinsics, "frame.depth_intrinsics", max_pixels)
+        intrinsics(message.depth_intrinsics, "depth_intrinsics", max_pixels)
         if message.HasField("depth_intrinsics") else color_camera
     )
-    depth_to_color = pose(message.depth_to_color, "frame.depth_to_color") if message.depth_to_color else None
+    depth_to_color = pose(message.depth_to_color, "depth_to_color") if message.depth_to_color else None
     if not message.HasField("color"):
-        raise invalid("frame.color", "is required")
+        raise invalid("color", "is required")
     if not message.HasField("depth"):
-        raise invalid("frame.depth", "is required")
-    rgb = color_image(message.color, color_camera, "frame.color")
-    depth = depth_image(message.depth, depth_camera, "frame.depth")
+        raise invalid("depth", "is required")
+    rgb = color_image(message.color, color_camera, "color")
+    depth = depth_image(message.depth, depth_camera, "depth")
     return Frame(
         index=int(message.index), rgb=rgb, depth=depth, color_intrinsics=color_camera,
-        depth_intrinsics=depth_camera, c2w=c2w, timestamp=float(message.timestamp),
+        depth_intrinsics=depth_camera, c2w=c2w, timestamp=timestamp,
         depth_to_color=depth_to_color,
     )
 
@@ -126,13 +140,16 @@ def render_request(message: pb.RenderRequest, max_pixels: int) -> RenderSpec:
     camera = intrinsics(message.intrinsics, "intrinsics", max_pixels)
     outputs = set(message.outputs) or {pb.RENDER_OUTPUT_COLOR, pb.RENDER_OUTPUT_DEPTH}
     if not outputs <= {pb.RENDER_OUTPUT_COLOR, pb.RENDER_OUTPUT_DEPTH}:
-        raise invalid("outputs", f"may hold only RENDER_OUTPUT_COLOR and RENDER_OUTPUT_DEPTH (got {sorted(outputs)})")
+        got = ", ".join(pb.RenderOutput.Name(v) if v in pb.RenderOutput.values() else str(v) for v in sorted(outputs))
+        raise invalid("outputs", f"may hold only RENDER_OUTPUT_COLOR and RENDER_OUTPUT_DEPTH (got {got})")
     color_encoding = message.color_encoding or pb.COLOR_PNG
-    if color_encoding not in COLOR_NAMES:
-        raise invalid("color_encoding", f"unknown value {color_encoding}")
+    if color_encoding not in COLOR_ENCODINGS:
+        raise invalid("color_encoding", f"must be one of {_names(COLOR_ENCODINGS, color_name)} "
+                                        f"(got {color_name(color_encoding)})")
     depth_encoding = message.depth_encoding or pb.DEPTH_PNG16
-    if depth_encoding not in DEPTH_NAMES:
-        raise invalid("depth_encoding", f"unknown value {depth_encoding}")
+    if depth_encoding not in DEPTH_ENCODINGS:
+        raise invalid("depth_encoding", f"must be one of {_names(DEPTH_ENCODINGS, depth_name)} "
+                                        f"(got {depth_name(depth_encoding)})")
     if message.jpeg_quality > 100:
         raise invalid("jpeg_quality", f"must be 1..100 or 0 for the default (got {message.jpeg_quality})")
     return RenderSpec(
@@ -141,3 +158,7 @@ def render_request(message: pb.RenderRequest, max_pixels: int) -> RenderSpec:
         color_encoding=color_encoding, depth_encoding=depth_encoding,
         jpeg_quality=message.jpeg_quality or DEFAULT_JPEG_QUALITY,
     )
+
+
+def _names(encodings: tuple[int, ...], name: Callable[[int], str]) -> str:
+    return ", ".join(name(encoding) for encoding in encodings)

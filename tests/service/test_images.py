@@ -60,7 +60,7 @@ def test_sniff_reads_sizes_without_decoding() -> None:
     [
         (b"hello", pb.COLOR_JPEG, "neither PNG nor JPEG"),
         (b"\xff\xd8\xff\xe0\x00\x10JFIF" + b"\x00" * 20, pb.COLOR_JPEG, "JPEG"),
-        (encode_color(RGB, pb.COLOR_PNG), pb.COLOR_JPEG, "encoding says JPEG"),
+        (encode_color(RGB, pb.COLOR_PNG), pb.COLOR_JPEG, "encoding says COLOR_JPEG"),
         (encode_color(RGB, pb.COLOR_PNG)[:40], pb.COLOR_PNG, "could not be decoded"),
         (encode_color(RGB[:10], pb.COLOR_PNG), pb.COLOR_PNG, "intrinsics say 40x30"),
         (b"\x00" * 11, pb.COLOR_RAW_RGB8, "needs 3600"),

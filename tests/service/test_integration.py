@@ -17,7 +17,6 @@ import grpc
 import numpy as np
 import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
-from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 from mcap.reader import make_reader
 from ogapi import SERVICE_NAME, recording
 from ogapi.convert import frame_to_proto, intrinsics_to_proto, matrix_to_list
@@ -82,18 +81,11 @@ def good_frame() -> pb.Frame:
     return frame_to_proto(scene("0:1").load(0))
 
 
-def test_health_and_reflection(server: ServerHandle) -> None:
+def test_health(server: ServerHandle) -> None:
     health = health_pb2_grpc.HealthStub(server.channel)
     for service in ("", SERVICE_NAME):
         assert health.Check(health_pb2.HealthCheckRequest(service=service)).status == \
             health_pb2.HealthCheckResponse.SERVING
-    reflection = reflection_pb2_grpc.ServerReflectionStub(server.channel)
-    requests = [reflection_pb2.ServerReflectionRequest(list_services=""),
-                reflection_pb2.ServerReflectionRequest(file_containing_symbol=SERVICE_NAME)]
-    listed, described = reflection.ServerReflectionInfo(iter(requests))
-    names = {service.name for service in listed.list_services_response.service}
-    assert {SERVICE_NAME, "grpc.health.v1.Health"} <= names
-    assert described.file_descriptor_response.file_descriptor_proto
 
 
 def test_stream_acknowledges_every_frame(mapped: Mapped) -> None:

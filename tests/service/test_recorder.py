@@ -81,3 +81,24 @@ def test_quaternion_matches_rotation() -> None:
     for flip in (np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])):
         q = np.array(quaternion(flip))
         assert np.isclose(np.linalg.norm(q), 1.0) and np.isclose(np.abs(q[:3]).max(), 1.0)
+
+
+def test_a_zero_timestamp_is_kept_and_a_missing_one_becomes_the_arrival_time(tmp_path: Path) -> None:
+    path = tmp_path / "session.mcap"
+    recorder = Recorder(path, pb.SessionConfig(session_id="0" * 32, preset="sparse"))
+    frames = scene("0:4")
+    arrival_ns = 1_700_000_000_000_000_000
+    stamped = frame_to_proto(frames.load(0))
+    stamped.timestamp = 0.0  # a clock that starts at zero
+    unstamped = frame_to_proto(frames.load(1))
+    unstamped.ClearField("timestamp")
+    for message in (stamped, unstamped):
+        recorder.write_frame(message, validate_frame(message, 1 << 20), arrival_ns)
+    recorder.close()
+    with open(path, "rb") as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        images = [(message.publish_time, decoded.timestamp.ToNanoseconds())
+                  for _, _, message, decoded in reader.iter_decoded_messages(topics=[layout.TOPIC_COLOR])]
+    assert images == [(0, 0), (arrival_ns, arrival_ns)]
+    recorded = layout.load(path)
+    assert [frame.HasField("timestamp") for _, frame in recorded.frames] == [True, False]

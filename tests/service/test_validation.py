@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
+from google.protobuf.descriptor import Descriptor
 from ogapi.convert import frame_to_proto
 from ogapi.v1 import mapping_pb2 as pb
 from ogserver import validation
@@ -16,13 +19,38 @@ MAX_PIXELS = 65536
 GOOD = frame_to_proto(scene("0:1").load(0))
 
 
+ENUM_VALUES = {value.name for enum in pb.DESCRIPTOR.enum_types_by_name.values() for value in enum.values}
+# Upper-case words with an underscore are enum-value names (JPEG and PNG alone name file formats).
+ENUM_LIKE = re.compile(r"\b[A-Z][A-Z0-9]*_[A-Z0-9_]+\b")
+
+
+def assert_spelled_as_the_proto(message: str, request: Descriptor) -> None:
+    """The refusal starts with a field path of ``request`` and names enum values as the .proto does."""
+    path, sep, _ = message.partition(": ")
+    assert sep, f"no field path in {message!r}"
+    descriptor: Descriptor | None = request
+    for part in path.split("."):
+        assert descriptor is not None and part in descriptor.fields_by_name, f"{path!r} is not a {request.name} field"
+        descriptor = descriptor.fields_by_name[part].message_type
+    unknown = set(ENUM_LIKE.findall(message)) - ENUM_VALUES
+    assert not unknown, f"{message!r} names {unknown}, which the .proto does not define"
+
+
 @pytest.mark.parametrize("case", list(CASES))
 def test_bad_frame_is_refused(case: str) -> None:
     change, code, field = CASES[case]
     with pytest.raises(ServiceError) as refusal:
         validation.frame(broken(GOOD, change), MAX_PIXELS)
-    assert refusal.value.code == code
-    assert field in refusal.value.message
+    assert refusal.value.code == code and field in refusal.value.message
+    assert_spelled_as_the_proto(refusal.value.message, pb.Frame.DESCRIPTOR)
+
+
+@pytest.mark.parametrize(("encoding", "named"), [("color", "COLOR_JPEG, COLOR_PNG"), ("depth", "DEPTH_PNG16")])
+def test_unknown_encodings_are_named_as_in_the_proto(encoding: str, named: str) -> None:
+    message = broken(GOOD, lambda m: setattr(getattr(m, encoding), "encoding", 17))
+    with pytest.raises(ServiceError) as refusal:
+        validation.frame(message, MAX_PIXELS)
+    assert named in refusal.value.message and "(got 17)" in refusal.value.message
 
 
 def test_good_frame_decodes() -> None:
@@ -78,4 +106,5 @@ def test_render_request_defaults_to_png_colour_and_depth() -> None:
 def test_bad_render_request(changes: dict, code, field: str) -> None:
     with pytest.raises(ServiceError) as refusal:
         validation.render_request(render_request(**changes), MAX_PIXELS)
-    assert refusal.value.code == code and field in refusal.value.message
+    assert refusal.value.code == code and refusal.value.message.startswith(field)
+    assert_spelled_as_the_proto(refusal.value.message, pb.RenderRequest.DESCRIPTOR)
