@@ -3,9 +3,10 @@
 import torch
 
 from ogmapping.allocation import allocate, projection_allocation, unexplained_pixels
-from ogmapping.camera import Intrinsics, backproject
+from ogmapping.camera import Intrinsics
 from ogmapping.config import build
 from ogmapping.datasets.synthetic import SyntheticSource
+from ogmapping.geometry import backproject
 from ogmapping.mapper import Mapper
 from ogmapping.octree import SparseVoxelOctree
 from ogmapping.render import RenderOutput
