@@ -40,10 +40,11 @@ from tqdm import tqdm
 
 from ogmapping.config import resolve
 from ogmapping.datasets import open_dataset
+from ogmapping.evaluation import ground_truth, score
 from ogmapping.mapper import Mapper
 from ogmapping.metrics import Lpips, summarise
 from ogmapping.preprocess import resize_frame
-from ogmapping.runner import ground_truth, pick_device, score
+from ogmapping.runner import pick_device
 from ogmapping.selection import select
 
 

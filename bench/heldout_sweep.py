@@ -19,10 +19,10 @@ import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts
 # isort: split
 from ogmapping.config import parse_override_args, resolve
 from ogmapping.datasets import open_dataset
+from ogmapping.evaluation import ground_truth, score
 from ogmapping.mapper import Mapper
 from ogmapping.metrics import summarise
 from ogmapping.preprocess import resize_frame
-from ogmapping.runner import ground_truth, score
 from ogmapping.selection import select
 
 

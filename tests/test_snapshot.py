@@ -13,7 +13,7 @@ from ogmapping.snapshot import read_metadata
 def mapped(request):
     source = SyntheticSource(n_frames=4, width=64, height=48)
     config = resolve(request.param, overrides={"keyframes.iterations": 4, "keyframes.first_iterations": 12,
-                                   "refine.interval": 4, "refine.min_observations": 1})
+                                               "refine.interval": 4, "refine.min_observations": 1})
     mapper = Mapper(config)
     for position in range(len(source)):
         mapper.process(source[position])

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import grpc
 import pytest
-from ogapi.convert import frame_to_proto
 from ogapi.v1 import mapping_pb2 as pb
+from ogclient.messages import frame_to_proto
 from ogserver.errors import ServiceError
 from ogserver.recorder import Recorder
 from ogserver.session import Session

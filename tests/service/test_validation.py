@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from ogapi.convert import frame_to_proto
 from ogapi.v1 import mapping_pb2 as pb
+from ogclient.messages import frame_to_proto
 from ogserver import validation
 from ogserver.errors import ServiceError
 
