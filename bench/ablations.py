@@ -38,13 +38,13 @@ import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts
 import torch
 from tqdm import tqdm
 
-from ogmapping.config import build
+from ogmapping.config import resolve
 from ogmapping.datasets import open_dataset
+from ogmapping.evaluation import ground_truth, score
 from ogmapping.mapper import Mapper
 from ogmapping.metrics import Lpips, summarise
 from ogmapping.preprocess import resize_frame
 from ogmapping.profile import resolve_device
-from ogmapping.runner import ground_truth, score
 from ogmapping.selection import select
 
 
@@ -191,7 +191,7 @@ def main() -> None:
         for overrides in settings:
             label = " ".join(f"{k}={v}" for k, v in overrides) or "paper's method"
             progress.set_postfix_str(f"seed {seed}: {label}")
-            config = build(args.preset, {**dict(overrides), "seed": seed})
+            config = resolve(args.preset, overrides={**dict(overrides), "seed": seed})
             record = map_and_score(config, device, streamed, heldout, lpips)
             runs[overrides].append(record)
             records.append({"overrides": dict(overrides), "seed": seed, **record})

@@ -17,12 +17,12 @@ import time
 import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts its thread pool)
 
 # isort: split
-from ogmapping.config import build, parse_override_args
+from ogmapping.config import parse_override_args, resolve
 from ogmapping.datasets import open_dataset
+from ogmapping.evaluation import ground_truth, score
 from ogmapping.mapper import Mapper
 from ogmapping.metrics import summarise
 from ogmapping.preprocess import resize_frame
-from ogmapping.runner import ground_truth, score
 from ogmapping.selection import select
 
 
@@ -40,7 +40,7 @@ def main() -> None:
     streamed = [resize_frame(source[i], args.scale) for i in selection.streamed]
     heldout = [resize_frame(source[i], args.scale) for i in selection.heldout]
     for setting in args.settings:
-        config = build(args.preset, parse_override_args(setting.split()))
+        config = resolve(args.preset, overrides=parse_override_args(setting.split()))
         mapper = Mapper(config)
         start = time.perf_counter()
         keyframes = sum(mapper.process(frame).keyframe for frame in streamed)

@@ -23,8 +23,9 @@ from collections.abc import Callable
 
 import torch
 
-from ogmapping.camera import Intrinsics, backproject
+from ogmapping.camera import Intrinsics
 from ogmapping.config import OctreeConfig
+from ogmapping.geometry import backproject
 from ogmapping.octree import SparseVoxelOctree
 from ogmapping.render.output import RenderOutput
 

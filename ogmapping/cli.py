@@ -10,9 +10,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ogmapping.camera import Intrinsics, validate_pose
-from ogmapping.config import PRESETS, apply_overrides, load_file, parse_override_args, preset
-from ogmapping.datasets import FORMATS
+from ogmapping.camera import validate_pose
+from ogmapping.config import parse_override_args, resolve
+from ogmapping.options import add_config_arguments, add_dataset_arguments, parse_intrinsics
 
 EPILOG = """examples:
   ogmap run --data ../shared/data/7scenes-redkitchen --frames 0:100 --scale 0.25 --out runs/kitchen
@@ -22,45 +22,10 @@ EPILOG = """examples:
 """
 
 
-def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
-    """The dataset flags shared by ``ogmap run`` and ``ogclient stream``."""
-    parser.add_argument("--data", required=True, help="dataset folder (or 'synthetic')")
-    parser.add_argument("--format", default="auto", choices=FORMATS, help="dataset layout (default: detect)")
-    parser.add_argument("--frames", default=None, metavar="START:END",
-                        help="positions in the sorted frame list to use (default: all)")
-    parser.add_argument("--stride", type=int, default=1, help="stream every N-th frame (default 1)")
-    parser.add_argument("--scale", type=float, default=1.0, help="image scale, e.g. 0.5 for 320x240 (default 1)")
-
-
-def add_config_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--preset", default="sparse", choices=PRESETS, help="method preset (default sparse)")
-    parser.add_argument("--config", default=None, help="YAML/JSON file of config overrides")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override one config value, e.g. --set keyframes.iterations=40 (repeatable)")
-
-
-def build_config(args: argparse.Namespace):
-    config = preset(args.preset)
-    if args.config:
-        apply_overrides(config, load_file(args.config))
-    return apply_overrides(config, parse_override_args(args.overrides))
-
-
-def parse_intrinsics(text: str, size: str) -> Intrinsics:
-    try:
-        fx, fy, cx, cy = (float(v) for v in text.split(","))
-        width, height = (int(v) for v in size.lower().split("x"))
-    except ValueError as error:
-        raise ValueError("--intrinsics must be fx,fy,cx,cy and --size WIDTHxHEIGHT") from error
-    intrinsics = Intrinsics(fx, fy, cx, cy, width, height)
-    intrinsics.validate()
-    return intrinsics
-
-
 def command_run(args: argparse.Namespace) -> int:
     from ogmapping.runner import RunOptions, run
 
-    config = build_config(args)
+    config = resolve(args.preset, args.config, parse_override_args(args.overrides))
     options = RunOptions(data=args.data, format=args.format, frames=args.frames, stride=args.stride,
                          scale=args.scale, preset=args.preset, device=args.device, out=Path(args.out),
                          progress=not args.quiet)

@@ -1,8 +1,12 @@
 """Every tunable value, as dataclasses, with the presets ``dense``, ``sparse`` and ``sparse-fast``.
 
 Overrides use dotted keys (``keyframes.iterations=40``) from the command line, or a YAML/JSON file
-holding the same nesting. Values the paper does not give follow Scaffold-GS / H2-Mapping, tuned
-for this engine where noted in docs/method.md.
+holding the same nesting. ``resolve`` is the one place a preset plus override values, as text (the
+command line, the service's ``map<string,string>``) or typed (a YAML/JSON file, code), become a
+``MapperConfig``: ``ogmap``, ``ogclient`` (checking locally before it sends the overrides as text)
+and the server all call it, so they accept and refuse the same values with the same messages.
+Values the paper does not give follow Scaffold-GS / H2-Mapping, tuned for this engine where noted
+in docs/method.md.
 """
 
 from __future__ import annotations
@@ -204,8 +208,17 @@ def load_file(path: str | Path) -> dict[str, Any]:
     return flatten(data)
 
 
-def build(preset_name: str, overrides: dict[str, Any] | None = None) -> MapperConfig:
-    return apply_overrides(preset(preset_name), overrides or {})
+def resolve(
+    preset_name: str, config_file: str | Path | None = None, overrides: dict[str, Any] | None = None
+) -> MapperConfig:
+    """The preset, then the file's keys, then ``overrides`` (which win over the file's), checked once as a whole.
+
+    Values may be text or typed; unknown keys, wrong types and out-of-range values raise ValueError
+    naming the key.
+    """
+    requested = load_file(config_file) if config_file else {}
+    requested.update(overrides or {})
+    return apply_overrides(preset(preset_name), requested)
 
 
 # The ablation switches (paper section 4); the first value of each is the paper's method.

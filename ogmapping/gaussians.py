@@ -8,9 +8,10 @@ from dataclasses import dataclass
 import torch
 
 from ogmapping.anchors import AnchorMap
-from ogmapping.camera import Intrinsics, in_frustum
+from ogmapping.camera import Intrinsics
 from ogmapping.decoders import Decoders, activate
 from ogmapping.gaussians_cpu import AssembleGaussians
+from ogmapping.geometry import in_frustum
 
 FRUSTUM_MARGIN = 0.15  # fraction of the image size; anchors just outside still cast Gaussians inside
 

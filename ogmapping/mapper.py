@@ -23,12 +23,13 @@ import torch
 
 from ogmapping import allocation, refine, snapshot
 from ogmapping.anchors import AnchorMap
-from ogmapping.camera import Intrinsics, world_to_camera
+from ogmapping.camera import Intrinsics
 from ogmapping.config import MapperConfig
 from ogmapping.decoders import Decoders
 from ogmapping.encoding import HashGridEncoding, feature_dim, initial_anchor_features
 from ogmapping.frame import Frame
 from ogmapping.gaussians import GaussianSet, anchors_in_view, generate
+from ogmapping.geometry import intrinsics_matrix, world_to_camera
 from ogmapping.keyframes import Keyframe, KeyframeSet
 from ogmapping.lazy_adam import LazyAdam
 from ogmapping.losses import mapping_loss
@@ -254,7 +255,7 @@ class Mapper:
         with self._timed("rasterize"):
             output = rasterize(
                 gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.colors,
-                world_to_camera(c2w), intrinsics.tensor(self.device), intrinsics.width, intrinsics.height,
+                world_to_camera(c2w), intrinsics_matrix(intrinsics, self.device), intrinsics.width, intrinsics.height,
                 backend=self.backend,
             )
         return gaussians, output

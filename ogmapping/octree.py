@@ -13,8 +13,9 @@ import numpy as np
 import torch
 
 from ogmapping import morton
-from ogmapping.camera import Intrinsics, in_frustum, project
+from ogmapping.camera import Intrinsics
 from ogmapping.config import OctreeConfig
+from ogmapping.geometry import in_frustum, project
 
 
 class SparseVoxelOctree:

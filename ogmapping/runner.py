@@ -11,21 +11,15 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
-import numpy as np
 import torch
 from tqdm import tqdm
 
 from ogmapping.config import MapperConfig
-from ogmapping.datasets import open_dataset
+from ogmapping.evaluation import evaluate_views, open_frames
 from ogmapping.frame import Frame
-from ogmapping.mapper import Mapper, Rendered
-from ogmapping.metrics import Lpips, depth_l1_cm, psnr, ssim, summarise
-from ogmapping.preprocess import prepare, resize_frame
+from ogmapping.mapper import Mapper
 from ogmapping.profile import resolve_device
-from ogmapping.selection import select
 
-PREVIEW_COUNT = 3
 MEMORY_LOG_INTERVAL = 100  # streamed frames between peak-memory records
 
 
@@ -43,31 +37,6 @@ class RunOptions:
     progress: bool = True
 
 
-def ground_truth(frame: Frame, config: MapperConfig) -> Frame:
-    """The frame as the mapper sees it: depth on the colour grid, clipped to the working range."""
-    return prepare(frame, config.octree.depth_min, config.octree.depth_max)
-
-
-def score(rendered: Rendered, truth: Frame, lpips: Lpips | None = None) -> dict:
-    """PSNR, SSIM, depth L1 and, with an available ``lpips``, LPIPS (None otherwise)."""
-    return {
-        "psnr": psnr(rendered.color, truth.rgb),
-        "ssim": ssim(rendered.color, truth.rgb),
-        "depth_l1_cm": depth_l1_cm(rendered.depth, truth.depth),
-        "lpips": lpips(rendered.color, truth.rgb) if lpips is not None else None,
-    }
-
-
-def side_by_side(rendered: Rendered, truth: Frame) -> np.ndarray:
-    """Render | ground truth on top, rendered depth | measured depth below, as a BGR uint8 image."""
-    top = np.concatenate([rendered.color, truth.rgb], axis=1)
-    far = max(float(np.percentile(truth.depth[truth.depth > 0], 99)) if (truth.depth > 0).any() else 1.0, 1e-3)
-    depths = np.concatenate([rendered.depth, truth.depth], axis=1) / far
-    bottom = cv2.applyColorMap((np.clip(depths, 0, 1) * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
-    top_bgr = cv2.cvtColor((np.clip(top, 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGB2BGR)
-    return np.concatenate([top_bgr, bottom], axis=0)
-
-
 def memory_snapshot(frames: int, anchors: int, device: torch.device) -> dict:
     """Peak memory so far, so a run can show it stays flat once the scene stops growing."""
     return {
@@ -76,13 +45,6 @@ def memory_snapshot(frames: int, anchors: int, device: torch.device) -> dict:
         "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
         "peak_gpu_memory_bytes": torch.cuda.max_memory_allocated(device) if device.type == "cuda" else None,
     }
-
-
-def spread(items: list[int], count: int) -> list[int]:
-    """Up to ``count`` items evenly spaced over the list, first and last included."""
-    if len(items) <= count:
-        return list(items)
-    return [items[round(i * (len(items) - 1) / (count - 1))] for i in range(count)]
 
 
 def prefetched(load: Callable[[int], Frame], positions: Iterable[int], depth: int = 4) -> Iterator[Frame]:
@@ -100,25 +62,20 @@ def prefetched(load: Callable[[int], Frame], positions: Iterable[int], depth: in
 def run(options: RunOptions, config: MapperConfig) -> dict:
     """Map, evaluate and write results.json, previews and the snapshot into ``options.out``."""
     device = resolve_device(options.device)
-    source = open_dataset(options.data, options.format, **options.dataset_options)
-    selection = select(len(source), options.frames, options.stride)
-    if not selection.streamed:
-        raise ValueError("the frame selection leaves no frame to stream")
+    frames = open_frames(options.data, options.format, options.frames, options.stride, options.scale,
+                         **options.dataset_options)
+    selection = frames.selection
     out = Path(options.out)
     out.mkdir(parents=True, exist_ok=True)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     mapper = Mapper(config, device)
 
-    def load(position: int) -> Frame:
-        frame = source[position]
-        return resize_frame(frame, options.scale) if options.scale != 1.0 else frame
-
     keyframes = 0
     start = time.perf_counter()
     memory_log = []
     progress = tqdm(total=len(selection.streamed), desc="mapping", unit="frame", disable=not options.progress)
-    for count, frame in enumerate(prefetched(load, selection.streamed), start=1):
+    for count, frame in enumerate(prefetched(frames.load, selection.streamed), start=1):
         result = mapper.process(frame)
         keyframes += result.keyframe
         progress.set_postfix(anchors=result.anchors, keyframes=keyframes, refresh=False)
@@ -132,30 +89,15 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
 
     snapshot = mapper.snapshot()
     (out / "map.safetensors").write_bytes(snapshot)
-    evaluation = {}
-    render_seconds, renders = 0.0, 0
-    previews = set(spread(selection.streamed, PREVIEW_COUNT)) | set(spread(selection.heldout, PREVIEW_COUNT))
-    lpips = Lpips(device)
-    for split, positions in (("streamed", selection.streamed), ("heldout", selection.heldout)):
-        per_frame = []
-        for position in tqdm(positions, desc=f"evaluating {split}", unit="frame", disable=not options.progress):
-            truth = ground_truth(load(position), config)
-            tic = time.perf_counter()
-            rendered = mapper.render(truth.c2w, truth.color_intrinsics)
-            render_seconds += time.perf_counter() - tic
-            renders += 1
-            per_frame.append(score(rendered, truth, lpips))
-            if position in previews:
-                cv2.imwrite(str(out / f"{split}_{position:06d}.png"), side_by_side(rendered, truth))
-        evaluation[split] = summarise(per_frame)
+    evaluation = evaluate_views(frames, config, mapper.render, out, options.progress, device)
 
     stats = mapper.stats()
-    sample = load(selection.streamed[0])
+    sample = frames.load(selection.streamed[0])
     results = {
-        **evaluation,
+        **evaluation.splits,
         "processing_fps": len(selection.streamed) / mapping_seconds,
         "mapping_seconds": mapping_seconds,
-        "render_fps": renders / render_seconds if render_seconds > 0 else None,
+        "render_fps": evaluation.render_fps,
         "snapshot_bytes": len(snapshot),
         "anchors": stats["anchors"],
         "anchors_per_level": stats["anchors_per_level"],
@@ -172,7 +114,7 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
         "resolution": [sample.color_intrinsics.width, sample.color_intrinsics.height],
         "frames": {"streamed": len(selection.streamed), "heldout": len(selection.heldout),
                    "range": options.frames, "stride": options.stride, "scale": options.scale},
-        "lpips": lpips.description,
+        "lpips": evaluation.lpips,
         "config": config.to_dict(),
     }
     (out / "results.json").write_text(json.dumps(results, indent=2))

@@ -11,7 +11,7 @@ import time
 
 import torch
 
-from ogmapping.config import build
+from ogmapping.config import resolve
 from ogmapping.datasets.synthetic import SyntheticSource
 from ogmapping.mapper import Mapper
 
@@ -23,7 +23,7 @@ def warm_up(device: str | torch.device = "cpu") -> float:
     """Map two tiny synthetic frames, render and snapshot a throwaway map; returns the seconds taken."""
     start = time.perf_counter()
     source = SyntheticSource(n_frames=2, width=64, height=48)
-    mapper = Mapper(build("sparse", _SETTINGS), device)
+    mapper = Mapper(resolve("sparse", overrides=_SETTINGS), device)
     for position in range(len(source)):
         mapper.process(source[position])
     frame = source[0]

@@ -3,9 +3,10 @@
 import torch
 
 from ogmapping.allocation import allocate, projection_allocation, unexplained_pixels
-from ogmapping.camera import Intrinsics, backproject
-from ogmapping.config import build
+from ogmapping.camera import Intrinsics
+from ogmapping.config import resolve
 from ogmapping.datasets.synthetic import SyntheticSource
+from ogmapping.geometry import backproject
 from ogmapping.mapper import Mapper
 from ogmapping.octree import SparseVoxelOctree
 from ogmapping.render.output import RenderOutput
@@ -39,7 +40,8 @@ def test_unique_allocation_gives_the_octree_allocation():
 def test_unique_and_octree_mappers_build_the_same_map():
     source = SyntheticSource(n_frames=2, width=24, height=18)
     settings = {"keyframes.iterations": 1, "keyframes.first_iterations": 1}
-    maps = [Mapper(build("sparse", {**settings, "octree.allocation": kind})) for kind in ("octree", "unique")]
+    maps = [Mapper(resolve("sparse", overrides={**settings, "octree.allocation": kind}))
+            for kind in ("octree", "unique")]
     for mapper in maps:
         for position in range(len(source)):
             mapper.process(source[position])
@@ -91,7 +93,7 @@ def test_mapper_runs_every_switch_off_the_defaults():
     overrides = {"keyframes.iterations": 1, "keyframes.first_iterations": 1, "refine.interval": 1,
                  "refine.min_observations": 1, "refine.grad_threshold": 1e-9, "keyframes.overlap_threshold": 1.0,
                  "octree.allocation": "projection", "refine.growth": "error", "keyframes.window": "coverage"}
-    mapper = Mapper(build("sparse", overrides))
+    mapper = Mapper(resolve("sparse", overrides=overrides))
     results = [mapper.process(source[position]) for position in range(len(source))]
     assert all(result.keyframe for result in results)
     assert len(mapper.anchors) >= mapper.octree.count(0) > 0

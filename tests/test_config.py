@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from ogmapping.config import MapperConfig, build, load_file, parse_override_args, preset
+from ogmapping.config import MapperConfig, load_file, parse_override_args, preset, resolve
 
 
 def test_presets_differ_as_the_paper_says():
@@ -16,27 +16,29 @@ def test_presets_differ_as_the_paper_says():
 
 
 def test_overrides_are_typed_and_checked():
-    config = build("sparse", parse_override_args(["keyframes.iterations=7", "octree.voxel_size=0.2"]))
+    config = resolve("sparse", overrides=parse_override_args(["keyframes.iterations=7", "octree.voxel_size=0.2"]))
     assert config.keyframes.iterations == 7 and config.octree.voxel_size == 0.2
     with pytest.raises(ValueError, match="unknown config key"):
-        build("sparse", {"keyframes.nope": 1})
+        resolve("sparse", overrides={"keyframes.nope": 1})
     with pytest.raises(ValueError, match="expects int"):
-        build("sparse", {"keyframes.iterations": "many"})
+        resolve("sparse", overrides={"keyframes.iterations": "many"})
     with pytest.raises(ValueError, match="out of range"):
-        build("sparse", {"octree.voxel_size": "-1"})
+        resolve("sparse", overrides={"octree.voxel_size": "-1"})
     with pytest.raises(ValueError, match="unknown preset"):
         preset("fastest")
 
 
 def test_dict_round_trip_and_files(tmp_path):
-    config = build("dense", {"refine.interval": 5})
+    config = resolve("dense", overrides={"refine.interval": 5})
     assert MapperConfig.from_dict(config.to_dict()) == config
     path = tmp_path / "overrides.json"
     path.write_text(json.dumps({"loss": {"depth": 0.25}}))
     assert load_file(path) == {"loss.depth": 0.25}
     yaml_path = tmp_path / "overrides.yaml"
     yaml_path.write_text("keyframes:\n  local_count: 4\n")
-    assert build("sparse", load_file(yaml_path)).keyframes.local_count == 4
+    assert resolve("sparse", yaml_path).keyframes.local_count == 4
+    both = resolve("sparse", yaml_path, {"keyframes.local_count": "6", "keyframes.iterations": "3"})
+    assert (both.keyframes.local_count, both.keyframes.iterations) == (6, 3), "--set-style overrides win over the file"
 
 
 def test_ablation_switches_default_to_the_paper_and_are_validated():
@@ -46,9 +48,9 @@ def test_ablation_switches_default_to_the_paper_and_are_validated():
                        ("refine.growth", "error"), ("refine.growth", "none"),
                        ("keyframes.window", "random"), ("keyframes.window", "overlap"),
                        ("keyframes.window", "coverage")):
-        build("sparse", {key: value})
+        resolve("sparse", overrides={key: value})
     for key, allowed in (("octree.allocation", "octree, unique, projection"),
                          ("refine.growth", "anchor, error, none"),
                          ("keyframes.window", "dynamic, random, overlap, coverage")):
         with pytest.raises(ValueError, match=f"config {key} must be one of {allowed}, got 'bogus'"):
-            build("sparse", {key: "bogus"})
+            resolve("sparse", overrides={key: "bogus"})

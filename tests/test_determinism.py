@@ -2,7 +2,7 @@
 
 import torch
 
-from ogmapping.config import build
+from ogmapping.config import resolve
 from ogmapping.datasets.synthetic import SyntheticSource
 from ogmapping.mapper import Mapper
 
@@ -19,21 +19,21 @@ def _assert_same(left: Mapper, right: Mapper) -> None:
 
 def test_interleaved_sessions_map_as_they_would_alone():
     source = SyntheticSource(n_frames=3, width=48, height=36)
-    alone = Mapper(build("sparse", OVERRIDES))
+    alone = Mapper(resolve("sparse", overrides=OVERRIDES))
     for position in range(len(source)):
         alone.process(source[position])
-    mine = Mapper(build("sparse", OVERRIDES))
+    mine = Mapper(resolve("sparse", overrides=OVERRIDES))
     for position in range(len(source)):
         mine.process(source[position])
         # A neighbour created mid-stream with another seed, drawing from its own generator.
-        neighbour = Mapper(build("sparse", {**OVERRIDES, "seed": 7}))
+        neighbour = Mapper(resolve("sparse", overrides={**OVERRIDES, "seed": 7}))
         neighbour.process(source[len(source) - 1 - position])
         torch.rand(1000)
     _assert_same(alone, mine)
 
 
 def test_the_seed_picks_the_initialisation():
-    same = [Mapper(build("sparse", {"seed": 3})) for _ in range(2)]
+    same = [Mapper(resolve("sparse", overrides={"seed": 3})) for _ in range(2)]
     _assert_same(*same)
-    other = Mapper(build("sparse", {"seed": 4}))
+    other = Mapper(resolve("sparse", overrides={"seed": 4}))
     assert not torch.equal(same[0].decoders.color[0].weight, other.decoders.color[0].weight)

@@ -6,7 +6,7 @@ Before the footprint was the set of visible cells on the current map, this path 
 
 import pytest
 
-from ogmapping.config import build
+from ogmapping.config import resolve
 from ogmapping.datasets import open_dataset
 from ogmapping.mapper import Mapper
 from ogmapping.preprocess import resize_frame
@@ -15,7 +15,7 @@ NO_OPTIMISATION = {"keyframes.first_iterations": 0, "keyframes.iterations": 0, "
 
 
 def keyframe_indices(source, scale: float, overrides: dict) -> list[int]:
-    mapper = Mapper(build("sparse", {**NO_OPTIMISATION, **overrides}))
+    mapper = Mapper(resolve("sparse", overrides={**NO_OPTIMISATION, **overrides}))
     return [i for i in range(len(source)) if mapper.process(resize_frame(source[i], scale)).keyframe]
 
 

@@ -84,10 +84,10 @@ def test_downscaled_keyframe_matches_a_resized_camera():
 
 
 def test_window_scale_stops_at_the_minimum_width():
-    from ogmapping.config import build
+    from ogmapping.config import resolve
     from ogmapping.mapper import Mapper
 
-    mapper = Mapper(build("sparse", {"keyframes.window_scale": 0.5, "keyframes.window_min_width": 160}))
+    mapper = Mapper(resolve("sparse", overrides={"keyframes.window_scale": 0.5, "keyframes.window_min_width": 160}))
     assert mapper._window_scale(640) == 0.5
     assert mapper._window_scale(320) == 0.5
     assert mapper._window_scale(240) == 160 / 240

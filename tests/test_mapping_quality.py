@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from ogmapping.config import build
+from ogmapping.config import resolve
 from ogmapping.runner import RunOptions, run
 
 RESULT_KEYS = {"streamed", "heldout", "processing_fps", "snapshot_bytes", "anchors", "gaussians", "device",
@@ -27,7 +27,7 @@ REAL_320_PSNR_FLOOR = 24.9  # measured 25.28 dB held-out, 25.36 streamed on fram
 def test_synthetic_scene_reaches_30_db(tmp_path):
     options = RunOptions(data="synthetic", format="synthetic", frames="0:12", scale=0.25, preset="sparse",
                          out=tmp_path, progress=False)
-    results = run(options, build("sparse"))
+    results = run(options, resolve("sparse"))
     assert results.keys() >= RESULT_KEYS
     assert results["streamed"]["frames"] == 11 and results["heldout"]["frames"] == 1
     assert results["streamed"]["psnr"] >= SYNTHETIC_PSNR_FLOOR
@@ -52,7 +52,7 @@ def test_seven_scenes_0_99_at_160x120_beats_tsdf_clearly(seven_scenes, tmp_path)
 def run_sparse(data, frames: str, scale: float, out) -> dict:
     """``ogmap run`` of the ``sparse`` preset, in process and without progress bars."""
     options = RunOptions(data=str(data), frames=frames, scale=scale, preset="sparse", out=out, progress=False)
-    return run(options, build("sparse"))
+    return run(options, resolve("sparse"))
 
 
 @pytest.mark.realdata

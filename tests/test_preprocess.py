@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-from ogmapping.camera import Intrinsics, backproject, project
+from ogmapping.camera import Intrinsics
 from ogmapping.datasets.sevenscenes import SevenScenes
 from ogmapping.frame import Frame
+from ogmapping.geometry import backproject, project
 from ogmapping.preprocess import clip_depth, register_depth, reproject_depth, resize_frame
 
 

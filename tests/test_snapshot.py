@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from ogmapping.config import build
+from ogmapping.config import resolve
 from ogmapping.datasets.synthetic import SyntheticSource
 from ogmapping.mapper import Mapper
 from ogmapping.snapshot import read_metadata
@@ -13,8 +13,8 @@ from ogmapping.snapshot import read_metadata
 @pytest.fixture(scope="module", params=["dense", "sparse"])
 def mapped(request):
     source = SyntheticSource(n_frames=4, width=64, height=48)
-    config = build(request.param, {"keyframes.iterations": 4, "keyframes.first_iterations": 12,
-                                   "refine.interval": 4, "refine.min_observations": 1})
+    config = resolve(request.param, overrides={"keyframes.iterations": 4, "keyframes.first_iterations": 12,
+                                               "refine.interval": 4, "refine.min_observations": 1})
     mapper = Mapper(config)
     for position in range(len(source)):
         mapper.process(source[position])

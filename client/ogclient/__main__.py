@@ -9,8 +9,8 @@ import grpc
 
 from ogclient import commands
 from ogclient.connection import DEFAULT_SERVER, ClientError, connect, describe
-from ogmapping.cli import add_config_arguments, add_dataset_arguments
 from ogmapping.datasets import FORMATS
+from ogmapping.options import add_config_arguments, add_dataset_arguments
 
 EPILOG = """\
 typical session:

@@ -10,19 +10,20 @@ from pathlib import Path
 import cv2
 import numpy as np
 from ogapi import recording
-from ogapi.convert import FrameEncoding, frame_to_proto, intrinsics_to_proto, matrix_to_list
+from ogapi.convert import FrameEncoding, matrix_to_list
 from ogapi.images import decode_color, decode_depth
 from ogapi.v1 import mapping_pb2 as pb
 from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 
-from ogclient import frames as frame_sets
 from ogclient import replay as replaying
 from ogclient.connection import ClientError, SessionRef
 from ogclient.evaluation import evaluate, snapshot_bytes
+from ogclient.messages import frame_to_proto, intrinsics_to_proto
 from ogclient.streaming import stream_frames
 from ogmapping.camera import validate_pose
-from ogmapping.cli import parse_intrinsics
-from ogmapping.config import load_file, parse_override_args
+from ogmapping.config import load_file, parse_override_args, resolve
+from ogmapping.evaluation import FrameSet, open_frames
+from ogmapping.options import parse_intrinsics
 
 COLOR_CHOICES = {"png": pb.COLOR_PNG, "jpeg": pb.COLOR_JPEG, "raw": pb.COLOR_RAW_RGB8}
 DEPTH_CHOICES = {"png16": pb.DEPTH_PNG16, "raw": pb.DEPTH_RAW_F32}
@@ -36,9 +37,14 @@ class Context:
 
 
 def overrides_from_args(args: argparse.Namespace) -> dict[str, str]:
-    """--config FILE then --set KEY=VALUE, as the text values CreateSession takes."""
+    """--config FILE then --set KEY=VALUE, as the text values CreateSession takes.
+
+    Resolved here first, as the server will resolve them: a bad key or value fails before any call,
+    with the message the server would give.
+    """
     overrides = load_file(args.config) if args.config else {}
     overrides.update(parse_override_args(args.overrides))
+    resolve(args.preset, overrides=overrides)
     return {key: str(value).lower() if isinstance(value, bool) else str(value) for key, value in overrides.items()}
 
 
@@ -64,7 +70,7 @@ def create(ctx: Context, args: argparse.Namespace) -> int:
 
 
 def stream(ctx: Context, args: argparse.Namespace) -> int:
-    frame_set = frame_sets.from_args(args)
+    frame_set = FrameSet.from_args(args)
     if args.session:
         session = SessionRef.load(args.session)
     else:
@@ -100,7 +106,7 @@ def render(ctx: Context, args: argparse.Namespace) -> int:
     if args.position is not None:
         if not args.data:
             raise ClientError("--position needs --data")
-        frame = frame_sets.open_frames(args.data, args.format, scale=args.scale).load(args.position)
+        frame = open_frames(args.data, args.format, scale=args.scale).load(args.position)
         pose, camera = frame.c2w, frame.color_intrinsics
     elif args.pose and args.intrinsics and args.size:
         pose = validate_pose(np.loadtxt(args.pose).reshape(4, 4), "--pose")
@@ -162,7 +168,7 @@ def stats(ctx: Context, args: argparse.Namespace) -> int:
 
 def evaluate_command(ctx: Context, args: argparse.Namespace) -> int:
     session = SessionRef.load(args.session)
-    results = evaluate(ctx.stub, session, frame_sets.from_args(args), Path(args.out) if args.out else None,
+    results = evaluate(ctx.stub, session, FrameSet.from_args(args), Path(args.out) if args.out else None,
                        progress=not args.quiet)
     print(json.dumps(results, indent=2))
     return 0

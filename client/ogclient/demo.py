@@ -16,14 +16,15 @@ import time
 from pathlib import Path
 
 import grpc
-from ogapi.convert import frame_to_proto
 from ogapi.v1 import mapping_pb2 as pb
 
 from ogclient.connection import ClientError, SessionRef, connect, describe
 from ogclient.evaluation import evaluate, snapshot_bytes
-from ogclient.frames import open_frames
 from ogclient.local_server import LocalServer
+from ogclient.messages import frame_to_proto
 from ogclient.streaming import stream_frames
+from ogmapping.config import parse_override_args, resolve
+from ogmapping.evaluation import open_frames
 
 # Sized for a 2-core CPU: 160x120 images, 40 frames (36 streamed, 4 held out), 40 iterations on the
 # first keyframe and 8 on each later one (window keyframes stay full size at this width:
@@ -58,10 +59,8 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     record_dir = out / "recordings"
     shutil.rmtree(record_dir, ignore_errors=True)
-    overrides = dict(DEFAULT_OVERRIDES)
-    for item in args.overrides:
-        key, _, value = item.partition("=")
-        overrides[key.strip()] = value.strip()
+    overrides = {**DEFAULT_OVERRIDES, **parse_override_args(args.overrides)}
+    resolve(args.preset, overrides=overrides)  # a bad key or value fails here, before a server starts
     frames = open_frames("synthetic", "synthetic", args.frames, 1, args.scale)
     selection = frames.selection
     sample = frames.load(selection.streamed[0]).color_intrinsics

@@ -16,7 +16,7 @@ from pathlib import Path
 import grpc
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogmapping.config import PRESETS, build
+from ogmapping.config import PRESETS, resolve
 from ogmapping.mapper import Mapper
 from ogserver import __version__, validation
 from ogserver.errors import ServiceError, exhausted, invalid
@@ -67,7 +67,7 @@ class Registry:
             raise invalid("preset", f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
         overrides = dict(request.overrides)
         try:
-            config = build(preset, overrides)
+            config = resolve(preset, overrides=overrides)
         except ValueError as error:
             raise invalid("overrides", error) from None
         with self._slot():

@@ -5,9 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import yaml
-from ogapi.convert import FrameEncoding, frame_to_proto
+from ogapi.convert import FrameEncoding
 from ogapi.v1 import mapping_pb2 as pb
-from ogclient.frames import FrameSet, open_frames
+from ogclient.messages import frame_to_proto
+
+from ogmapping.evaluation import FrameSet, open_frames
 
 REPO = Path(__file__).resolve().parents[2]
 TEST_SERVER_CONFIG = REPO / "docker" / "test-server.yaml"

@@ -8,6 +8,7 @@ import sys
 
 import pytest
 from ogclient.__main__ import main, parser
+from ogclient.commands import overrides_from_args
 from ogserver import healthcheck
 
 COMMANDS = ["create", "stream", "replay", "render", "snapshot", "restore", "stats", "eval", "list", "close"]
@@ -32,6 +33,16 @@ def test_unreachable_server_is_one_line_and_non_zero(capsys: pytest.CaptureFixtu
     err = capsys.readouterr().err.strip()
     assert code == 2
     assert err.count("\n") == 0 and "cannot reach an ogserver" in err
+
+
+def test_config_overrides_are_resolved_locally_then_sent_as_text(tmp_path) -> None:
+    """A bad key or value fails before any call, with the message the server's resolve would give."""
+    with pytest.raises(ValueError, match=r"config keyframes\.iterations expects int, got 'many'"):
+        overrides_from_args(parser().parse_args(["create", "--set", "keyframes.iterations=many"]))
+    config_file = tmp_path / "config.yaml"
+    config_file.write_text("keyframes:\n  iterations: 4\n  local_count: 2\n")
+    args = parser().parse_args(["create", "--config", str(config_file), "--set", "keyframes.local_count=3"])
+    assert overrides_from_args(args) == {"keyframes.iterations": "4", "keyframes.local_count": "3"}
 
 
 def test_console_entry_point_exit_code() -> None:

@@ -19,17 +19,18 @@ import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from mcap.reader import make_reader
 from ogapi import SERVICE_NAME, recording
-from ogapi.convert import frame_to_proto, intrinsics_to_proto, matrix_to_list
+from ogapi.convert import matrix_to_list
 from ogapi.images import decode_color, decode_depth
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient import replay
 from ogclient.__main__ import main as ogclient_main
 from ogclient.connection import SessionRef
 from ogclient.evaluation import evaluate, render, snapshot_bytes
-from ogclient.frames import FrameSet
+from ogclient.messages import frame_to_proto, intrinsics_to_proto
 from ogclient.streaming import StreamResult, stream_frames
 from ogserver import healthcheck
 
+from ogmapping.evaluation import FrameSet
 from ogmapping.mapper import Mapper
 from ogmapping.metrics import psnr
 

@@ -10,8 +10,9 @@ import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from ogapi import recording as layout
-from ogapi.convert import FrameEncoding, frame_to_proto
+from ogapi.convert import FrameEncoding
 from ogapi.v1 import mapping_pb2 as pb
+from ogclient.messages import frame_to_proto
 from ogserver.recorder import Recorder, quaternion
 from ogserver.validation import frame as validate_frame
 

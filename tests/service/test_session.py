@@ -7,15 +7,15 @@ from pathlib import Path
 
 import grpc
 import pytest
-from ogapi.convert import frame_to_proto
 from ogapi.v1 import mapping_pb2 as pb
+from ogclient.messages import frame_to_proto
 from ogserver.errors import ServiceError
 from ogserver.recorder import Recorder
 from ogserver.session import Session
 from ogserver.settings import Limits
 from ogserver.validation import frame as validate_frame
 
-from ogmapping.config import build
+from ogmapping.config import resolve
 from ogmapping.mapper import Mapper
 
 from .scene import FROZEN, PRESET, scene
@@ -24,7 +24,7 @@ from .scene import FROZEN, PRESET, scene
 def make_session(tmp_path: Path, limits: Limits) -> Session:
     config = pb.SessionConfig(session_id="1" * 32, preset=PRESET)
     recorder = Recorder(tmp_path / "session.mcap", config)
-    return Session("1" * 32, "token", Mapper(build(PRESET, FROZEN)), config, recorder, limits)
+    return Session("1" * 32, "token", Mapper(resolve(PRESET, overrides=FROZEN)), config, recorder, limits)
 
 
 def submit(session: Session, position: int, sink: queue.SimpleQueue) -> None:

@@ -7,8 +7,8 @@ import re
 import numpy as np
 import pytest
 from google.protobuf.descriptor import Descriptor
-from ogapi.convert import frame_to_proto
 from ogapi.v1 import mapping_pb2 as pb
+from ogclient.messages import frame_to_proto
 from ogserver import validation
 from ogserver.errors import ServiceError
 
