@@ -1,4 +1,6 @@
-"""The project's modules import each other without cycles (lazy, in-function imports included)."""
+"""The project's modules import each other without cycles and only downwards (lazy, in-function imports
+included): client -> server -> engine (ogmapping) -> render, with the API package (ogapi) below the
+client and the server and independent of the engine."""
 
 from __future__ import annotations
 
@@ -87,3 +89,30 @@ def test_no_module_imports_another_in_a_cycle() -> None:
 def test_the_cycle_finder_finds_cycles() -> None:
     graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}, "e": set()}
     assert cycles(graph) == [["a", "b", "c"]]
+
+
+def may_import(importer: str, imported: str) -> bool:
+    """The layering: ogapi stands alone; the engine knows neither the API, the server nor the client;
+    the server no client; render only itself and the engine's leaf modules it shares."""
+    package = imported.split(".")[0]
+    if importer.startswith("ogapi"):
+        return package == "ogapi"
+    if importer.startswith("ogmapping.render"):
+        return imported.startswith("ogmapping.render") or imported in RENDER_MAY_USE
+    if importer.startswith("ogmapping"):
+        return package == "ogmapping"
+    if importer.startswith("ogserver"):
+        return package != "ogclient"
+    return True
+
+
+# Leaf modules of the engine (no project imports of their own) that the render backends share.
+RENDER_MAY_USE = {"ogmapping.backends", "ogmapping.arrays"}
+
+
+def test_imports_flow_one_way() -> None:
+    graph = import_graph()
+    upward = sorted(f"{importer} -> {target}" for importer, targets in graph.items() for target in targets
+                    if not may_import(importer, target))
+    assert upward == []
+    assert all(not graph[leaf] for leaf in RENDER_MAY_USE), "render's shared engine modules stay leaves"

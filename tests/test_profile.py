@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from ogmapping.config import build
+from ogmapping.config import resolve
 from ogmapping.datasets.synthetic import SyntheticSource
 from ogmapping.mapper import Mapper
 from ogmapping.profile import execution_profile, resolve_device
@@ -73,7 +73,7 @@ def _spy_on_numba_kernels(monkeypatch) -> list[str]:
 
 def _map(preset: str, backend: str) -> tuple[list[float], np.ndarray]:
     source = SyntheticSource(n_frames=2, width=40, height=30)
-    mapper = Mapper(build(preset, {**SETTINGS, "backend": backend}))
+    mapper = Mapper(resolve(preset, overrides={**SETTINGS, "backend": backend}))
     losses = [mapper.process(source[position]).loss for position in range(len(source))]
     frame = source[0]
     return losses, mapper.render(frame.c2w, frame.color_intrinsics).color
