@@ -35,6 +35,7 @@ from ogmapping.octree import SparseVoxelOctree
 from ogmapping.preprocess import prepare
 from ogmapping.render import RenderOutput, rasterize, resolve_backend
 from ogmapping.ssim import reference_statistics
+from ogmapping.stats import MapStats
 from ogmapping.threads import mapping_threads, torch_threads
 
 
@@ -251,21 +252,21 @@ class Mapper:
             alpha=output.alpha.cpu().numpy().astype(np.float32),
         )
 
-    def stats(self) -> dict:
-        """Map statistics, JSON-serialisable."""
+    def stats(self) -> MapStats:
+        """Map statistics as one consistent record."""
         with self.lock:
-            return {
-                "frames": self.frames,
-                "keyframes": len(self.keyframes),
-                "iterations": self.iterations,
-                "anchors": len(self.anchors),
-                "anchors_per_level": self.anchors.level_counts(self.config.octree.max_level),
-                "gaussians": self.last_gaussians,
-                "octree_cells_per_level": [self.octree.count(level) for level in range(self.octree.levels)],
-                "device": str(self.device),
-                "backend": self.backend,
-                "timings": dict(self.timings),
-            }
+            return MapStats(
+                frames=self.frames,
+                keyframes=len(self.keyframes),
+                iterations=self.iterations,
+                anchors=len(self.anchors),
+                anchors_per_level=tuple(self.anchors.level_counts(self.config.octree.max_level)),
+                gaussians=self.last_gaussians,
+                octree_cells_per_level=tuple(self.octree.count(level) for level in range(self.octree.levels)),
+                device=str(self.device),
+                backend=self.backend,
+                timings=dict(self.timings),
+            )
 
     def snapshot(self) -> bytes:
         """The map as safetensors bytes (see ``ogmapping.snapshot``)."""

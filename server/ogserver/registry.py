@@ -91,7 +91,7 @@ class Registry:
         )
         recorder = Recorder(self.record_dir / f"{session_id}.mcap", config)
         session = Session(session_id, secrets.token_urlsafe(32), mapper, config, recorder, self.settings.limits)
-        session.anchors = int(mapper.stats().get("anchors", 0))
+        session.anchors = mapper.stats().anchors
         with self._lock:
             self._sessions[session_id] = session
         log.info("session %s opened (preset %r, device %s)", session_id, preset or "restored", mapper.device)

@@ -16,7 +16,6 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any
 
 import grpc
 from ogapi.images import encode_color, encode_depth
@@ -178,27 +177,25 @@ class Session:
         return response
 
     def stats(self) -> pb.Stats:
-        engine: dict[str, Any] = self.mapper.stats()
+        engine = self.mapper.stats()
         with self._lock:
             elapsed = (
                 self._last_mapped - self._first_received
                 if self._last_mapped is not None and self._first_received is not None else 0.0
             )
             stats = pb.Stats(
-                session_id=self.id, preset=self.config.preset, device=str(engine.get("device", "")),
+                session_id=self.id, preset=self.config.preset, device=engine.device,
                 frames=self.mapped, frames_received=self.received, frames_rejected=self.rejected,
                 queue_depth=self.pending, processing_fps=self.mapped / elapsed if elapsed > 0 else 0.0,
                 uptime_seconds=time.monotonic() - self._started,
             )
-        stats.keyframes = int(engine.get("keyframes", 0))
-        stats.anchors = int(engine.get("anchors", 0))
-        stats.anchors_per_level.extend(int(n) for n in engine.get("anchors_per_level", []))
-        stats.gaussians = int(engine.get("gaussians", 0))
-        stats.iterations = int(engine.get("iterations", 0))
-        for stage, seconds in dict(engine.get("timings", {})).items():
-            if isinstance(seconds, int | float):
-                stats.timings[str(stage)] = float(seconds)
-        stats.engine_json = json.dumps(engine, default=str)
+        stats.keyframes = engine.keyframes
+        stats.anchors = engine.anchors
+        stats.anchors_per_level.extend(engine.anchors_per_level)
+        stats.gaussians = engine.gaussians
+        stats.iterations = engine.iterations
+        stats.timings.update(engine.timings)
+        stats.engine_json = json.dumps(engine.to_dict())
         stats.config_json = self.config.config_json
         return stats
 
