@@ -1,12 +1,14 @@
-"""Every ogapi message the server answers with, built from the engine's and the session's results.
+"""The ogapi messages built from the engine's and the session's results.
 
 The session and the servicer deal in typed results (``FrameResult``, ``Rendered``, ``MapStats``,
-``SessionCounters``); the wire format is decided here alone.
+``SessionCounters``, snapshot bytes); how they look on the wire is decided here.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+from collections.abc import Iterator
 from pathlib import Path
 
 from ogapi.images import encode_color, encode_depth
@@ -70,6 +72,15 @@ def session_info(
         created_unix=config.created_unix, frames=counters.mapped, anchors=counters.anchors,
         queue_depth=counters.pending, streaming=streaming, recording=str(recording),
     )
+
+
+def snapshot_chunks(data: bytes, chunk_bytes: int) -> Iterator[pb.SnapshotChunk]:
+    """Chunks of at most ``chunk_bytes``, each with its offset, the total size and the sha256; at least one."""
+    digest = hashlib.sha256(data).hexdigest()
+    for offset in range(0, max(len(data), 1), chunk_bytes):
+        yield pb.SnapshotChunk(
+            data=data[offset : offset + chunk_bytes], offset=offset, total_bytes=len(data), sha256=digest
+        )
 
 
 def credentials(config: pb.SessionConfig, token: str, recording: Path) -> pb.SessionCredentials:

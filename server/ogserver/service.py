@@ -88,12 +88,7 @@ class MappingService(pb_grpc.MappingServicer):
     def GetSnapshot(self, request: pb.GetSnapshotRequest, context: grpc.ServicerContext) -> Iterator[pb.SnapshotChunk]:
         with status_errors(context):
             data = self._session(request.session_id, context).snapshot()
-            digest = hashlib.sha256(data).hexdigest()
-            size = min(SNAPSHOT_CHUNK_BYTES, self.limits.max_message_bytes // 2)
-            for offset in range(0, max(len(data), 1), size):
-                yield pb.SnapshotChunk(
-                    data=data[offset : offset + size], offset=offset, total_bytes=len(data), sha256=digest
-                )
+            yield from messages.snapshot_chunks(data, min(SNAPSHOT_CHUNK_BYTES, self.limits.max_message_bytes // 2))
 
     def RestoreSession(
         self, request_iterator: Iterable[pb.RestoreChunk], context: grpc.ServicerContext
