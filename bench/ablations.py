@@ -134,11 +134,11 @@ def map_and_score(config, device, streamed, heldout, lpips: Lpips) -> dict[str, 
         "processing_fps": len(streamed) / seconds,
         "mapping_seconds": seconds,
         "snapshot_mb": len(mapper.snapshot()) / 1e6,
-        "anchors": stats["anchors"],
-        "anchors_per_level": stats["anchors_per_level"],
-        "duplicate_anchors": stats["anchors"] - int(torch.unique(cells, dim=1).shape[1]),  # projection's
-        "keyframes": stats["keyframes"],
-        "iterations": stats["iterations"],
+        "anchors": stats.anchors,
+        "anchors_per_level": stats.anchors_per_level,
+        "duplicate_anchors": stats.anchors - int(torch.unique(cells, dim=1).shape[1]),  # projection's
+        "keyframes": stats.keyframes,
+        "iterations": stats.iterations,
     }
 
 

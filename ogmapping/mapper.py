@@ -40,6 +40,7 @@ from ogmapping.render import rasterize
 from ogmapping.render.output import RenderOutput
 from ogmapping.ssim import reference_statistics
 from ogmapping.state import MapState
+from ogmapping.stats import MapStats
 from ogmapping.threads import torch_threads
 
 
@@ -273,21 +274,21 @@ class Mapper:
             alpha=output.alpha.cpu().numpy().astype(np.float32),
         )
 
-    def stats(self) -> dict:
-        """Map statistics, JSON-serialisable."""
+    def stats(self) -> MapStats:
+        """Map statistics as one consistent record."""
         with self.lock:
-            return {
-                "frames": self.frames,
-                "keyframes": len(self.keyframes),
-                "iterations": self.iterations,
-                "anchors": len(self.anchors),
-                "anchors_per_level": self.anchors.level_counts(self.config.octree.max_level),
-                "gaussians": self.last_gaussians,
-                "octree_cells_per_level": [self.octree.count(level) for level in range(self.octree.levels)],
-                "device": str(self.device),
-                "backend": self.backend,
-                "timings": dict(self.timings),
-            }
+            return MapStats(
+                frames=self.frames,
+                keyframes=len(self.keyframes),
+                iterations=self.iterations,
+                anchors=len(self.anchors),
+                anchors_per_level=tuple(self.anchors.level_counts(self.config.octree.max_level)),
+                gaussians=self.last_gaussians,
+                octree_cells_per_level=tuple(self.octree.count(level) for level in range(self.octree.levels)),
+                device=str(self.device),
+                backend=self.backend,
+                timings=dict(self.timings),
+            )
 
     def decode_at(self, camera_center: np.ndarray) -> GaussianSet:
         """Every anchor's Gaussians as seen from ``camera_center`` (colours and opacities depend on

@@ -43,7 +43,7 @@ def test_restored_map_keeps_mapping(mapped):
     restored = Mapper.restore(mapper.snapshot())
     result = restored.process(source[1])
     assert result.keyframe and result.iterations > 0
-    assert restored.stats()["frames"] == mapper.frames + 1
+    assert restored.stats().frames == mapper.frames + 1
 
 
 def test_snapshot_metadata_and_corruption(mapped):

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import logging
-import secrets
 import threading
 import time
 import uuid
@@ -18,7 +17,7 @@ from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.config import PRESETS, resolve
 from ogmapping.mapper import Mapper
-from ogserver import __version__, validation
+from ogserver import __version__, auth, messages, validation
 from ogserver.errors import ServiceError, exhausted, invalid
 from ogserver.recorder import Recorder
 from ogserver.session import Session
@@ -90,8 +89,7 @@ class Registry:
             created_unix=time.time(), server_version=__version__, restored_from_sha256=restored,
         )
         recorder = Recorder(self.record_dir / f"{session_id}.mcap", config)
-        session = Session(session_id, secrets.token_urlsafe(32), mapper, config, recorder, self.settings.limits)
-        session.anchors = int(mapper.stats().get("anchors", 0))
+        session = Session(config, auth.new_token(), mapper, recorder, self.settings.limits)
         with self._lock:
             self._sessions[session_id] = session
         log.info("session %s opened (preset %r, device %s)", session_id, preset or "restored", mapper.device)
@@ -103,7 +101,7 @@ class Registry:
             session = self._sessions.get(session_id)
         if session is None:
             raise ServiceError(grpc.StatusCode.NOT_FOUND, f"session_id: no session {session_id}")
-        session.authenticate(token)
+        auth.check_token(token, session.token)
         return session
 
     def sessions(self) -> list[Session]:
@@ -118,7 +116,7 @@ class Registry:
 
     def _finish(self, session: Session) -> Closed:
         session.close()
-        stats = session.stats()
+        stats = messages.stats(session.config, session.map_stats(), session.counters())
         snapshot = None
         if self.settings.final_snapshots:
             snapshot = self.record_dir / f"{session.id}.safetensors"

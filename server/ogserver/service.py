@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import time
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 
@@ -12,7 +13,7 @@ from ogapi import SESSION_METADATA_KEY, TOKEN_METADATA_KEY
 from ogapi.v1 import mapping_pb2 as pb
 from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 
-from ogserver import stream, validation
+from ogserver import messages, stream, validation
 from ogserver.errors import ServiceError, exhausted, invalid
 from ogserver.registry import Registry
 from ogserver.session import Session
@@ -41,10 +42,11 @@ def metadata(context: grpc.ServicerContext, key: str) -> str:
 
 
 def credentials(session: Session) -> pb.SessionCredentials:
-    return pb.SessionCredentials(
-        session_id=session.id, token=session.token, config_json=session.config.config_json,
-        device=session.config.device, recording=str(session.recorder.path),
-    )
+    return messages.credentials(session.config, session.token, session.recorder.path)
+
+
+def info(session: Session) -> pb.SessionInfo:
+    return messages.session_info(session.config, session.counters(), session.streaming, session.recorder.path)
 
 
 class MappingService(pb_grpc.MappingServicer):
@@ -72,21 +74,21 @@ class MappingService(pb_grpc.MappingServicer):
     def Render(self, request: pb.RenderRequest, context: grpc.ServicerContext) -> pb.RenderResponse:
         with status_errors(context):
             session = self._session(request.session_id, context)
-            return session.render(validation.render_request(request, self.limits.max_image_pixels))
+            spec = validation.render_request(request, self.limits.max_image_pixels)
+            start = time.perf_counter()
+            response = messages.render_response(spec, session.render(spec))
+            response.render_seconds = time.perf_counter() - start
+            return response
 
     def GetStats(self, request: pb.GetStatsRequest, context: grpc.ServicerContext) -> pb.Stats:
         with status_errors(context):
-            return self._session(request.session_id, context).stats()
+            session = self._session(request.session_id, context)
+            return messages.stats(session.config, session.map_stats(), session.counters())
 
     def GetSnapshot(self, request: pb.GetSnapshotRequest, context: grpc.ServicerContext) -> Iterator[pb.SnapshotChunk]:
         with status_errors(context):
             data = self._session(request.session_id, context).snapshot()
-            digest = hashlib.sha256(data).hexdigest()
-            size = min(SNAPSHOT_CHUNK_BYTES, self.limits.max_message_bytes // 2)
-            for offset in range(0, max(len(data), 1), size):
-                yield pb.SnapshotChunk(
-                    data=data[offset : offset + size], offset=offset, total_bytes=len(data), sha256=digest
-                )
+            yield from messages.snapshot_chunks(data, min(SNAPSHOT_CHUNK_BYTES, self.limits.max_message_bytes // 2))
 
     def RestoreSession(
         self, request_iterator: Iterable[pb.RestoreChunk], context: grpc.ServicerContext
@@ -109,7 +111,7 @@ class MappingService(pb_grpc.MappingServicer):
 
     def ListSessions(self, request: pb.ListSessionsRequest, context: grpc.ServicerContext) -> pb.ListSessionsResponse:
         with status_errors(context):
-            return pb.ListSessionsResponse(sessions=[session.info() for session in self.registry.sessions()])
+            return pb.ListSessionsResponse(sessions=[info(session) for session in self.registry.sessions()])
 
     def CloseSession(self, request: pb.CloseSessionRequest, context: grpc.ServicerContext) -> pb.CloseSessionResponse:
         with status_errors(context):

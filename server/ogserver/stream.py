@@ -2,7 +2,8 @@
 
 A frame that fails validation is answered with an error ack (``accepted`` false, ``error`` set)
 and the stream goes on; the response stream ends once the client has half-closed and every
-accepted frame has been acknowledged.
+accepted frame has been acknowledged. The reader, the session's worker and gRPC's cancellation
+callback post typed events (``events.py``) to one queue, which the call reads in order.
 """
 
 from __future__ import annotations
@@ -11,25 +12,22 @@ import logging
 import queue
 import threading
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from typing import assert_never
 
 import grpc
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogserver import validation
+from ogserver import messages, validation
 from ogserver.errors import ServiceError
-from ogserver.session import Session, error_ack
+from ogserver.events import Acked, Cancelled, ReaderDone, Rejected, SessionClosed, StreamEvent
+from ogserver.session import Session
 
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
-class ReaderDone:
-    accepted: int
-    error: ServiceError | None = None
-
-
-def _read(session: Session, requests: Iterable[pb.Frame], sink: queue.SimpleQueue, max_pixels: int) -> None:
+def _read(
+    session: Session, requests: Iterable[pb.Frame], sink: queue.SimpleQueue[StreamEvent], max_pixels: int
+) -> None:
     accepted, error = 0, None
     try:
         for message in requests:
@@ -38,7 +36,7 @@ def _read(session: Session, requests: Iterable[pb.Frame], sink: queue.SimpleQueu
                 frame = validation.frame(message, max_pixels)
             except ServiceError as refusal:
                 session.count_rejected()
-                sink.put(("rejected", error_ack(message.index, refusal)))
+                sink.put(Rejected(messages.error_ack(message.index, refusal)))
                 continue
             if not session.submit(frame, message, sink):
                 error = ServiceError(grpc.StatusCode.ABORTED, "session_id: the session was closed during the stream")
@@ -47,15 +45,15 @@ def _read(session: Session, requests: Iterable[pb.Frame], sink: queue.SimpleQueu
     except Exception as failure:  # a cancelled call ends its request iterator with an error
         log.debug("session %s: frame stream ended: %s", session.id, failure)
     finally:
-        sink.put(("done", ReaderDone(accepted, error)))
+        sink.put(ReaderDone(accepted, error))
 
 
 def serve(
     session: Session, requests: Iterable[pb.Frame], context: grpc.ServicerContext, max_pixels: int
 ) -> Iterator[pb.FrameAck]:
-    sink: queue.SimpleQueue = queue.SimpleQueue()
+    sink: queue.SimpleQueue[StreamEvent] = queue.SimpleQueue()
     with session.stream(sink):
-        context.add_callback(lambda: sink.put(("cancelled", None)))
+        context.add_callback(lambda: sink.put(Cancelled()))
         reader = threading.Thread(
             target=_read, args=(session, requests, sink, max_pixels), name=f"stream-{session.id[:8]}", daemon=True
         )
@@ -63,16 +61,19 @@ def serve(
         done: ReaderDone | None = None
         acked = 0
         while done is None or acked < done.accepted:
-            kind, item = sink.get()
-            if kind == "cancelled":
-                return
-            if kind == "closed":
-                raise ServiceError(grpc.StatusCode.ABORTED, "session_id: the session was closed during the stream")
-            if kind == "done":
-                if item.error is not None:
-                    raise item.error
-                done = item
-                continue
-            if kind == "job":
-                acked += 1
-            yield item
+            match sink.get():
+                case Cancelled():
+                    return
+                case SessionClosed():
+                    raise ServiceError(grpc.StatusCode.ABORTED, "session_id: the session was closed during the stream")
+                case ReaderDone(error=ServiceError() as error):
+                    raise error
+                case ReaderDone() as finished:
+                    done = finished
+                case Acked(ack):
+                    acked += 1
+                    yield ack
+                case Rejected(ack):
+                    yield ack
+                case unexpected:
+                    assert_never(unexpected)

@@ -10,6 +10,7 @@ import pytest
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.messages import frame_to_proto
 from ogserver.errors import ServiceError
+from ogserver.events import Acked, SessionClosed
 from ogserver.recorder import Recorder
 from ogserver.session import Session
 from ogserver.settings import Limits
@@ -24,7 +25,7 @@ from .scene import FROZEN, PRESET, scene
 def make_session(tmp_path: Path, limits: Limits) -> Session:
     config = pb.SessionConfig(session_id="1" * 32, preset=PRESET)
     recorder = Recorder(tmp_path / "session.mcap", config)
-    return Session("1" * 32, "token", Mapper(resolve(PRESET, overrides=FROZEN)), config, recorder, limits)
+    return Session(config, "token", Mapper(resolve(PRESET, overrides=FROZEN)), recorder, limits)
 
 
 def submit(session: Session, position: int, sink: queue.SimpleQueue) -> None:
@@ -38,8 +39,8 @@ def test_anchor_limit_refuses_further_frames(tmp_path: Path) -> None:
     try:
         session.check_capacity()
         submit(session, 0, sink)
-        kind, ack = sink.get(timeout=60)
-        assert kind == "job" and ack.accepted and ack.anchors > 10
+        event = sink.get(timeout=60)
+        assert isinstance(event, Acked) and event.ack.accepted and event.ack.anchors > 10
         with pytest.raises(ServiceError) as refusal:
             session.check_capacity()
         assert refusal.value.code == grpc.StatusCode.RESOURCE_EXHAUSTED and "anchors" in refusal.value.message
@@ -55,10 +56,12 @@ def test_close_drops_queued_frames_and_ends_the_stream(tmp_path: Path) -> None:
         for position in range(4):
             submit(session, position, sink)
         session.close()
-        kinds = []
+        events = []
         while not sink.empty():
-            kinds.append(sink.get()[0])
-    assert kinds[-1] == "closed" and kinds.count("job") == session.mapped <= 4
-    assert session.pending == 0
+            events.append(sink.get())
+    counters = session.counters()
+    assert isinstance(events[-1], SessionClosed)
+    assert sum(isinstance(event, Acked) for event in events) == counters.mapped <= 4
+    assert counters.pending == 0
     assert not session.submit(validate_frame(frame_to_proto(scene("0:1").load(0)), 1 << 20), pb.Frame(), None)
     session.recorder.close()

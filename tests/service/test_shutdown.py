@@ -62,4 +62,4 @@ def test_sigterm_finishes_recordings_and_writes_final_snapshots(tmp_path: Path) 
     stats_channel = next(cid for cid, channel in summary.channels.items() if channel.topic == recording.TOPIC_STATS)
     assert summary.statistics.channel_message_counts[stats_channel] == 1
     snapshot = Path(path).with_suffix(".safetensors")
-    assert Mapper.restore(snapshot.read_bytes(), "cpu").stats()["anchors"] == anchors
+    assert Mapper.restore(snapshot.read_bytes(), "cpu").stats().anchors == anchors

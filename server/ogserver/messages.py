@@ -1,0 +1,90 @@
+"""The ogapi messages built from the engine's and the session's results.
+
+The session and the servicer deal in typed results (``FrameResult``, ``Rendered``, ``MapStats``,
+``SessionCounters``, snapshot bytes); how they look on the wire is decided here.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+from ogapi.images import encode_color, encode_depth
+from ogapi.v1 import mapping_pb2 as pb
+
+from ogmapping.mapper import FrameResult, Rendered
+from ogmapping.stats import MapStats
+from ogserver.counters import SessionCounters
+from ogserver.errors import ServiceError
+from ogserver.validation import RenderSpec
+
+RENDER_DEPTH_SCALE = 1000.0  # PNG16 renders are millimetres
+
+
+def error_ack(index: int, error: ServiceError) -> pb.FrameAck:
+    return pb.FrameAck(
+        index=index, accepted=False,
+        error=pb.Error(code=error.code.value[0], code_name=error.code.name, message=error.message),
+    )
+
+
+def frame_ack(result: FrameResult, sequence: int, latency_seconds: float, queue_depth: int) -> pb.FrameAck:
+    return pb.FrameAck(
+        index=result.index, accepted=True, sequence=sequence, keyframe=result.keyframe,
+        anchors=result.anchors, gaussians=result.gaussians, iterations=result.iterations,
+        latency_seconds=latency_seconds, process_seconds=result.seconds, queue_depth=queue_depth,
+    )
+
+
+def render_response(spec: RenderSpec, rendered: Rendered) -> pb.RenderResponse:
+    """The requested images in the requested encodings; the caller fills in ``render_seconds``."""
+    response = pb.RenderResponse(width=spec.intrinsics.width, height=spec.intrinsics.height)
+    if spec.color:
+        response.color.encoding = spec.color_encoding
+        response.color.data = encode_color(rendered.color, spec.color_encoding, spec.jpeg_quality)
+    if spec.depth:
+        response.depth.encoding = spec.depth_encoding
+        response.depth.data = encode_depth(rendered.depth, spec.depth_encoding, RENDER_DEPTH_SCALE)
+        if spec.depth_encoding == pb.DEPTH_PNG16:
+            response.depth.depth_scale = RENDER_DEPTH_SCALE
+    return response
+
+
+def stats(config: pb.SessionConfig, engine: MapStats, counters: SessionCounters) -> pb.Stats:
+    return pb.Stats(
+        session_id=config.session_id, preset=config.preset, device=engine.device,
+        frames=counters.mapped, frames_received=counters.received, frames_rejected=counters.rejected,
+        queue_depth=counters.pending, processing_fps=counters.processing_fps, uptime_seconds=counters.uptime_seconds,
+        keyframes=engine.keyframes, anchors=engine.anchors, anchors_per_level=engine.anchors_per_level,
+        gaussians=engine.gaussians, iterations=engine.iterations, timings=engine.timings,
+        engine_json=json.dumps(engine.to_dict()), config_json=config.config_json,
+    )
+
+
+def session_info(
+    config: pb.SessionConfig, counters: SessionCounters, streaming: bool, recording: Path
+) -> pb.SessionInfo:
+    """A session as ListSessions shows it: never its token."""
+    return pb.SessionInfo(
+        session_id=config.session_id, preset=config.preset, label=config.label, device=config.device,
+        created_unix=config.created_unix, frames=counters.mapped, anchors=counters.anchors,
+        queue_depth=counters.pending, streaming=streaming, recording=str(recording),
+    )
+
+
+def snapshot_chunks(data: bytes, chunk_bytes: int) -> Iterator[pb.SnapshotChunk]:
+    """Chunks of at most ``chunk_bytes``, each with its offset, the total size and the sha256; at least one."""
+    digest = hashlib.sha256(data).hexdigest()
+    for offset in range(0, max(len(data), 1), chunk_bytes):
+        yield pb.SnapshotChunk(
+            data=data[offset : offset + chunk_bytes], offset=offset, total_bytes=len(data), sha256=digest
+        )
+
+
+def credentials(config: pb.SessionConfig, token: str, recording: Path) -> pb.SessionCredentials:
+    return pb.SessionCredentials(
+        session_id=config.session_id, token=token, config_json=config.config_json, device=config.device,
+        recording=str(recording),
+    )
