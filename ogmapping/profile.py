@@ -6,7 +6,7 @@ path, so one session cannot mix the two halves of a choice. The rule for the Num
 (rasterizer, Gaussian assembly, hash encoding, fused loss, SSIM blur, lazy Adam's step): they run
 iff the device is the CPU and the backend resolves to ``cpu``, so ``backend="torch"`` on the CPU
 runs the pure-torch reference end to end. ``auto`` resolves as ``render.resolve_backend`` does:
-``cpu`` on the CPU, ``gsplat`` on CUDA when importable, else ``torch``.
+``cpu`` on the CPU, ``gsplat`` on CUDA when it can render there, else ``torch`` (with a warning).
 """
 
 from __future__ import annotations

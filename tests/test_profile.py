@@ -14,6 +14,7 @@ from ogmapping.config import resolve
 from ogmapping.datasets.synthetic import SyntheticSource
 from ogmapping.mapper import Mapper
 from ogmapping.profile import execution_profile, resolve_device
+from ogmapping.render import gsplat_backend
 
 SETTINGS = {"keyframes.first_iterations": 3, "keyframes.iterations": 1, "keyframes.frame_iterations": 1,
             "model.hash_log2_size": 12}
@@ -24,15 +25,17 @@ COMPILED_MODULES = {"sparse": SPARSE_KERNELS,
                     "dense": SPARSE_KERNELS | {"ogmapping.encoding_cpu", "ogmapping.lazy_adam"}}
 
 
-def test_compiled_kernels_run_on_the_cpu_with_the_cpu_backend_only():
+def test_compiled_kernels_run_on_the_cpu_with_the_cpu_backend_only(monkeypatch):
     cpu = execution_profile("cpu", "auto", "anchor")
     assert (cpu.device, cpu.backend, cpu.compiled, cpu.threads, cpu.precision) == (
         torch.device("cpu"), "cpu", True, 1, torch.float32)
     assert execution_profile("cpu", "cpu", "hash").threads is None
     reference = execution_profile("cpu", "torch", "anchor")
     assert (reference.backend, reference.compiled) == ("torch", False)
-    cuda = execution_profile("cuda", "auto", "anchor")
-    assert cuda.backend in ("gsplat", "torch") and not cuda.compiled and cuda.threads is None
+    monkeypatch.setattr(gsplat_backend, "unavailable_reason", lambda: "gsplat is not installed")
+    with pytest.warns(RuntimeWarning, match="falls back to the pure-torch reference"):
+        cuda = execution_profile("cuda", "auto", "anchor")
+    assert cuda.backend == "torch" and not cuda.compiled and cuda.threads is None
     assert not execution_profile("cuda", "cpu", "anchor").compiled
     with pytest.raises(ValueError, match="unknown rasterizer backend"):
         execution_profile("cpu", "vulkan", "anchor")

@@ -4,32 +4,45 @@ Backends (all render colour, expected depth and alpha, and expose the screen-spa
 - ``torch``: pure PyTorch through autograd; the reference the others are checked against.
 - ``cpu``: compiled CPU kernels with a hand-written backward (Numba).
 - ``gsplat``: CUDA through ``gsplat.rasterization``.
-``auto`` picks ``cpu`` for CPU tensors and, for CUDA tensors, ``gsplat`` when it is installed,
-else ``torch``. What every backend implements and returns lives in ``rules.py`` and ``output.py``,
-which the backends import instead of this entry.
+``auto`` picks ``cpu`` for CPU tensors and, for CUDA tensors, ``gsplat`` when it can render there
+(``gsplat_backend.unavailable_reason``), else ``torch`` with a warning. What every backend
+implements and returns lives in ``rules.py`` and ``output.py``, which the backends import instead
+of this entry.
 """
 
 from __future__ import annotations
 
 import importlib
+import warnings
 
 import torch
 
 from ogmapping.backends import BACKENDS
+from ogmapping.render import gsplat_backend
 from ogmapping.render.output import RenderOutput
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:
-    """Turn ``auto`` into a concrete backend name for ``device``."""
+    """Turn ``auto`` into a concrete backend name for ``device``.
+
+    ``gsplat`` asked for by name must be able to render (ImportError with the install hint
+    otherwise); ``auto`` on CUDA falls back to the pure-torch reference, with a RuntimeWarning
+    that says why, because that reference takes seconds per 640x480 render.
+    """
+    if backend not in (*BACKENDS, "auto"):
+        raise ValueError(f"unknown rasterizer backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+    if backend == "gsplat":
+        gsplat_backend.require()
     if backend != "auto":
-        if backend not in BACKENDS:
-            raise ValueError(f"unknown rasterizer backend {backend!r}; choose one of {', '.join(BACKENDS)}")
         return backend
-    if device.type == "cuda" and importlib.util.find_spec("gsplat") is not None:
+    if device.type != "cuda":
+        return "cpu"
+    reason = gsplat_backend.unavailable_reason()
+    if reason is None:
         return "gsplat"
-    if device.type == "cuda":
-        return "torch"
-    return "cpu"
+    warnings.warn(f"{reason}; mapping on {device} falls back to the pure-torch reference rasterizer, which takes "
+                  f"seconds per 640x480 render. {gsplat_backend.INSTALL_HINT}", RuntimeWarning, stacklevel=2)
+    return "torch"
 
 
 def rasterize(

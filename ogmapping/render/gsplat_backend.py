@@ -1,8 +1,13 @@
-"""CUDA backend: the shared ``rasterize()`` signature over ``gsplat.rasterization`` (gsplat >= 1.4).
+"""CUDA backend: the shared ``rasterize()`` signature over ``gsplat.rasterization`` (gsplat 1.5.x).
 
-gsplat is imported lazily so the engine imports on machines without it. Its kernels follow the
-shared rules of ``ogmapping.render`` with these differences (gsplat 1.5.x; fixed in its CUDA code,
-not settable from Python):
+gsplat is imported lazily so the engine imports on machines without it. ``unavailable_reason``
+says whether it can render here: the package may be missing, of another minor version (1.4 bounds
+Gaussians at 3 sigma and does not cull by opacity; gsplat's main branch after 1.5.3 caps alpha at
+0.99), or installed without its compiled kernels, which gsplat 1.5 reports only by setting
+``gsplat.cuda._backend._C`` to None, so that every render would fail.
+
+Its kernels follow the shared rules of ``ogmapping.render`` with these differences (gsplat 1.5.x;
+fixed in its CUDA code, not settable from Python):
 
 - alpha cap: gsplat clamps per-pixel alpha to 0.999, ours is ``ALPHA_MAX`` = 0.99. Renders agree
   wherever opacity * G(x) <= 0.99; above that gsplat lets less light through.
@@ -18,10 +23,15 @@ not settable from Python):
   the other.
 - depth: "RGB+ED" composites each centre's camera z and divides by alpha (clamped at 1e-10), which
   is our expected depth and gives 0 where alpha is 0.
-- ``means2d`` of culled Gaussians is 0 rather than their projection; use it where ``visible``.
+- ``means2d`` of culled Gaussians is 0 rather than their projection (gsplat leaves them
+  uninitialised; ``_screen_means`` zeroes them); use it where ``visible``.
+- dtype: gsplat takes float32 only; other inputs are cast to it and the outputs back.
 """
 
 from __future__ import annotations
+
+import functools
+from collections.abc import Callable
 
 import torch
 
@@ -29,24 +39,58 @@ from ogmapping.render.output import RenderOutput
 from ogmapping.render.rules import COVARIANCE_BLUR, NEAR_PLANE
 
 INSTALL_HINT = (
-    "the gsplat backend needs the gsplat package and a CUDA build of PyTorch: "
-    "`pip install gsplat` (or `pip install -e '.[cuda]'`), see docs/cuda.md"
+    "the gsplat backend needs gsplat 1.5.x with its CUDA kernels and a CUDA build of PyTorch: "
+    "`pip install --no-build-isolation --no-binary gsplat 'gsplat>=1.5,<1.6'` builds them once "
+    "(needs nvcc), see docs/cuda.md"
 )
+SUPPORTED_MINOR = (1, 5)
 
 
-def _screen_means(projected: torch.Tensor) -> torch.Tensor:
-    """(N, 2) pixel centres whose ``.grad`` receives gsplat's screen-space gradient.
+@functools.cache
+def unavailable_reason() -> str | None:
+    """Why gsplat cannot render on this machine, or None when it can.
+
+    Cached: the first call imports gsplat's compiled module, which gsplat builds just in time (for
+    minutes) when it finds nvcc and no compiled kernels.
+    """
+    try:
+        import gsplat
+    except ImportError as error:
+        return f"gsplat is not installed ({error})"
+    version = gsplat.__version__
+    if tuple(int(part) for part in version.split(".")[:2]) != SUPPORTED_MINOR:
+        return f"gsplat {version} is installed, but this backend implements the rules of gsplat 1.5.x"
+    try:
+        from gsplat.cuda._backend import _C
+    except Exception as error:  # its just-in-time build can fail in any way the compiler does
+        return f"gsplat {version} could not load its CUDA kernels ({type(error).__name__}: {error})"
+    if _C is None:
+        return (f"gsplat {version} is installed without compiled CUDA kernels, and found no CUDA toolkit "
+                "(nvcc) to build them")
+    return None
+
+
+def require() -> None:
+    """Raise ImportError with the reason and the install hint when gsplat cannot render here."""
+    reason = unavailable_reason()
+    if reason is not None:
+        raise ImportError(f"{reason}; {INSTALL_HINT}")
+
+
+def _screen_means(projected: torch.Tensor, visible: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """(N, 2) pixel centres in ``dtype`` whose ``.grad`` receives gsplat's screen-space gradient.
 
     gsplat renders from its own (1, N, 2) tensor, so a plain view of it would never get a gradient;
-    a leaf mirror filled by a backward hook keeps the shared ``means2d.grad`` contract.
+    a leaf mirror filled by a backward hook keeps the shared ``means2d.grad`` contract. gsplat leaves
+    the entries of culled Gaussians uninitialised (``at::empty``); the mirror holds 0 there.
     """
-    mirror = projected[0].detach()
+    mirror = projected[0].detach().masked_fill(~visible.unsqueeze(-1), 0.0).to(dtype)
     if not projected.requires_grad:
         return mirror
     mirror.requires_grad_(True)
 
     def receive(grad: torch.Tensor) -> None:
-        step = grad[0].detach()
+        step = grad[0].detach().to(dtype)
         mirror.grad = step.clone() if mirror.grad is None else mirror.grad + step
 
     projected.register_hook(receive)
@@ -81,23 +125,36 @@ def rasterize(
     background: torch.Tensor | None = None,
 ) -> RenderOutput:
     """Render with gsplat; see ``ogmapping.render.rasterize`` for shapes and conventions."""
-    try:
-        from gsplat import rasterization
-    except ImportError as error:
-        raise ImportError(INSTALL_HINT) from error
+    require()
     if means.device.type != "cuda":
         raise ValueError(f"the gsplat backend renders CUDA tensors only, got {means.device}")
     if means.shape[0] == 0:
         return _empty(means, width, height, background)
+    from gsplat import rasterization
 
+    gaussians = (means, quats, scales, opacities, colors)
+    return render_with(rasterization, gaussians, viewmat, K, width, height, background)
+
+
+def render_with(
+    rasterization: Callable[..., tuple[torch.Tensor, torch.Tensor, dict]],
+    gaussians: tuple[torch.Tensor, ...],
+    viewmat: torch.Tensor,
+    K: torch.Tensor,
+    width: int,
+    height: int,
+    background: torch.Tensor | None,
+) -> RenderOutput:
+    """One call of gsplat's ``rasterization`` on ``gaussians`` (means, quats, scales, opacities, colours).
+
+    gsplat's kernels take float32 only: inputs are cast to it and the outputs back to the dtype of
+    the means, as the CPU backend does. Passed in (not imported here) so tests can stand in for it.
+    """
+    dtype, device, work = gaussians[0].dtype, gaussians[0].device, torch.float32
     render, alpha, meta = rasterization(
-        means,
-        quats,
-        scales,
-        opacities,
-        colors,
-        viewmat.to(means)[None],
-        K.to(means)[None],
+        *(tensor.to(work) for tensor in gaussians),
+        viewmat.to(device=device, dtype=work)[None],
+        K.to(device=device, dtype=work)[None],
         width,
         height,
         near_plane=NEAR_PLANE,
@@ -105,14 +162,13 @@ def rasterize(
         packed=False,
         render_mode="RGB+ED",
         rasterize_mode="classic",
-        backgrounds=None if background is None else background.to(means).reshape(1, 3),
+        backgrounds=None if background is None else background.to(device=device, dtype=work).reshape(1, 3),
     )
-    radii = meta["radii"][0]  # (N, 2) in gsplat 1.5, (N,) in 1.4
-    visible = (radii > 0).all(dim=-1) if radii.dim() == 2 else radii > 0
+    visible = (meta["radii"][0] > 0).all(dim=-1)  # (N, 2): a Gaussian is culled where either radius is 0
     return RenderOutput(
-        color=render[0, ..., :3],
-        depth=render[0, ..., 3],
-        alpha=alpha[0, ..., 0],
-        means2d=_screen_means(meta["means2d"]),
+        color=render[0, ..., :3].to(dtype),
+        depth=render[0, ..., 3].to(dtype),
+        alpha=alpha[0, ..., 0].to(dtype),
+        means2d=_screen_means(meta["means2d"], visible, dtype),
         visible=visible,
     )
