@@ -8,6 +8,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from ogmapping.device_constants import on_device
+
 # Added to the decoded rotation so an untrained decoder yields valid, unrotated Gaussians.
 IDENTITY_QUAT = torch.tensor([1.0, 0.0, 0.0, 0.0])
 
@@ -67,5 +69,5 @@ def activate(opacity: torch.Tensor, color: torch.Tensor, cov: torch.Tensor, n: i
         opacity=torch.tanh(opacity),
         color=torch.sigmoid(color.view(count, n, 3)),
         scale_factor=torch.sigmoid(cov[..., :3]),
-        quat=cov[..., 3:] + IDENTITY_QUAT.to(cov),
+        quat=cov[..., 3:] + on_device(IDENTITY_QUAT, cov.device, cov.dtype),
     )

@@ -8,6 +8,7 @@ import torch
 from torch import nn
 
 from ogmapping.config import ModelConfig
+from ogmapping.device_constants import on_device
 from ogmapping.encoding_cpu import HashEncode
 from ogmapping.lazy_adam import RowGradients, SparseRowGather
 
@@ -49,12 +50,12 @@ class HashGridEncoding(nn.Module):
         scaled = points.unsqueeze(1) * self.resolutions.view(1, -1, 1)  # (M, L, 3)
         base = torch.floor(scaled)
         fraction = scaled - base
-        corners = base.to(torch.int64).unsqueeze(2) + CORNERS.to(points.device)  # (M, L, 8, 3)
+        corners = base.to(torch.int64).unsqueeze(2) + on_device(CORNERS, points.device, torch.int64)  # (M, L, 8, 3)
         index = self._hash(corners)  # (M, L, 8)
         level_start = torch.arange(self.levels, device=points.device).view(1, -1, 1) * self.table_size
         rows = (index + level_start).reshape(-1)
         values = SparseRowGather.apply(self.table, rows, self.gradients).view(*index.shape, -1)  # (M, L, 8, F)
-        corner_bits = CORNERS.to(points.device, points.dtype)
+        corner_bits = on_device(CORNERS, points.device, points.dtype)
         weights = torch.where(
             corner_bits.view(1, 1, 8, 3) > 0, fraction.unsqueeze(2), 1.0 - fraction.unsqueeze(2)
         ).prod(-1)  # (M, L, 8)

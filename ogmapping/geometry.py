@@ -2,15 +2,22 @@
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 from ogmapping.camera import Intrinsics
 
 
+@functools.lru_cache(maxsize=64)
 def intrinsics_matrix(
     intrinsics: Intrinsics, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32
 ) -> torch.Tensor:
-    """The 3x3 pixel matrix K as a tensor, as the rasterizer takes it."""
+    """The 3x3 pixel matrix K as a tensor, as the rasterizer takes it; shared, never modify it.
+
+    Cached: on CUDA every new tensor is a host-to-device copy (a host synchronisation), and the
+    mapper renders the same few intrinsics thousands of times.
+    """
     return torch.as_tensor(intrinsics.matrix(), dtype=dtype, device=device)
 
 

@@ -16,11 +16,15 @@ from ogmapping.ssim import ReferenceStatistics, ssim_map
 
 
 def depth_l1(render_depth: torch.Tensor, gt_depth: torch.Tensor) -> torch.Tensor:
-    """Mean |rendered - measured| over pixels with a valid (positive, finite) measurement; 0 if none."""
-    valid = (gt_depth > 0) & torch.isfinite(gt_depth)
-    if not bool(valid.any()):
-        return render_depth.sum() * 0.0  # keeps the graph (and device, dtype) without a NaN
-    return (render_depth[valid] - gt_depth[valid]).abs().mean()
+    """Mean |rendered - measured| over pixels with a valid (positive, finite) measurement; 0 if none.
+
+    A masked sum over whole images rather than a gather of the valid pixels: the gather's size
+    depends on the data, which on CUDA makes the host wait for the device at every view.
+    """
+    measured = torch.nan_to_num(gt_depth, nan=0.0, posinf=0.0, neginf=0.0)  # invalid -> 0, never NaN * 0
+    valid = measured > 0
+    total = torch.where(valid, (render_depth - measured).abs(), 0.0).sum()
+    return total / valid.sum().clamp_min(1)
 
 
 def mapping_loss(

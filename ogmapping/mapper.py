@@ -189,12 +189,13 @@ class Mapper:
 
     def _optimise(self, iterations: int, view: Keyframe) -> tuple[float, int]:
         """``iterations`` steps, each on a fresh window around ``view``; grow and prune every
-        ``refine.interval`` steps of the whole session (frames may get fewer steps than that)."""
-        loss_value, grown = float("nan"), 0
+        ``refine.interval`` steps of the whole session (frames may get fewer steps than that).
+        Returns the last step's loss, read from the device once, after the loop."""
+        loss, grown = torch.full((), float("nan")), 0
         interval = self.config.refine.interval
         for _ in range(iterations):
             with self.lock:
-                loss_value = self._iteration(self.keyframes.draw_window(view))
+                loss = self._iteration(self.keyframes.draw_window(view))
                 self.iterations += 1
                 if self.iterations % interval == 0:
                     with self._timed("refine"):
@@ -202,9 +203,11 @@ class Mapper:
                                              self.config.octree.voxel_size, self.optimizer)
                         refine.prune(self.anchors, self.config.refine, self.optimizer)
                         refine.end_interval(self.anchors)
-        return loss_value, grown
+        return float(loss), grown
 
-    def _iteration(self, window: list[Keyframe]) -> float:
+    def _iteration(self, window: list[Keyframe]) -> torch.Tensor:
+        """One optimisation step on ``window``; returns its loss as a tensor on the device (reading it
+        on the host would wait for the step to finish)."""
         self.optimizer.zero_grad(set_to_none=True)
         if self.hash_optimizer is not None:
             self.hash_optimizer.zero_grad()
@@ -234,7 +237,7 @@ class Mapper:
             if self.hash_optimizer is not None:
                 self.hash_optimizer.step()
         self.last_gaussians = len(renders[0][0]) if renders else 0
-        return float(total.detach())
+        return total.detach()
 
     def _window_scale(self, width: int) -> float:
         """Scale for a global window keyframe: ``window_scale``, but not below ``window_min_width``

@@ -36,12 +36,15 @@ def accumulate(anchors: AnchorMap, gaussians: GaussianSet, means2d_grad: torch.T
     )
     if means2d_grad is None or len(gaussians) == 0:
         return
-    scale = means2d_grad.new_tensor([width / 2.0, height / 2.0])
-    seen = torch.nonzero(visible).squeeze(-1)
-    norms = (means2d_grad[seen] * scale).norm(dim=-1)
-    rows, slots = gaussians.rows[seen], gaussians.slots[seen]
+    # Scaled by Python numbers, not a new tensor (a host-to-device copy per render on CUDA); every
+    # Gaussian, adding 0 where it is not visible, instead of a gather of the visible ones (its
+    # data-dependent size makes the host wait for the device). Each (row, slot) appears once per
+    # render, so the sums are the same to the bit.
+    scaled = torch.stack([means2d_grad[:, 0] * (width / 2.0), means2d_grad[:, 1] * (height / 2.0)], dim=-1)
+    norms = torch.where(visible, scaled.norm(dim=-1), 0.0)
+    rows, slots = gaussians.rows, gaussians.slots
     anchors.grad_sum.index_put_((rows, slots), norms.to(anchors.grad_sum), accumulate=True)
-    anchors.grad_count.index_put_((rows, slots), torch.ones_like(rows), accumulate=True)
+    anchors.grad_count.index_put_((rows, slots), visible.to(rows.dtype), accumulate=True)
 
 
 @dataclass

@@ -51,6 +51,20 @@ def test_depth_uses_valid_pixels_only(compiled):
 
 
 @pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "autograd"])
+def test_non_finite_measurements_are_invalid_and_pass_no_gradient(compiled):
+    color, depth, scales = _scene()
+    gt = depth.clone()
+    gt[0], gt[1], gt[2], gt[3] = float("nan"), float("inf"), float("-inf"), -1.0
+    render = (depth + 0.25 * torch.rand(16, 16, generator=torch.Generator().manual_seed(1))).requires_grad_()
+    _, parts = mapping_loss(color, render, color, gt, scales, LossConfig(), compiled=compiled)
+    valid = torch.isfinite(gt) & (gt > 0)
+    expected = (render[valid] - gt[valid]).abs().mean()
+    assert float(parts["depth"].detach()) == pytest.approx(float(expected.detach()), rel=1e-6)
+    parts["depth"].backward()
+    assert bool(torch.isfinite(render.grad).all()) and bool((render.grad[~valid] == 0).all())
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "autograd"])
 def test_weights_and_gradients(compiled):
     color, depth, scales = _scene()
     render_color = (color * 0.8).requires_grad_()

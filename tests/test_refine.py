@@ -6,8 +6,9 @@ import torch
 
 from ogmapping.anchors import AnchorMap
 from ogmapping.config import RefineConfig
+from ogmapping.gaussians import GaussianSet
 from ogmapping.octree import SparseVoxelOctree
-from ogmapping.refine import grow, propose, propose_error, prune
+from ogmapping.refine import accumulate, grow, propose, propose_error, prune
 
 VOXEL = 0.4
 CONFIG = RefineConfig(grad_threshold=1.0, min_observations=1, max_new_anchors=100)
@@ -162,3 +163,17 @@ def test_no_growth_grows_nothing():
     none = RefineConfig(grad_threshold=1.0, min_observations=1, growth="none")
     assert grow(anchors, octree, none, VOXEL, None) == 0
     assert len(anchors) == 1 and [octree.count(level) for level in range(3)] == [1, 0, 0]
+
+
+def test_accumulate_adds_the_scaled_gradient_norms_of_visible_gaussians_only():
+    anchors, _ = build_map([[0.1, 0.1, 0.1], [1.1, 0.1, 0.1]], [0, 0])
+    zeros = torch.zeros(4, 3)
+    gaussians = GaussianSet(means=zeros, quats=torch.zeros(4, 4), scales=zeros, opacities=torch.full((4,), 0.5),
+                            colors=zeros, rows=torch.tensor([0, 0, 1, 1]), slots=torch.tensor([0, 1, 0, 1]),
+                            anchor_rows=torch.tensor([0, 1]), anchor_opacity=torch.tensor([0.5, 0.5]))
+    grad = torch.tensor([[1.0, 0.0], [0.0, 2.0], [float("nan"), 5.0], [3.0, 4.0]])
+    visible = torch.tensor([True, True, False, True])
+    accumulate(anchors, gaussians, grad, visible, width=4, height=2)  # pixels -> NDC: x * 2, y * 1
+    torch.testing.assert_close(anchors.grad_sum, torch.tensor([[2.0, 2.0], [0.0, math.hypot(6.0, 4.0)]]))
+    assert anchors.grad_count.tolist() == [[1, 1], [0, 1]]
+    assert anchors.observations.tolist() == [1, 1]
