@@ -1,4 +1,4 @@
-"""Pay the engine's one-time costs before the first client does.
+"""Pay the engine's one-time costs before the first client does (the server) or the clock starts (``ogmap run``).
 
 A fresh process loads each compiled kernel from Numba's cache on its first call, and torch imports
 its compiler stack the first time an optimiser is built: together about 2 s on the development
@@ -19,11 +19,13 @@ from ogmapping.mapper import Mapper
 _SETTINGS = {"keyframes.first_iterations": 2, "keyframes.iterations": 1}
 
 
-def warm_up(device: str | torch.device = "cpu") -> float:
-    """Map two tiny synthetic frames, render and snapshot a throwaway map; returns the seconds taken."""
+def warm_up(device: str | torch.device = "cpu", backend: str = "auto") -> float:
+    """Map two tiny synthetic frames, render and snapshot a throwaway map with ``backend``; returns
+    the seconds taken. On CUDA this also pays for the context, the libraries' start and the first
+    kernel loads."""
     start = time.perf_counter()
     source = SyntheticSource(n_frames=2, width=64, height=48)
-    mapper = Mapper(resolve("sparse", overrides=_SETTINGS), device)
+    mapper = Mapper(resolve("sparse", overrides={**_SETTINGS, "backend": backend}), device)
     for position in range(len(source)):
         mapper.process(source[position])
     frame = source[0]
