@@ -1,33 +1,35 @@
 #!/usr/bin/env bash
-# GPU benchmark for a bare CUDA machine that has PyTorch but maybe no network (see README.md here).
+# GPU benchmark in steps, each one call that fits a 10-minute limit (see README.md here).
 #
-# usage: bench/gpu/run.sh [DATA_DIR] [OUT_DIR]
-#   DATA_DIR  7-Scenes folder (default ../shared/data/7scenes-redkitchen)
-#   OUT_DIR   where each preset's results go (default bench/gpu/out)
-# environment: PRESETS (default "dense sparse sparse-fast"), FRAMES (0:300), SCALE (1.0),
-#   PYTHON (python3), SKIP_TESTS=1 to skip the GPU tests.
-# Wheels in .whl/ at the repository root are installed into /tmp/site first, without network.
+# usage: bench/gpu/run.sh install
+#        bench/gpu/run.sh tests
+#        bench/gpu/run.sh preset NAME DATA_DIR OUT_DIR
+#        bench/gpu/run.sh table OUT_DIR
+#   install  carried wheels (.whl/) into .gpu/site, no network; then gsplat's CUDA kernels built for
+#            this GPU, with MAX_JOBS (default: the CPU count) parallel compiler jobs
+#   tests    pytest -m gpu (gsplat against the pure-torch reference)
+#   preset   ogmap run of one preset (dense, sparse, sparse-fast) on DATA_DIR (a 7-Scenes folder);
+#            only its results.json is kept, as OUT_DIR/NAME/results.json
+#   table    OUT_DIR/table.md from OUT_DIR/*/results.json
+# environment: FRAMES (0:300), SCALE (1.0), PYTHON (python3).
+# .gpu/ (git-ignored) holds the installed packages and gsplat's build, so later steps of the same
+# session find them without building again.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 
-DATA=${1:-../shared/data/7scenes-redkitchen}
-OUT=${2:-bench/gpu/out}
-PRESETS=${PRESETS:-dense sparse sparse-fast}
-FRAMES=${FRAMES:-0:300}
-SCALE=${SCALE:-1.0}
 PY=${PYTHON:-python3}
+SITE=$PWD/.gpu/site
 export PYTHONUNBUFFERED=1
+export PYTHONPATH=$SITE:$PWD
+export TORCH_EXTENSIONS_DIR=$PWD/.gpu/torch_extensions
 
-if compgen -G ".whl/*.whl" >/dev/null; then
-    echo "== installing $(ls .whl/*.whl | wc -l) carried wheels into /tmp/site"
-    "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl
-    export PYTHONPATH=/tmp/site:$PWD
-else
-    export PYTHONPATH=$PWD
-fi
+usage() {
+    sed -n '2,16p' "$0" >&2
+    exit 2
+}
 
-echo "== versions"
-"$PY" - <<'EOF'
+versions() {
+    "$PY" - <<'EOF'
 import platform
 
 import torch
@@ -36,44 +38,71 @@ print("python", platform.python_version(), "| torch", torch.__version__, "| torc
 if not torch.cuda.is_available():
     raise SystemExit("no CUDA device visible to PyTorch: this benchmark needs one")
 print("GPU", torch.cuda.get_device_name(0), "| capability %d.%d" % torch.cuda.get_device_capability(0))
-try:
-    import gsplat
-    print("gsplat", gsplat.__version__, "at", gsplat.__file__)
-except ImportError as error:
-    print("gsplat missing:", error)
 EOF
-command -v nvcc >/dev/null && nvcc --version | tail -n 1 || echo "nvcc not on PATH (gsplat's first use compiles with it)"
+    if command -v nvcc >/dev/null; then nvcc --version | tail -n 1; else echo "nvcc not on PATH"; fi
+}
 
-# Compile gsplat's kernels now, for this GPU only, so no preset's timing includes the build.
-if [ -z "${TORCH_CUDA_ARCH_LIST:-}" ]; then
-    TORCH_CUDA_ARCH_LIST=$("$PY" -c "import torch; print('%d.%d' % torch.cuda.get_device_capability(0))")
-    export TORCH_CUDA_ARCH_LIST
-fi
-echo "== gsplat kernels (TORCH_CUDA_ARCH_LIST=$TORCH_CUDA_ARCH_LIST; the first build takes minutes)"
-start=$(date +%s)
-"$PY" -c "from gsplat.cuda._backend import _C; assert _C is not None, 'gsplat could not build its kernels'"
-echo "gsplat kernels ready after $(( $(date +%s) - start )) s"
+gsplat_status() {
+    "$PY" -c "from ogmapping.render.gsplat_backend import unavailable_reason as why; r = why(); print(r or 'gsplat usable'); raise SystemExit(r is not None)"
+}
 
-status=0
-if [ "${SKIP_TESTS:-0}" != 1 ]; then
-    echo "== GPU tests"
-    "$PY" -m pytest -m gpu -ra -q tests/test_gpu_gsplat.py || status=$?
-fi
-
-results=()
-for preset in $PRESETS; do
-    echo "== ogmap run --preset $preset (frames $FRAMES, scale $SCALE)"
-    if "$PY" -m ogmapping.cli run --data "$DATA" --frames "$FRAMES" --scale "$SCALE" --device cuda \
-        --preset "$preset" --out "$OUT/$preset" --quiet; then
-        results+=("$OUT/$preset/results.json")
-    else
-        status=1
-        echo "preset $preset failed"
+install() {
+    versions
+    mkdir -p "$SITE" .gpu/wheels
+    if compgen -G ".whl/*.whl" >/dev/null; then
+        echo "== installing $(ls .whl/*.whl | wc -l) carried wheels into $SITE"
+        "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$SITE" .whl/*.whl
     fi
-done
+    export MAX_JOBS=${MAX_JOBS:-$(nproc)}
+    if [ -z "${TORCH_CUDA_ARCH_LIST:-}" ]; then
+        TORCH_CUDA_ARCH_LIST=$("$PY" -c "import torch; print('%d.%d' % torch.cuda.get_device_capability(0))")
+        export TORCH_CUDA_ARCH_LIST
+    fi
+    local start=$SECONDS
+    if compgen -G ".whl/gsplat-*.tar.gz" >/dev/null; then
+        echo "== building a gsplat wheel from $(ls .whl/gsplat-*.tar.gz) (arch $TORCH_CUDA_ARCH_LIST, MAX_JOBS=$MAX_JOBS)"
+        "$PY" -m pip wheel -q --no-deps --no-build-isolation --no-index -w .gpu/wheels .whl/gsplat-*.tar.gz
+        "$PY" -m pip install -q --no-index --no-deps --no-compile --upgrade --target "$SITE" .gpu/wheels/gsplat-*.whl
+    else
+        echo "== gsplat's just-in-time build (arch $TORCH_CUDA_ARCH_LIST, MAX_JOBS=$MAX_JOBS) into $TORCH_EXTENSIONS_DIR"
+    fi
+    gsplat_status
+    echo "gsplat ready after $((SECONDS - start)) s"
+}
 
-if [ ${#results[@]} -gt 0 ]; then
-    echo "== results"
-    "$PY" bench/gpu/table.py "${results[@]}" | tee "$OUT/table.md"
-fi
-exit $status
+tests() {
+    gsplat_status
+    "$PY" -m pytest -m gpu -ra -q -p no:cacheprovider tests/test_gpu_gsplat.py
+}
+
+preset() {
+    [ $# -eq 3 ] || usage
+    local name=$1 data=$2 out=$3 scratch
+    gsplat_status
+    scratch=$(mktemp -d)
+    trap 'rm -rf "$scratch"' RETURN
+    echo "== ogmap run --preset $name (frames ${FRAMES:-0:300}, scale ${SCALE:-1.0})"
+    "$PY" -m ogmapping.cli run --data "$data" --frames "${FRAMES:-0:300}" --scale "${SCALE:-1.0}" --device cuda \
+        --preset "$name" --out "$scratch" --quiet
+    mkdir -p "$out/$name"
+    cp "$scratch/results.json" "$out/$name/results.json"
+    "$PY" bench/gpu/table.py "$out/$name"
+}
+
+table() {
+    [ $# -eq 1 ] || usage
+    local out=$1
+    compgen -G "$out/*/results.json" >/dev/null || { echo "no results in $out" >&2; exit 1; }
+    "$PY" bench/gpu/table.py "$out"/*/results.json | tee "$out/table.md"
+}
+
+[ $# -ge 1 ] || usage
+step=$1
+shift
+case $step in
+    install) install ;;
+    tests) tests ;;
+    preset) preset "$@" ;;
+    table) table "$@" ;;
+    *) usage ;;
+esac

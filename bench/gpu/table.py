@@ -20,9 +20,11 @@ COLUMNS = (
     "render FPS",
     "PSNR streamed / held-out",
     "SSIM streamed / held-out",
+    "LPIPS streamed / held-out",
     "depth L1 cm streamed / held-out",
     "snapshot MB",
     "peak GPU MB",
+    "peak GPU MB every 100 frames",
 )
 
 
@@ -54,9 +56,11 @@ def row(result: dict[str, Any]) -> list[str]:
         number(result.get("render_fps"), 1),
         pair(result, "psnr", 2),
         pair(result, "ssim", 3),
+        pair(result, "lpips", 3),
         pair(result, "depth_l1_cm", 2),
         megabytes(result.get("snapshot_bytes")),
         megabytes(result.get("peak_gpu_memory_bytes")),
+        " / ".join(megabytes(entry.get("peak_gpu_memory_bytes")) for entry in result.get("memory_per_100_frames", [])),
     ]
 
 
