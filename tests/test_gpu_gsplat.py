@@ -6,7 +6,7 @@ Tolerances are gsplat's own for its CUDA kernels against its torch implementatio
   as (rtol, atol): tests/test_basic.py::test_projection;
 - gradients of means2d (5e-3, 5e-3), colours (1e-3, 1e-3), opacities (8e-3, 6e-3):
   tests/test_basic.py::test_rasterize_to_pixels.
-Scenes keep every opacity below ALPHA_MAX (0.99), where gsplat's 0.999 alpha cap and ours agree.
+Both cap alpha at ALPHA_MAX (0.999, gsplat 1.5's own cap); scenes keep every opacity below it.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import pytest
 import torch
 
 from ogmapping.render import gsplat_backend, rasterize
+from ogmapping.render.rules import ALPHA_MAX
 
 HAS_GSPLAT = importlib.util.find_spec("gsplat") is not None
 WIDTH, HEIGHT = 96, 72  # 72 is not a multiple of the 16-pixel tile: partial tiles are covered
@@ -65,15 +66,20 @@ def close(actual: torch.Tensor, expected: torch.Tensor, rtol: float, atol: float
     torch.testing.assert_close(actual, expected, rtol=rtol, atol=atol, msg=lambda m: f"{what}: {m}")
 
 
+def fail_unless_usable() -> None:
+    """gsplat installed but unusable (kernels not built, another version) is a broken install to report."""
+    reason = gsplat_backend.unavailable_reason()
+    if reason is not None:
+        pytest.fail(reason)
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 @pytest.mark.skipif(not HAS_GSPLAT, reason="gsplat is not installed (see docs/cuda.md)")
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("with_background", [False, True])
 def test_gsplat_matches_torch_reference(seed: int, with_background: bool) -> None:
-    reason = gsplat_backend.unavailable_reason()
-    if reason is not None:  # installed but unusable: the install is broken, which this test must not hide
-        pytest.fail(reason)
+    fail_unless_usable()
     scene, viewmat = random_scene(seed)
     background = torch.tensor([0.1, 0.4, 0.8], device="cuda") if with_background else None
     ref, ref_leaves = render("torch", scene, viewmat, background)
@@ -96,6 +102,26 @@ def test_gsplat_matches_torch_reference(seed: int, with_background: bool) -> Non
     close(gs.means2d.grad, ref.means2d.grad, 5e-3, 5e-3, "means2d gradient (pixels)")
     for name, (rtol, atol) in GRAD_TOLERANCES.items():
         close(gs_leaves[name].grad, ref_leaves[name].grad, rtol, atol, f"{name} gradient")
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.skipif(not HAS_GSPLAT, reason="gsplat is not installed (see docs/cuda.md)")
+def test_gsplat_caps_alpha_where_the_reference_does() -> None:
+    """One opaque Gaussian over the image centre: both clamp its alpha at ALPHA_MAX there."""
+    fail_unless_usable()
+    scene = {
+        "means": torch.tensor([[0.0, 0.0, 2.0]]),
+        "quats": torch.tensor([[1.0, 0.0, 0.0, 0.0]]),
+        "scales": torch.tensor([[1.0, 1.0, 1.0]]),
+        "opacities": torch.tensor([1.0]),
+        "colors": torch.tensor([[0.2, 0.5, 0.9]]),
+    }
+    ref, _ = render("torch", scene, torch.eye(4), None)
+    gs, _ = render("gsplat", scene, torch.eye(4), None)
+    assert float(ref.alpha.max()) == pytest.approx(ALPHA_MAX, abs=1e-6)
+    close(gs.alpha, ref.alpha, 1e-5, 1e-5, "alpha")
+    close(gs.color, ref.color, 1e-5, 1e-5, "colour")
 
 
 def test_missing_gsplat_names_the_install_command() -> None:

@@ -111,8 +111,8 @@ def test_gaussian_that_stops_every_pixel() -> None:
         "means": torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.5], [2 * centre, 2 * centre, 2.0], [0.0, 0.0, 2.5]]),
         "quats": torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(4, 1),
         "scales": torch.tensor([[50.0] * 3, [50.0] * 3, [1e-3] * 3, [50.0] * 3]),
-        # T = 0.01 after the first (alpha clamped to 0.99), about 1.02e-4 after the second.
-        "opacities": torch.tensor([1.0, 0.9898, 0.99, 0.005]),
+        # T = 1 - ALPHA_MAX after the first (its alpha is clamped), about 1.02e-4 after the second.
+        "opacities": torch.tensor([1.0, 1.0 - 1.02e-4 / (1.0 - ALPHA_MAX), 0.99, 0.005]),
         "colors": torch.eye(4)[:, :3] + 0.1,
     }
     scene = {k: v.double() for k, v in scene.items()}

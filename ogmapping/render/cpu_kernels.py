@@ -10,6 +10,11 @@ silently promote the loops) and ``fastmath`` stays off, so the backward re-finds
 contributors the forward composited. ``error_model="numpy"``: Python's would put a zero check
 (an early exit) on every division and stop vectorisation.
 
+Rules: ``rules.py``'s values are frozen into the compiled code, and Numba's on-disk cache
+(``cache=True``) is checked against this file's timestamp only. After a change to ``rules.py``,
+delete the cached kernels (``ogmapping/render/__pycache__/*.nb[ic]``), or they keep the old values
+(the parity tests in ``tests/test_render_cpu.py`` then fail).
+
 Threads: work is split by tile; every write goes to memory owned by the tile (its pixels, its
 slice of the pair list) and per-Gaussian gradients are summed from per-pair buffers afterwards,
 so the kernels are race-free and deterministic whatever the thread count.

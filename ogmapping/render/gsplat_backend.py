@@ -6,11 +6,11 @@ Gaussians at 3 sigma and does not cull by opacity; gsplat's main branch after 1.
 0.99), or installed without its compiled kernels, which gsplat 1.5 reports only by setting
 ``gsplat.cuda._backend._C`` to None, so that every render would fail.
 
-Its kernels follow the shared rules of ``ogmapping.render`` with these differences (gsplat 1.5.x;
-fixed in its CUDA code, not settable from Python):
+Its kernels follow the shared rules of ``ogmapping.render`` (gsplat 1.5.x; fixed in its CUDA
+code, not settable from Python), with these details:
 
-- alpha cap: gsplat clamps per-pixel alpha to 0.999, ours is ``ALPHA_MAX`` = 0.99. Renders agree
-  wherever opacity * G(x) <= 0.99; above that gsplat lets less light through.
+- alpha cap: gsplat clamps per-pixel alpha to 0.999 in forward and backward, which is why
+  ``ALPHA_MAX`` is 0.999 for every backend.
 - ``ALPHA_MIN``: the same 1/255 skip; gsplat also culls Gaussians whose opacity is below it.
 - transmittance: a pixel stops *before* the Gaussian that would bring T to <= 1e-4
   (``TRANSMITTANCE_MIN``); that Gaussian does not contribute.
