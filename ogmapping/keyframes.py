@@ -28,30 +28,73 @@ from ogmapping.ssim import ReferenceStatistics, reference_statistics
 
 
 @dataclass
-class Keyframe:
-    index: int
-    rgb: torch.Tensor  # (H, W, 3)
+class View:
+    """A frame as the loss reads it: float32 images on the mapper's device and their SSIM statistics."""
+
+    rgb: torch.Tensor  # (H, W, 3) in [0, 1]
     depth: torch.Tensor  # (H, W), metres, 0 = invalid
     intrinsics: Intrinsics
     c2w: torch.Tensor  # (4, 4)
+    ssim_reference: ReferenceStatistics
+
+    @classmethod
+    def of(cls, rgb: torch.Tensor, depth: torch.Tensor, intrinsics: Intrinsics, c2w: torch.Tensor, *,
+           compiled: bool) -> View:
+        """The view of these images; ``compiled`` as ``ssim.reference_statistics``."""
+        return cls(rgb, depth, intrinsics, c2w, reference_statistics(rgb, compiled=compiled))
+
+
+@dataclass
+class Keyframe:
+    """A stored keyframe, compact and in host memory: colour as uint8, depth as float16.
+
+    Keyframes accumulate for the whole session. As float32 images with their SSIM statistics, on the
+    mapper's device, one took 12.3 MB at 640x480 (15.4 MB with the half-size copy the window draws:
+    15 GB of GPU memory per 1000 keyframes); stored like this it takes 1.5 MB (1.9 MB) of host
+    memory, and only the drawn window is on the device, as ``View``s made afresh at every draw.
+    Pinned when mapping on CUDA, so those copies are asynchronous.
+    """
+
+    index: int
+    rgb: torch.Tensor  # (H, W, 3) uint8, host memory
+    depth: torch.Tensor  # (H, W) float16 metres, 0 = invalid, host memory
+    intrinsics: Intrinsics
+    c2w: torch.Tensor  # (4, 4), on the mapper's device
     codes: torch.Tensor  # sorted unique occupied coarsest-cell codes this frame sees
-    ssim_reference: ReferenceStatistics | None = None  # cached SSIM statistics of ``rgb``
+    pinned: bool = False
     _downscaled: dict[float, Keyframe] = field(default_factory=dict, repr=False)
 
-    def downscaled(self, scale: float, *, compiled: bool) -> Keyframe:
-        """This keyframe with its images resized by ``scale`` (colour by area, depth nearest), cached;
-        ``compiled`` as ``ssim.reference_statistics``."""
+    @classmethod
+    def capture(cls, index: int, rgb: torch.Tensor, depth: torch.Tensor, intrinsics: Intrinsics,
+                c2w: torch.Tensor, codes: torch.Tensor, *, pinned: bool = False) -> Keyframe:
+        """Store float ``rgb`` in [0, 1] (rounded to 1/255: exact for 8-bit images at their own size)
+        and ``depth`` in metres (float16: 1 mm steps at 4 m) from any device."""
+        colour = (rgb.detach() * 255.0).round_().clamp_(0.0, 255.0).to("cpu", torch.uint8)
+        return cls(index, _host(colour, pinned), _host(depth.detach().to("cpu", torch.float16), pinned),
+                   intrinsics, c2w, codes, pinned)
+
+    def view(self, device: torch.device, *, compiled: bool) -> View:
+        """This keyframe as float32 images on ``device`` (copied there now), with SSIM statistics."""
+        rgb = self.rgb.to(device, non_blocking=self.pinned).to(torch.float32) / 255.0
+        depth = self.depth.to(device, non_blocking=self.pinned).to(torch.float32)
+        return View.of(rgb, depth, self.intrinsics, self.c2w, compiled=compiled)
+
+    def downscaled(self, scale: float) -> Keyframe:
+        """This keyframe with its images resized by ``scale`` (colour by area, depth nearest), cached."""
         if scale == 1.0:
             return self
         if scale not in self._downscaled:
             intrinsics = self.intrinsics.scaled(scale)
             size = (intrinsics.width, intrinsics.height)
-            rgb = cv2.resize(self.rgb.cpu().numpy(), size, interpolation=cv2.INTER_AREA)
-            rgb = torch.as_tensor(rgb, device=self.rgb.device).clamp(0.0, 1.0)
-            depth = torch.as_tensor(resize_depth(self.depth.cpu().numpy(), *size), device=self.depth.device)
-            self._downscaled[scale] = Keyframe(self.index, rgb, depth, intrinsics, self.c2w, self.codes,
-                                               reference_statistics(rgb, compiled=compiled))
+            rgb = cv2.resize(self.rgb.numpy().astype("float32") / 255.0, size, interpolation=cv2.INTER_AREA)
+            depth = torch.from_numpy(resize_depth(self.depth.numpy(), *size))
+            self._downscaled[scale] = Keyframe.capture(self.index, torch.from_numpy(rgb), depth, intrinsics,
+                                                       self.c2w, self.codes, pinned=self.pinned)
         return self._downscaled[scale]
+
+
+def _host(tensor: torch.Tensor, pinned: bool) -> torch.Tensor:
+    return tensor.pin_memory() if pinned else tensor
 
 
 def overlap_ratio(first: torch.Tensor, second: torch.Tensor) -> float:
@@ -158,18 +201,19 @@ class KeyframeSet:
         one in its local set (overlap weight >= ``local_threshold``)."""
         return keyframe is self.keyframes[-1] or any(keyframe is self.keyframes[i] for i in self.local)
 
-    def draw_window(self, view: Keyframe) -> list[Keyframe]:
-        """``view`` plus b1 local and b2 global keyframes drawn afresh without replacement.
+    def draw_window(self, view_is_newest: bool) -> list[Keyframe]:
+        """The keyframes trained beside the view: b1 local and b2 global ones drawn afresh without
+        replacement.
 
-        ``view`` is K_new, or a streamed frame that is not a keyframe: it overlaps the newest
-        keyframe by at least the insertion threshold, so that keyframe joins the local set.
-        With a fixed window, ``view`` plus the b1 + b2 keyframes chosen when the newest keyframe
-        was inserted, the same at every draw until the next keyframe.
+        The view is K_new (``view_is_newest``), or a streamed frame that is not a keyframe: it
+        overlaps the newest keyframe by at least the insertion threshold, so that keyframe joins the
+        local set. With a fixed window, the b1 + b2 keyframes chosen when the newest keyframe was
+        inserted, the same at every draw until the next keyframe.
         """
         if self.config.window != "dynamic":
-            return [view] + [self.keyframes[i] for i in self.fixed]
+            return [self.keyframes[i] for i in self.fixed]
         newest = len(self.keyframes) - 1
-        local_set = self.local if view is self.keyframes[newest] else [*self.local, newest]
+        local_set = self.local if view_is_newest else [*self.local, newest]
         local = self.random.sample(local_set, min(self.config.local_count, len(local_set)))
         global_ = self.random.sample(self.global_, min(self.config.global_count, len(self.global_)))
-        return [view] + [self.keyframes[i] for i in local + global_]
+        return [self.keyframes[i] for i in local + global_]

@@ -30,7 +30,7 @@ from ogmapping.encoding import HashGridEncoding, feature_dim, initial_anchor_fea
 from ogmapping.frame import Frame
 from ogmapping.gaussians import GaussianSet, anchors_in_view, generate
 from ogmapping.geometry import intrinsics_matrix, world_to_camera
-from ogmapping.keyframes import Keyframe, KeyframeSet
+from ogmapping.keyframes import Keyframe, KeyframeSet, View
 from ogmapping.lazy_adam import LazyAdam
 from ogmapping.losses import mapping_loss
 from ogmapping.octree import SparseVoxelOctree
@@ -38,7 +38,6 @@ from ogmapping.preprocess import prepare
 from ogmapping.profile import execution_profile
 from ogmapping.render import rasterize
 from ogmapping.render.output import RenderOutput
-from ogmapping.ssim import reference_statistics
 from ogmapping.state import MapState
 from ogmapping.stats import MapStats
 from ogmapping.threads import torch_threads
@@ -150,13 +149,14 @@ class Mapper:
             codes = self.octree.seen_from(depth, frame.color_intrinsics, c2w)
             is_keyframe = self.keyframes.should_insert(codes)
             iterations = self._iterations_for(is_keyframe)
-            view = None
-            if is_keyframe or iterations:
-                view = Keyframe(frame.index, rgb, depth, frame.color_intrinsics, c2w, codes,
-                                reference_statistics(rgb, compiled=self.profile.compiled))
             if is_keyframe:
-                self.keyframes.insert(view)
-        loss, grown = self._optimise(iterations, view) if iterations else (float("nan"), 0)
+                self.keyframes.insert(Keyframe.capture(frame.index, rgb, depth, frame.color_intrinsics, c2w, codes,
+                                                       pinned=self.device.type == "cuda"))
+        if iterations:  # the frame itself, at full precision, is the view every step trains on
+            view = View.of(rgb, depth, frame.color_intrinsics, c2w, compiled=self.profile.compiled)
+            loss, grown = self._optimise(iterations, view, is_keyframe)
+        else:
+            loss, grown = float("nan"), 0
         self.frames += 1
         self.camera_position_sum += torch.as_tensor(frame.c2w[:3, 3], dtype=torch.float64)
         self.camera_positions += 1
@@ -184,7 +184,8 @@ class Mapper:
         self.anchors.add(codes, levels, self.octree.centers(codes, 0), sizes, features, self.optimizer)
 
     def _footprint(self, keyframe: Keyframe) -> torch.Tensor:
-        return self.octree.seen_from(keyframe.depth, keyframe.intrinsics, keyframe.c2w)
+        depth = keyframe.depth.to(self.device, non_blocking=keyframe.pinned).to(torch.float32)
+        return self.octree.seen_from(depth, keyframe.intrinsics, keyframe.c2w)
 
     def _iterations_for(self, is_keyframe: bool) -> int:
         """k for a keyframe (more for the very first), ``frame_iterations`` for any other frame."""
@@ -193,15 +194,16 @@ class Mapper:
             return settings.frame_iterations if self.keyframes else 0
         return settings.first_iterations if not self.keyframes else settings.iterations
 
-    def _optimise(self, iterations: int, view: Keyframe) -> tuple[float, int]:
-        """``iterations`` steps, each on a fresh window around ``view``; grow and prune every
-        ``refine.interval`` steps of the whole session (frames may get fewer steps than that).
-        Returns the last step's loss, read from the device once, after the loop."""
+    def _optimise(self, iterations: int, view: View, view_is_newest: bool) -> tuple[float, int]:
+        """``iterations`` steps, each on ``view`` and a freshly drawn window of keyframes (the newest
+        one is ``view`` itself when ``view_is_newest``); grow and prune every ``refine.interval``
+        steps of the whole session (frames may get fewer steps than that). Returns the last step's
+        loss, read from the device once, after the loop."""
         loss, grown = torch.full((), float("nan")), 0
         interval = self.config.refine.interval
         for _ in range(iterations):
             with self.lock:
-                loss = self._iteration(self.keyframes.draw_window(view))
+                loss = self._iteration(view, self.keyframes.draw_window(view_is_newest))
                 self.iterations += 1
                 if self.iterations % interval == 0:
                     with self._timed("refine"):
@@ -211,39 +213,44 @@ class Mapper:
                         refine.end_interval(self.anchors)
         return float(loss), grown
 
-    def _iteration(self, window: list[Keyframe]) -> torch.Tensor:
-        """One optimisation step on ``window``; returns its loss as a tensor on the device (reading it
-        on the host would wait for the step to finish)."""
+    def _iteration(self, view: View, keyframes: list[Keyframe]) -> torch.Tensor:
+        """One optimisation step on ``view`` and ``keyframes``; returns its loss as a tensor on the
+        device (reading it on the host would wait for the step to finish)."""
         self.optimizer.zero_grad(set_to_none=True)
         if self.hash_optimizer is not None:
             self.hash_optimizer.zero_grad()
-        renders: list[tuple[GaussianSet, RenderOutput, Keyframe]] = []
+        with self._timed("window"):
+            window = [view, *(self._drawn(keyframe) for keyframe in keyframes)]
+        renders: list[tuple[GaussianSet, RenderOutput, View]] = []
         total = torch.zeros((), device=self.device)
-        for position, keyframe in enumerate(window):
-            if position > 0 and not self.keyframes.is_local(keyframe):
-                keyframe = keyframe.downscaled(self._window_scale(keyframe.intrinsics.width),
-                                               compiled=self.profile.compiled)
-            gaussians, output = self._render(keyframe.c2w, keyframe.intrinsics)
+        for drawn in window:
+            gaussians, output = self._render(drawn.c2w, drawn.intrinsics)
             with self._timed("loss"):
-                loss, _ = mapping_loss(output.color, output.depth, keyframe.rgb, keyframe.depth,
-                                       gaussians.scales, self.config.loss, keyframe.ssim_reference,
+                loss, _ = mapping_loss(output.color, output.depth, drawn.rgb, drawn.depth,
+                                       gaussians.scales, self.config.loss, drawn.ssim_reference,
                                        compiled=self.profile.compiled)
             total = total + loss / len(window)
-            renders.append((gaussians, output, keyframe))
+            renders.append((gaussians, output, drawn))
         with self._timed("backward"):
             if total.requires_grad:
                 total.backward()
         with self._timed("statistics"):
-            for gaussians, output, keyframe in renders:
+            for gaussians, output, drawn in renders:
                 grad = output.means2d.grad if output.means2d.requires_grad else None
                 refine.accumulate(self.anchors, gaussians, grad, output.visible,
-                                  keyframe.intrinsics.width, keyframe.intrinsics.height)
+                                  drawn.intrinsics.width, drawn.intrinsics.height)
         with self._timed("optimizer"):
             self.optimizer.step()
             if self.hash_optimizer is not None:
                 self.hash_optimizer.step()
         self.last_gaussians = len(renders[0][0]) if renders else 0
         return total.detach()
+
+    def _drawn(self, keyframe: Keyframe) -> View:
+        """A drawn keyframe as a view on the device: full size if it is local, else downscaled."""
+        if not self.keyframes.is_local(keyframe):
+            keyframe = keyframe.downscaled(self._window_scale(keyframe.intrinsics.width))
+        return keyframe.view(self.device, compiled=self.profile.compiled)
 
     def _window_scale(self, width: int) -> float:
         """Scale for a global window keyframe: ``window_scale``, but not below ``window_min_width``

@@ -10,8 +10,8 @@ INTRINSICS = Intrinsics(10, 10, 4, 3, 8, 6)
 
 
 def keyframe(index: int, codes: list[int]) -> Keyframe:
-    return Keyframe(index, torch.zeros(6, 8, 3), torch.zeros(6, 8), INTRINSICS, torch.eye(4),
-                    torch.tensor(sorted(set(codes)), dtype=torch.int64))
+    return Keyframe.capture(index, torch.zeros(6, 8, 3), torch.zeros(6, 8), INTRINSICS, torch.eye(4),
+                            torch.tensor(sorted(set(codes)), dtype=torch.int64))
 
 
 def test_overlap_ratio_matches_set_arithmetic():
@@ -50,13 +50,12 @@ def test_window_draws_without_replacement_and_changes_between_iterations():
     assert len(frames.local) >= 3 and len(frames.global_) >= 2
     draws = []
     for _ in range(20):
-        window = frames.draw_window(frames.keyframes[-1])
-        indices = [kf.index for kf in window]
-        assert indices[0] == 99, "K_new is always in the window"
-        assert len(indices) == 1 + 3 + 2
+        indices = [kf.index for kf in frames.draw_window(view_is_newest=True)]
+        assert 99 not in indices, "K_new is the view, not drawn beside it"
+        assert len(indices) == 3 + 2
         assert len(set(indices)) == len(indices), "no keyframe twice in one window"
         local = {frames.keyframes[i].index for i in frames.local}
-        assert sum(i in local for i in indices[1:]) == 3
+        assert sum(i in local for i in indices) == 3
         draws.append(tuple(indices))
     assert len(set(draws)) > 1, "the window is drawn afresh every iteration"
 
@@ -64,7 +63,19 @@ def test_window_draws_without_replacement_and_changes_between_iterations():
 def test_window_with_few_keyframes_uses_what_exists():
     frames = KeyframeSet(KeyframeConfig(local_count=2, global_count=2))
     frames.insert(keyframe(0, [1, 2]))
-    assert [kf.index for kf in frames.draw_window(frames.keyframes[0])] == [0]
+    assert frames.draw_window(view_is_newest=True) == []
+
+
+def test_keyframes_are_stored_compact_and_drawn_as_float_views():
+    generator = torch.Generator().manual_seed(2)
+    rgb = torch.randint(0, 256, (6, 8, 3), generator=generator).float() / 255.0  # an 8-bit image
+    depth = 1.0 + 3.0 * torch.rand(6, 8, generator=generator)
+    stored = Keyframe.capture(4, rgb, depth, INTRINSICS, torch.eye(4), torch.tensor([1, 2]))
+    assert stored.rgb.dtype == torch.uint8 and stored.depth.dtype == torch.float16
+    view = stored.view(torch.device("cpu"), compiled=True)
+    assert torch.equal(view.rgb, rgb), "8-bit colour comes back exactly"
+    assert view.depth.dtype == torch.float32 and float((view.depth - depth).abs().max()) <= 2e-3  # float16 at 4 m
+    assert view.ssim_reference.mean.shape == (6, 8, 3)
 
 
 def test_downscaled_keyframe_matches_a_resized_camera():
@@ -72,15 +83,16 @@ def test_downscaled_keyframe_matches_a_resized_camera():
     rgb = torch.rand(6, 8, 3, generator=generator)
     depth = 1.0 + torch.rand(6, 8, generator=generator)
     depth[0, 0] = 0.0
-    original = Keyframe(3, rgb, depth, INTRINSICS, torch.eye(4), torch.tensor([1, 2]))
-    half = original.downscaled(0.5, compiled=True)
+    original = Keyframe.capture(3, rgb, depth, INTRINSICS, torch.eye(4), torch.tensor([1, 2]))
+    half = original.downscaled(0.5)
     assert half.intrinsics == INTRINSICS.scaled(0.5)
     assert half.rgb.shape == (3, 4, 3) and half.depth.shape == (3, 4)
-    torch.testing.assert_close(half.rgb, rgb.reshape(3, 2, 4, 2, 3).mean(dim=(1, 3)))  # area average
-    assert set(half.depth.flatten().tolist()) <= set(depth.flatten().tolist())  # measured values only
-    assert half.ssim_reference is not None and half.ssim_reference.mean.shape == (3, 4, 3)
+    stored = original.rgb.float() / 255.0
+    area = stored.reshape(3, 2, 4, 2, 3).mean(dim=(1, 3))
+    assert float((half.rgb.float() / 255.0 - area).abs().max()) <= 0.5 / 255.0 + 1e-6  # area average, rounded
+    assert set(half.depth.flatten().tolist()) <= set(original.depth.flatten().tolist())  # measured values only
     assert half.index == 3 and torch.equal(half.codes, original.codes)
-    assert original.downscaled(0.5, compiled=True) is half and original.downscaled(1.0, compiled=True) is original
+    assert original.downscaled(0.5) is half and original.downscaled(1.0) is original
 
 
 def test_window_scale_stops_at_the_minimum_width():
@@ -98,8 +110,7 @@ def test_window_scale_stops_at_the_minimum_width():
 def test_a_frame_between_keyframes_draws_the_newest_keyframe_as_local():
     frames = KeyframeSet(KeyframeConfig(local_count=1, global_count=0))
     frames.insert(keyframe(0, [1, 2]))
-    streamed = keyframe(7, [1, 2])
-    assert [kf.index for kf in frames.draw_window(streamed)] == [7, 0]
+    assert [kf.index for kf in frames.draw_window(view_is_newest=False)] == [0]
 
 
 def test_footprints_are_refreshed_on_the_current_map():
@@ -121,12 +132,11 @@ def test_fixed_windows_stay_fixed_between_insertions():
         frames = fixed_set(window)
         for index in range(6):
             frames.insert(keyframe(index, list(range(10 * index, 10 * index + 15))))
-        draws = {tuple(kf.index for kf in frames.draw_window(frames.keyframes[-1])) for _ in range(10)}
+        draws = {tuple(kf.index for kf in frames.draw_window(view_is_newest=True)) for _ in range(10)}
         assert len(draws) == 1, window
         (indices,) = draws
-        assert indices[0] == 5 and len(indices) == 4 and len(set(indices)) == 4, window
-        streamed = keyframe(50, [55, 56])
-        assert [kf.index for kf in frames.draw_window(streamed)] == [50, *indices[1:]], window
+        assert 5 not in indices and len(indices) == 3 and len(set(indices)) == 3, window
+        assert tuple(kf.index for kf in frames.draw_window(view_is_newest=False)) == indices, window
 
 
 def test_random_window_is_redrawn_only_when_a_keyframe_arrives():

@@ -15,6 +15,7 @@ from ogmapping.datasets.synthetic import SyntheticSource
 from ogmapping.mapper import Mapper
 from ogmapping.profile import execution_profile, resolve_device
 from ogmapping.render import gsplat_backend
+from ogmapping.render.rules import ALPHA_MIN
 
 SETTINGS = {"keyframes.first_iterations": 3, "keyframes.iterations": 1, "keyframes.frame_iterations": 1,
             "model.hash_log2_size": 12}
@@ -93,4 +94,7 @@ def test_torch_backend_on_the_cpu_runs_no_compiled_kernel(preset, monkeypatch):
     spied = {call.rsplit(".", 1)[0] for call in calls}
     assert COMPILED_MODULES[preset] <= spied, "the spy sees every compiled part of the cpu profile"
     np.testing.assert_allclose(torch_losses, compiled_losses, rtol=1e-5)
-    np.testing.assert_allclose(torch_color, compiled_color, atol=1e-5)
+    # To float32 rounding, which may still tip a threshold (alpha at ALPHA_MIN, opacity at 0) the
+    # other way in a pixel or two: such a pixel moves by less than ALPHA_MIN.
+    difference = np.abs(torch_color - compiled_color)
+    assert np.mean(difference > 1e-5) < 1e-3 and difference.max() < ALPHA_MIN
