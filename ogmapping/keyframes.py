@@ -68,7 +68,7 @@ class Keyframe:
     def capture(cls, index: int, rgb: torch.Tensor, depth: torch.Tensor, intrinsics: Intrinsics,
                 c2w: torch.Tensor, codes: torch.Tensor, *, pinned: bool = False) -> Keyframe:
         """Store float ``rgb`` in [0, 1] (rounded to 1/255: exact for 8-bit images at their own size)
-        and ``depth`` in metres (float16: 1 mm steps at 4 m) from any device."""
+        and ``depth`` in metres (float16: steps of 2 mm from 2 to 4 m, 4 mm from 4 to 8 m) from any device."""
         colour = (rgb.detach() * 255.0).round_().clamp_(0.0, 255.0).to("cpu", torch.uint8)
         return cls(index, _host(colour, pinned), _host(depth.detach().to("cpu", torch.float16), pinned),
                    intrinsics, c2w, codes, pinned)
