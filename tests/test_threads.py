@@ -11,7 +11,7 @@ from ogmapping.threads import torch_threads
 def test_sparse_cpu_maps_use_one_thread_others_keep_the_callers():
     assert execution_profile("cpu", "auto", "anchor").threads == 1
     assert execution_profile("cpu", "auto", "hash").threads is None
-    assert execution_profile("cuda", "auto", "anchor").threads is None
+    assert execution_profile("cuda", "torch", "anchor").threads is None
 
 
 def test_setting_is_restored_and_stays_on_the_calling_thread():

@@ -41,7 +41,7 @@ def resolve_backend(backend: str, device: torch.device) -> str:
     if reason is None:
         return "gsplat"
     warnings.warn(f"{reason}; mapping on {device} falls back to the pure-torch reference rasterizer, which takes "
-                  f"seconds per 640x480 render. {gsplat_backend.INSTALL_HINT}", RuntimeWarning, stacklevel=2)
+                  f"seconds per 640x480 render; {gsplat_backend.INSTALL_HINT}", RuntimeWarning, stacklevel=2)
     return "torch"
 
 
