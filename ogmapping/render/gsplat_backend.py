@@ -39,9 +39,9 @@ from ogmapping.render.output import RenderOutput
 from ogmapping.render.rules import COVARIANCE_BLUR, NEAR_PLANE
 
 INSTALL_HINT = (
-    "the gsplat backend needs gsplat 1.5.x with its CUDA kernels and a CUDA build of PyTorch: "
-    "`pip install --no-build-isolation --no-binary gsplat 'gsplat>=1.5,<1.6'` builds them once "
-    "(needs nvcc), see docs/cuda.md"
+    "the gsplat backend needs gsplat 1.5.x with its CUDA kernels and a CUDA build of PyTorch: after "
+    "`pip install -e '.[cuda]'`, `pip install --no-build-isolation --no-binary gsplat --no-deps --force-reinstall "
+    "'gsplat>=1.5,<1.6'` builds the kernels once (needs nvcc), see docs/cuda.md"
 )
 SUPPORTED_MINOR = (1, 5)
 
