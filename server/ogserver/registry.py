@@ -18,7 +18,7 @@ from ogapi.v1 import mapping_pb2 as pb
 from ogmapping.config import PRESETS, resolve
 from ogmapping.mapper import Mapper
 from ogserver import __version__, auth, messages, validation
-from ogserver.errors import ServiceError, exhausted, invalid
+from ogserver.errors import ServiceError, invalid
 from ogserver.recorder import Recorder
 from ogserver.session import Session
 from ogserver.settings import Settings
@@ -50,9 +50,10 @@ class Registry:
         limit = self.settings.limits.max_sessions
         with self._lock:
             if self._closing:
-                raise ServiceError(grpc.StatusCode.UNAVAILABLE, "server: shutting down")
+                raise ServiceError(grpc.StatusCode.UNAVAILABLE, "the server is shutting down")
             if len(self._sessions) + self._reserved >= limit:
-                raise exhausted("sessions", f"the server already holds its limit of {limit} sessions")
+                raise ServiceError(grpc.StatusCode.RESOURCE_EXHAUSTED,
+                                   f"the server already holds its limit of {limit} sessions")
             self._reserved += 1
         try:
             yield
@@ -78,7 +79,7 @@ class Registry:
             try:
                 mapper = Mapper.restore(data, device=self.device)
             except ValueError as error:
-                raise invalid("snapshot", error) from None
+                raise invalid("data", f"not a usable snapshot: {error}") from None
             return self._open(mapper, "", {}, label, sha256)
 
     def _open(self, mapper: Mapper, preset: str, overrides: dict[str, str], label: str, restored: str) -> Session:
@@ -95,12 +96,13 @@ class Registry:
         log.info("session %s opened (preset %r, device %s)", session_id, preset or "restored", mapper.device)
         return session
 
-    def get(self, session_id: str, token: str) -> Session:
-        session_id = validation.session_id(session_id)
+    def get(self, session_id: str, token: str, field: str = "session_id") -> Session:
+        """The session, after checking the id's form (refusals name ``field``) and the token."""
+        session_id = validation.session_id(session_id, field)
         with self._lock:
             session = self._sessions.get(session_id)
         if session is None:
-            raise ServiceError(grpc.StatusCode.NOT_FOUND, f"session_id: no session {session_id}")
+            raise ServiceError(grpc.StatusCode.NOT_FOUND, f"{field}: no session {session_id}")
         auth.check_token(token, session.token)
         return session
 

@@ -68,7 +68,7 @@ class MappingService(pb_grpc.MappingServicer):
             session_id = metadata(context, SESSION_METADATA_KEY)
             if not session_id:
                 raise invalid(SESSION_METADATA_KEY, "metadata is required for StreamFrames")
-            session = self._session(session_id, context)
+            session = self.registry.get(session_id, metadata(context, TOKEN_METADATA_KEY), SESSION_METADATA_KEY)
             yield from stream.serve(session, request_iterator, context, self.limits.max_image_pixels)
 
     def Render(self, request: pb.RenderRequest, context: grpc.ServicerContext) -> pb.RenderResponse:
@@ -102,11 +102,11 @@ class MappingService(pb_grpc.MappingServicer):
                 total += len(chunk.data)
                 if total > self.limits.max_snapshot_bytes:
                     limit = self.limits.max_snapshot_bytes
-                    raise exhausted("snapshot", f"larger than the server limit of {limit} bytes")
+                    raise exhausted("data", f"the snapshot is larger than the server limit of {limit} bytes")
                 parts.append(chunk.data)
             data = b"".join(parts)
             if not data:
-                raise invalid("snapshot", "no data received")
+                raise invalid("data", "no snapshot bytes received")
             return credentials(self.registry.restore(data, label, hashlib.sha256(data).hexdigest()))
 
     def ListSessions(self, request: pb.ListSessionsRequest, context: grpc.ServicerContext) -> pb.ListSessionsResponse:

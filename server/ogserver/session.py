@@ -17,6 +17,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 
 import grpc
+from ogapi import SESSION_METADATA_KEY
 from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.frame import Frame
@@ -24,7 +25,7 @@ from ogmapping.mapper import Mapper, Rendered
 from ogmapping.stats import MapStats
 from ogserver import messages
 from ogserver.counters import SessionCounters
-from ogserver.errors import ServiceError, exhausted
+from ogserver.errors import ServiceError
 from ogserver.events import Acked, SessionClosed, StreamEvent
 from ogserver.recorder import Recorder
 from ogserver.settings import Limits
@@ -75,11 +76,10 @@ class Session:
         """Claim the session's single frame stream; a second one would interleave frames."""
         with self._lock:
             if self._closed.is_set():
-                raise ServiceError(grpc.StatusCode.NOT_FOUND, f"session_id: session {self.id} is closed")
+                raise ServiceError(grpc.StatusCode.NOT_FOUND, f"{SESSION_METADATA_KEY}: session {self.id} is closed")
             if self._stream_sink is not None:
-                raise ServiceError(
-                    grpc.StatusCode.FAILED_PRECONDITION, "session_id: the session already has an active frame stream"
-                )
+                raise ServiceError(grpc.StatusCode.FAILED_PRECONDITION,
+                                   f"{SESSION_METADATA_KEY}: the session already has an active frame stream")
             self._stream_sink = sink
         try:
             yield
@@ -91,7 +91,8 @@ class Session:
 
     def check_capacity(self) -> None:
         if self.limits.max_anchors and self._anchors >= self.limits.max_anchors:
-            raise exhausted("frame", f"the map reached the server's limit of {self.limits.max_anchors} anchors")
+            raise ServiceError(grpc.StatusCode.RESOURCE_EXHAUSTED,
+                               f"the map reached the server's limit of {self.limits.max_anchors} anchors")
 
     def count_rejected(self) -> None:
         with self._lock:

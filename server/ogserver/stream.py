@@ -39,7 +39,7 @@ def _read(
                 sink.put(Rejected(messages.error_ack(message.index, refusal)))
                 continue
             if not session.submit(frame, message, sink):
-                error = ServiceError(grpc.StatusCode.ABORTED, "session_id: the session was closed during the stream")
+                error = ServiceError(grpc.StatusCode.ABORTED, "the session was closed during the stream")
                 break
             accepted += 1
     except Exception as failure:  # a cancelled call ends its request iterator with an error
@@ -65,7 +65,7 @@ def serve(
                 case Cancelled():
                     return
                 case SessionClosed():
-                    raise ServiceError(grpc.StatusCode.ABORTED, "session_id: the session was closed during the stream")
+                    raise ServiceError(grpc.StatusCode.ABORTED, "the session was closed during the stream")
                 case ReaderDone(error=ServiceError() as error):
                     raise error
                 case ReaderDone() as finished:

@@ -32,11 +32,12 @@ from ogserver.errors import exhausted, invalid
 SESSION_ID_PATTERN = re.compile(r"[0-9a-f]{32}")
 
 
-def session_id(value: str) -> str:
+def session_id(value: str, field: str = "session_id") -> str:
+    """``field`` names where the id came from: a request's ``session_id`` or the ``x-session-id`` metadata."""
     if not value:
-        raise invalid("session_id", "is required")
+        raise invalid(field, "is required")
     if not SESSION_ID_PATTERN.fullmatch(value):
-        raise invalid("session_id", f"must be 32 lowercase hex characters (got {value[:40]!r})")
+        raise invalid(field, f"must be 32 lowercase hex characters (got {value[:40]!r})")
     return value
 
 

@@ -2,38 +2,19 @@
 
 from __future__ import annotations
 
-import re
-
 import numpy as np
 import pytest
-from google.protobuf.descriptor import Descriptor
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.messages import frame_to_proto
 from ogserver import validation
 from ogserver.errors import ServiceError
 
 from .bad_frames import CASES, INVALID, broken
+from .proto_names import assert_spelled_as_the_proto
 from .scene import scene
 
 MAX_PIXELS = 65536
 GOOD = frame_to_proto(scene("0:1").load(0))
-
-
-ENUM_VALUES = {value.name for enum in pb.DESCRIPTOR.enum_types_by_name.values() for value in enum.values}
-# Upper-case words with an underscore are enum-value names (JPEG and PNG alone name file formats).
-ENUM_LIKE = re.compile(r"\b[A-Z][A-Z0-9]*_[A-Z0-9_]+\b")
-
-
-def assert_spelled_as_the_proto(message: str, request: Descriptor) -> None:
-    """The refusal starts with a field path of ``request`` and names enum values as the .proto does."""
-    path, sep, _ = message.partition(": ")
-    assert sep, f"no field path in {message!r}"
-    descriptor: Descriptor | None = request
-    for part in path.split("."):
-        assert descriptor is not None and part in descriptor.fields_by_name, f"{path!r} is not a {request.name} field"
-        descriptor = descriptor.fields_by_name[part].message_type
-    unknown = set(ENUM_LIKE.findall(message)) - ENUM_VALUES
-    assert not unknown, f"{message!r} names {unknown}, which the .proto does not define"
 
 
 @pytest.mark.parametrize("case", list(CASES))
