@@ -30,6 +30,8 @@ from ogmapping.frame import Frame
 from ogserver.errors import exhausted, invalid
 
 SESSION_ID_PATTERN = re.compile(r"[0-9a-f]{32}")
+RECORDABLE_NANOSECONDS = 2**64  # exclusive
+MAX_TIMESTAMP_SECONDS = RECORDABLE_NANOSECONDS / 1e9
 
 
 def session_id(value: str, field: str = "session_id") -> str:
@@ -39,6 +41,19 @@ def session_id(value: str, field: str = "session_id") -> str:
     if not SESSION_ID_PATTERN.fullmatch(value):
         raise invalid(field, f"must be 32 lowercase hex characters (got {value[:40]!r})")
     return value
+
+
+def timestamp(message: pb.Frame) -> float | None:
+    """Seconds, or None when absent; the recording stores them as MCAP's unsigned 64-bit nanoseconds."""
+    if not message.HasField("timestamp"):
+        return None
+    seconds = float(message.timestamp)
+    if not math.isfinite(seconds):
+        raise invalid("timestamp", f"must be finite (got {seconds})")
+    if not 0.0 <= seconds * 1e9 < RECORDABLE_NANOSECONDS:
+        raise invalid("timestamp", f"must be from 0 up to {MAX_TIMESTAMP_SECONDS:.1f} seconds, what a recording's "
+                                   f"unsigned 64-bit nanoseconds hold (got {seconds:g})")
+    return seconds
 
 
 def pose(values: Sequence[float], field: str) -> np.ndarray:
@@ -98,9 +113,7 @@ def depth_image(message: pb.DepthImage, camera: Intrinsics, field: str) -> np.nd
 
 def frame(message: pb.Frame, max_pixels: int) -> Frame:
     """A fully checked and decoded engine Frame; cheap checks run before any decoding."""
-    timestamp = float(message.timestamp) if message.HasField("timestamp") else None
-    if timestamp is not None and not math.isfinite(timestamp):
-        raise invalid("timestamp", f"must be finite (got {timestamp})")
+    seconds = timestamp(message)
     c2w = pose(message.c2w, "c2w")
     if not message.HasField("color_intrinsics"):
         raise invalid("color_intrinsics", "is required")
@@ -118,7 +131,7 @@ def frame(message: pb.Frame, max_pixels: int) -> Frame:
     depth = depth_image(message.depth, depth_camera, "depth")
     return Frame(
         index=int(message.index), rgb=rgb, depth=depth, color_intrinsics=color_camera,
-        depth_intrinsics=depth_camera, c2w=c2w, timestamp=timestamp,
+        depth_intrinsics=depth_camera, c2w=c2w, timestamp=seconds,
         depth_to_color=depth_to_color,
     )
 
