@@ -18,7 +18,9 @@ settings come from defaults, then --config FILE (YAML or JSON with the same name
 under "limits:"), then flags. The server prints "ogserver listening on HOST:PORT" once it serves
 (with port 0 the bound port is printed). SIGTERM or SIGINT stops it gracefully: calls in flight get
 --grace seconds, then every session's recording is closed (and with --final-snapshots its map is
-written as RECORD_DIR/<session>.safetensors). See docs/service.md."""
+written as RECORD_DIR/<session>.safetensors). Nothing waits without a bound: what is still running
+--stop-timeout seconds later is left behind, the recordings are closed regardless and the process
+exits. See docs/service.md."""
 
 
 def parser() -> argparse.ArgumentParser:
@@ -33,6 +35,9 @@ def parser() -> argparse.ArgumentParser:
                    help="write each session's map into the record dir when it closes")
     p.add_argument("--torch-threads", dest="torch_threads", type=int, help="torch CPU threads (default min(cores, 8))")
     p.add_argument("--grace", dest="grace_seconds", type=float, help="shutdown grace for calls in flight, seconds (5)")
+    p.add_argument("--stop-timeout", dest="stop_timeout_seconds", type=float,
+                   help="how long closing a session waits for the frame being mapped, and shutdown for gRPC "
+                        "after the grace, before closing the recordings regardless, seconds (10)")
     p.add_argument("--no-warm-up", dest="warm_up", action="store_false", default=None,
                    help="serve at once, without first mapping a tiny synthetic scene (which loads the compiled "
                         "kernels, ~2 s, so the first session does not wait for them)")
@@ -78,10 +83,19 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{READY_PREFIX} {host}:{server.port} (device {server.registry.device})", flush=True)
     while not stop.wait(0.5):
         pass
-    logging.getLogger("ogserver").info("shutting down")
-    for closed in server.stop(settings.grace_seconds):
+    log = logging.getLogger("ogserver")
+    log.info("shutting down")
+    stopped = server.stop(settings.grace_seconds, settings.stop_timeout_seconds)
+    for closed in stopped.closed:
         print(f"closed session {closed.stats.session_id}: recording {closed.recording}"
               + (f", snapshot {closed.snapshot}" if closed.snapshot else ""), flush=True)
+    if not stopped.complete:
+        # Threads still running would keep the interpreter from exiting, or crash it on the way out.
+        log.warning("exiting with calls or frames still running past --stop-timeout; every recording is closed")
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
     return 0
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from concurrent import futures
 from dataclasses import dataclass
+from pathlib import Path
 
 import ogmapping  # noqa: F401 (before torch: it sets the OpenMP wait policy torch's pool reads at start)
 
@@ -17,12 +18,18 @@ from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 
 from ogmapping.profile import resolve_device
 from ogmapping.warmup import warm_up
-from ogserver import reflection
+from ogserver import reflection, storage
 from ogserver.registry import Closed, Registry
 from ogserver.service import MappingService
 from ogserver.settings import Settings
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Stopped:
+    closed: list[Closed]
+    complete: bool  # False if gRPC or a session's frame was still running at the deadline
 
 
 @dataclass
@@ -32,15 +39,20 @@ class Server:
     health: health.HealthServicer
     port: int
 
-    def stop(self, grace: float) -> list[Closed]:
-        """Report NOT_SERVING, let calls in flight finish (up to ``grace``), then close every session."""
+    def stop(self, grace: float, timeout: float) -> Stopped:
+        """Report NOT_SERVING, let calls in flight finish (up to ``grace``), wait up to ``timeout`` more
+        for gRPC to stop, then close every session, waiting up to ``timeout`` for frames being mapped."""
         self.health.enter_graceful_shutdown()
-        self.grpc_server.stop(grace).wait()
-        return self.registry.close_all()
+        grpc_stopped = self.grpc_server.stop(grace).wait(grace + timeout)
+        if not grpc_stopped:
+            log.warning("gRPC calls were still running %.1f s after the grace; closing the sessions anyway", timeout)
+        closed = self.registry.close_all(timeout)
+        return Stopped(closed, grpc_stopped and all(item.stopped for item in closed))
 
 
 def build(settings: Settings) -> Server:
     """A started server; ``port`` is the bound one (useful with port 0)."""
+    storage.check_writable(Path(settings.record_dir))
     device = str(resolve_device(settings.device))
     torch.set_num_threads(settings.threads())
     limits = settings.limits

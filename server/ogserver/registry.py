@@ -22,6 +22,7 @@ from ogserver.errors import ServiceError, invalid
 from ogserver.recorder import Recorder
 from ogserver.session import Session
 from ogserver.settings import Settings
+from ogserver.storage import StorageError, storage_error
 
 log = logging.getLogger(__name__)
 DEFAULT_PRESET = "sparse"  # as ogmap run
@@ -32,6 +33,7 @@ class Closed:
     stats: pb.Stats
     recording: Path
     snapshot: Path | None
+    stopped: bool  # the frame being mapped, if any, finished before the recording was closed
 
 
 class Registry:
@@ -40,6 +42,7 @@ class Registry:
         self.device = device
         self.record_dir = Path(settings.record_dir)
         self._sessions: dict[str, Session] = {}
+        self._finishing: set[str] = set()  # being closed: still counted under max_sessions, no longer served
         self._reserved = 0
         self._lock = threading.Lock()
         self._closing = False
@@ -100,7 +103,7 @@ class Registry:
         """The session, after checking the id's form (refusals name ``field``) and the token."""
         session_id = validation.session_id(session_id, field)
         with self._lock:
-            session = self._sessions.get(session_id)
+            session = None if session_id in self._finishing else self._sessions.get(session_id)
         if session is None:
             raise ServiceError(grpc.StatusCode.NOT_FOUND, f"{field}: no session {session_id}")
         auth.check_token(token, session.token)
@@ -108,27 +111,48 @@ class Registry:
 
     def sessions(self) -> list[Session]:
         with self._lock:
-            return list(self._sessions.values())
+            return [session for key, session in self._sessions.items() if key not in self._finishing]
 
     def close(self, session: Session) -> Closed:
+        """Finish the session and forget it; if its recording or final snapshot cannot be written
+        (StorageError), it stays open, so the client can fetch its map or close it again later."""
         with self._lock:
-            if self._sessions.pop(session.id, None) is None:
+            if session.id not in self._sessions or session.id in self._finishing:
                 raise ServiceError(grpc.StatusCode.NOT_FOUND, f"session_id: session {session.id} is already closed")
-        return self._finish(session)
+            self._finishing.add(session.id)
+        try:
+            closed = self._finish(session, self.settings.stop_timeout_seconds)
+        except StorageError as error:
+            raise StorageError(error.code, f"{error.message}; the session is still open, close it again later") \
+                from None
+        else:
+            with self._lock:
+                self._sessions.pop(session.id, None)
+        finally:
+            with self._lock:
+                self._finishing.discard(session.id)
+        return closed
 
-    def _finish(self, session: Session) -> Closed:
-        session.close()
+    def _finish(self, session: Session, timeout: float) -> Closed:
+        stopped = session.close(timeout)
         stats = messages.stats(session.config, session.map_stats(), session.counters())
         snapshot = None
         if self.settings.final_snapshots:
             snapshot = self.record_dir / f"{session.id}.safetensors"
-            snapshot.write_bytes(session.snapshot())
+            try:
+                snapshot.write_bytes(session.snapshot())
+            except OSError as error:
+                snapshot.unlink(missing_ok=True)
+                log.error("session %s: cannot write its final snapshot %s: %s", session.id, snapshot, error)
+                raise storage_error(error, "the session's final snapshot") from None
         session.recorder.close(stats)
         log.info("session %s closed after %d frames", session.id, stats.frames)
-        return Closed(stats, session.recorder.path, snapshot)
+        return Closed(stats, session.recorder.path, snapshot, stopped)
 
-    def close_all(self) -> list[Closed]:
-        """Shutdown: refuse new sessions, then close every open one (recording, final snapshot)."""
+    def close_all(self, timeout: float) -> list[Closed]:
+        """Shutdown: refuse new sessions, then close every open one (recording, final snapshot),
+        waiting for frames being mapped until ``timeout`` seconds from now, all sessions together."""
+        deadline = time.monotonic() + timeout
         with self._lock:
             self._closing = True
             sessions = list(self._sessions.values())
@@ -136,7 +160,7 @@ class Registry:
         closed = []
         for session in sessions:
             try:
-                closed.append(self._finish(session))
+                closed.append(self._finish(session, max(0.0, deadline - time.monotonic())))
             except Exception:  # one broken session must not keep the others' recordings open
                 log.exception("session %s: closing failed", session.id)
         return closed

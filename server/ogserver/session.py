@@ -2,8 +2,10 @@
 
 Frames are mapped strictly in arrival order by the session's own thread, so sessions map in
 parallel while renders, stats and snapshots (other threads) are served by the mapper between
-optimisation iterations. The session answers in engine results and its own counters; the
-messages module turns them into ogapi messages.
+optimisation iterations. The worker records each frame as it takes it up, before mapping it, so
+the recording holds exactly the frames the session mapped (or tried to): frames still queued when
+the session closes are dropped unrecorded, and a replay maps what the original did. The session
+answers in engine results and its own counters; the messages module turns them into ogapi messages.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import queue
 import threading
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 
 import grpc
@@ -27,8 +29,9 @@ from ogserver import messages
 from ogserver.counters import SessionCounters
 from ogserver.errors import ServiceError
 from ogserver.events import Acked, SessionClosed, StreamEvent
-from ogserver.recorder import Recorder
+from ogserver.recorder import FrameRecord, Recorder, frame_record
 from ogserver.settings import Limits
+from ogserver.storage import StorageError
 from ogserver.validation import RenderSpec
 
 log = logging.getLogger(__name__)
@@ -37,6 +40,7 @@ log = logging.getLogger(__name__)
 @dataclass
 class Job:
     frame: Frame
+    record: FrameRecord
     sequence: int
     received: float  # time.monotonic() when the frame was read
     sink: queue.SimpleQueue[StreamEvent] | None  # where the stream that sent it waits for its ack
@@ -90,6 +94,9 @@ class Session:
     # ------------------------------------------------------------------ frames
 
     def check_capacity(self) -> None:
+        """Refuse frames the session cannot take: its recording failed, or its map is full."""
+        if self.recorder.failure is not None:
+            raise self.recorder.failure
         if self.limits.max_anchors and self._anchors >= self.limits.max_anchors:
             raise ServiceError(grpc.StatusCode.RESOURCE_EXHAUSTED,
                                f"the map reached the server's limit of {self.limits.max_anchors} anchors")
@@ -99,8 +106,15 @@ class Session:
             self._rejected += 1
 
     def submit(self, frame: Frame, message: pb.Frame, sink: queue.SimpleQueue[StreamEvent] | None) -> bool:
-        """Record and queue a validated frame, waiting while the queue is full; False once closed."""
+        """Queue a validated frame, waiting while the queue is full; False once closed, StorageError
+        if the frame cannot be recorded."""
         received, received_ns = time.monotonic(), time.time_ns()
+        try:
+            record = frame_record(message, frame, received_ns)
+        except Exception:
+            log.exception("session %s: frame %d cannot be recorded", self.id, frame.index)
+            raise StorageError(grpc.StatusCode.INTERNAL, "the server could not encode the frame for its recording") \
+                from None
         while not self._slots.acquire(timeout=0.2):
             if self._closed.is_set():
                 return False
@@ -110,24 +124,32 @@ class Session:
                 return False
             self._received += 1
             self._pending += 1
-            sequence = self._received
             if self._first_received is None:
                 self._first_received = received
-        self.recorder.write_frame(message, frame, received_ns)
-        self._jobs.put(Job(frame, sequence, received, sink))
+            self._jobs.put(Job(frame, record, self._received, received, sink))
         return True
 
     def _run(self) -> None:
         while (job := self._jobs.get()) is not None:
             try:
-                ack = self._map(job)
+                ack = self._record_and_map(job)
             finally:
                 with self._lock:
                     self._pending -= 1
                 self._slots.release()
-            self.recorder.write_ack(ack)
             if job.sink is not None:
                 job.sink.put(Acked(ack))
+
+    def _record_and_map(self, job: Job) -> pb.FrameAck:
+        """A frame is mapped only once the recording holds it; one it cannot hold gets an error ack."""
+        try:
+            self.recorder.write_frame(job.record)
+        except ServiceError as refusal:
+            return messages.error_ack(job.frame.index, refusal)
+        ack = self._map(job)
+        with suppress(StorageError):  # logged by the recorder; the frame is mapped and recorded, its ack is not
+            self.recorder.write_ack(ack)
+        return ack
 
     def _map(self, job: Job) -> pb.FrameAck:
         try:
@@ -169,26 +191,31 @@ class Session:
 
     # ------------------------------------------------------------------ end
 
-    def close(self) -> None:
-        """Stop taking frames, drop the queued ones, wait for the frame being mapped, end any stream."""
+    def close(self, timeout: float | None = None) -> bool:
+        """Stop taking frames, drop the queued ones (never recorded), wait up to ``timeout`` for the
+        frame being mapped, end any stream; whether the worker stopped in time."""
         with self._lock:
             if self._closed.is_set():
-                return
+                return not self._worker.is_alive()
             self._closed.set()
             sink = self._stream_sink
-        dropped = 0
-        while True:
-            try:
-                job = self._jobs.get_nowait()
-            except queue.Empty:
-                break
-            if job is not None:
-                dropped += 1
-        with self._lock:
+            dropped = 0
+            while True:
+                try:
+                    job = self._jobs.get_nowait()
+                except queue.Empty:
+                    break
+                if job is not None:
+                    dropped += 1
             self._pending -= dropped
-        self._jobs.put(None)
-        self._worker.join()
+            self._jobs.put(None)
+        self._worker.join(timeout)
         if sink is not None:
             sink.put(SessionClosed())
         if dropped:
             log.info("session %s: closed with %d queued frames dropped", self.id, dropped)
+        if self._worker.is_alive():
+            log.warning("session %s: the frame being mapped did not finish within %.1f s; closing anyway",
+                        self.id, timeout)
+            return False
+        return True

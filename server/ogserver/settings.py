@@ -43,12 +43,18 @@ class Settings:
     grace_seconds: float = 5.0  # how long shutdown waits for calls in flight
     warm_up: bool = True  # map a tiny synthetic scene before serving, so the first session pays no load costs
     limits: Limits = field(default_factory=Limits)
+    # --- record: shutdown and closing never wait without a bound
+    # How long closing a session waits for the frame being mapped, and shutdown (after the grace) for
+    # gRPC's calls to end; then the recordings are finished regardless.
+    stop_timeout_seconds: float = 10.0
 
     def validate(self) -> None:
         if not self.address or ":" not in self.address:
             raise ValueError(f"address must be HOST:PORT (got {self.address!r})")
         if self.torch_threads < 0 or self.grace_seconds < 0:
             raise ValueError("torch_threads and grace_seconds must not be negative")
+        if not 0 <= self.stop_timeout_seconds < float("inf"):
+            raise ValueError(f"stop_timeout_seconds must be a finite number >= 0 (got {self.stop_timeout_seconds})")
         self.limits.validate()
 
     def threads(self) -> int:

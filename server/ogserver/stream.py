@@ -34,13 +34,13 @@ def _read(
             try:
                 session.check_capacity()
                 frame = validation.frame(message, max_pixels)
+                if not session.submit(frame, message, sink):
+                    error = ServiceError(grpc.StatusCode.ABORTED, "the session was closed during the stream")
+                    break
             except ServiceError as refusal:
                 session.count_rejected()
                 sink.put(Rejected(messages.error_ack(message.index, refusal)))
                 continue
-            if not session.submit(frame, message, sink):
-                error = ServiceError(grpc.StatusCode.ABORTED, "the session was closed during the stream")
-                break
             accepted += 1
     except Exception as failure:  # a cancelled call ends its request iterator with an error
         log.debug("session %s: frame stream ended: %s", session.id, failure)
