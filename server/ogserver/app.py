@@ -14,11 +14,10 @@ import grpc
 import torch
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from ogapi import SERVICE_NAME
-from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 
 from ogmapping.profile import resolve_device
 from ogmapping.warmup import warm_up
-from ogserver import reflection, storage
+from ogserver import reflection, storage, wire
 from ogserver.registry import Closed, Registry
 from ogserver.service import MappingService
 from ogserver.settings import Settings
@@ -65,7 +64,7 @@ def build(settings: Settings) -> Server:
     if settings.warm_up:
         log.info("warming up on %s: %.1f s", device, warm_up(device))
     registry = Registry(settings, device)
-    pb_grpc.add_MappingServicer_to_server(MappingService(registry), server)
+    wire.add_mapping_service(MappingService(registry), server)
     health_servicer = health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     for name in ("", SERVICE_NAME):

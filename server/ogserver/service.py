@@ -13,7 +13,7 @@ from ogapi import SESSION_METADATA_KEY, TOKEN_METADATA_KEY
 from ogapi.v1 import mapping_pb2 as pb
 from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 
-from ogserver import messages, stream, validation
+from ogserver import messages, stream, validation, wire
 from ogserver.errors import ServiceError, exhausted, invalid
 from ogserver.registry import Registry
 from ogserver.session import Session
@@ -96,7 +96,7 @@ class MappingService(pb_grpc.MappingServicer):
         with status_errors(context):
             parts: list[bytes] = []
             total, label, first = 0, "", True
-            for chunk in request_iterator:
+            for chunk in map(wire.parsed, request_iterator):
                 if first:
                     label, first = chunk.label, False
                 total += len(chunk.data)

@@ -1,8 +1,8 @@
 """StreamFrames: a reader thread validates and queues frames while the call yields acks.
 
-A frame that fails validation is answered with an error ack (``accepted`` false, ``error`` set)
-and the stream goes on; the response stream ends once the client has half-closed and every
-accepted frame has been acknowledged. The reader, the session's worker and gRPC's cancellation
+A frame that does not parse or fails validation is answered with an error ack (``accepted`` false,
+``error`` set) and the stream goes on; the response stream ends once the client has half-closed and
+every accepted frame has been acknowledged. The reader, the session's worker and gRPC's cancellation
 callback post typed events (``events.py``) to one queue, which the call reads in order.
 """
 
@@ -17,7 +17,7 @@ from typing import assert_never
 import grpc
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogserver import messages, validation
+from ogserver import messages, validation, wire
 from ogserver.errors import ServiceError
 from ogserver.events import Acked, Cancelled, ReaderDone, Rejected, SessionClosed, StreamEvent
 from ogserver.session import Session
@@ -25,13 +25,16 @@ from ogserver.session import Session
 log = logging.getLogger(__name__)
 
 
-def _read(
-    session: Session, requests: Iterable[pb.Frame], sink: queue.SimpleQueue[StreamEvent], max_pixels: int
-) -> None:
+Requests = Iterable[pb.Frame | wire.Unparsable]
+
+
+def _read(session: Session, requests: Requests, sink: queue.SimpleQueue[StreamEvent], max_pixels: int) -> None:
     accepted, error = 0, None
     try:
-        for message in requests:
+        for request in requests:
+            index = 0 if isinstance(request, wire.Unparsable) else request.index  # unknown when it does not parse
             try:
+                message = wire.parsed(request)
                 session.check_capacity()
                 frame = validation.frame(message, max_pixels)
                 if not session.submit(frame, message, sink):
@@ -39,7 +42,7 @@ def _read(
                     break
             except ServiceError as refusal:
                 session.count_rejected()
-                sink.put(Rejected(messages.error_ack(message.index, refusal)))
+                sink.put(Rejected(messages.error_ack(index, refusal)))
                 continue
             accepted += 1
     except Exception as failure:  # a cancelled call ends its request iterator with an error
@@ -49,7 +52,7 @@ def _read(
 
 
 def serve(
-    session: Session, requests: Iterable[pb.Frame], context: grpc.ServicerContext, max_pixels: int
+    session: Session, requests: Requests, context: grpc.ServicerContext, max_pixels: int
 ) -> Iterator[pb.FrameAck]:
     sink: queue.SimpleQueue[StreamEvent] = queue.SimpleQueue()
     with session.stream(sink):
