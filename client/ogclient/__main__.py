@@ -21,6 +21,7 @@ typical session:
   ogclient snapshot --session kitchen.json --out kitchen.safetensors
   ogclient close --session kitchen.json
   ogclient replay recordings/<session>.mcap --close
+  ogclient repair-recording recordings/<session>.mcap repaired.mcap   # after a server crash
 
 Session commands read the credentials file written by create/stream/replay/restore (--session-out,
 default session.json). --server defaults to $OGMAP_SERVER or 127.0.0.1:50051. Exit status: 0 ok,
@@ -82,6 +83,16 @@ def parser() -> argparse.ArgumentParser:
     replay.add_argument("--quiet", action="store_true", help="no progress bar")
     replay.set_defaults(handler=commands.replay)
 
+    repair = sub.add_parser(
+        "repair-recording", help="give a recording cut by a crash its summary and index (no server needed)",
+        description="Copy every message of a recording that was never closed (the server crashed or was killed) "
+        "into a new file with the summary and index a clean close appends, so any MCAP tool opens it. A file "
+        "damaged before its end (not just cut) is refused.",
+    )
+    repair.add_argument("recording", help="the .mcap file to read")
+    repair.add_argument("out", help="the .mcap file to write")
+    repair.set_defaults(handler=commands.repair_recording, offline=True)
+
     render = sub.add_parser(
         "render", help="render a pose to PNGs",
         description="Render the map from a dataset frame's pose (--data, --position) or from a pose file "
@@ -136,6 +147,8 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
+        if getattr(args, "offline", False):
+            return args.handler(args)
         channel, stub = connect(args.server, args.timeout)
         with channel:
             return args.handler(commands.Context(stub, args.server), args)

@@ -395,5 +395,14 @@ def test_closing_finishes_the_recording(server: ServerHandle, mapped: Mapped, sp
     assert len(replayed.frames) == spare_stats.frames_received and replayed.stats is not None
 
 
+def test_replay_of_a_damaged_recording_is_one_line(server: ServerHandle, tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture) -> None:
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)) * 4)
+    assert ogclient_main(["--server", server.address, "replay", str(damaged), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.startswith("ogclient: ") and "not a readable recording" in err
+
+
 def test_container_healthcheck_module(server: ServerHandle) -> None:
     assert healthcheck.check(server.address)
