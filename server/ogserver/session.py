@@ -24,6 +24,7 @@ from ogmapping.frame import Frame
 from ogmapping.mapper import Mapper, Rendered
 from ogmapping.stats import MapStats
 from ogserver import messages
+from ogserver.budget import ByteBudget, frame_bytes
 from ogserver.counters import SessionCounters
 from ogserver.errors import ServiceError
 from ogserver.events import Acked, SessionClosed, StreamEvent
@@ -40,6 +41,7 @@ class Job:
     sequence: int
     received: float  # time.monotonic() when the frame was read
     sink: queue.SimpleQueue[StreamEvent] | None  # where the stream that sent it waits for its ack
+    size: int  # bytes it holds of the session's max_queued_bytes
 
 
 class Session:
@@ -54,6 +56,7 @@ class Session:
         self.token = token
         self._started = time.monotonic()
         self._slots = threading.Semaphore(limits.queue_depth)
+        self._budget = ByteBudget(limits.max_queued_bytes)
         self._jobs: queue.SimpleQueue[Job | None] = queue.SimpleQueue()
         self._lock = threading.Lock()
         self._closed = threading.Event()
@@ -104,8 +107,13 @@ class Session:
         while not self._slots.acquire(timeout=0.2):
             if self._closed.is_set():
                 return False
+        size = frame_bytes(frame)
+        if not self._budget.acquire(size, self._closed):
+            self._slots.release()
+            return False
         with self._lock:
             if self._closed.is_set():
+                self._budget.release(size)
                 self._slots.release()
                 return False
             self._received += 1
@@ -114,7 +122,7 @@ class Session:
             if self._first_received is None:
                 self._first_received = received
         self.recorder.write_frame(message, frame, received_ns)
-        self._jobs.put(Job(frame, sequence, received, sink))
+        self._jobs.put(Job(frame, sequence, received, sink, size))
         return True
 
     def _run(self) -> None:
@@ -124,6 +132,7 @@ class Session:
             finally:
                 with self._lock:
                     self._pending -= 1
+                self._budget.release(job.size)
                 self._slots.release()
             self.recorder.write_ack(ack)
             if job.sink is not None:

@@ -42,6 +42,8 @@ def _read(
                 error = ServiceError(grpc.StatusCode.ABORTED, "the session was closed during the stream")
                 break
             accepted += 1
+    except ServiceError as refusal:  # the client sent nothing for the stream idle timeout
+        error = refusal
     except Exception as failure:  # a cancelled call ends its request iterator with an error
         log.debug("session %s: frame stream ended: %s", session.id, failure)
     finally:
