@@ -11,6 +11,7 @@ from typing import Any
 
 import grpc
 from ogapi import API_KEY_METADATA_KEY, SESSION_METADATA_KEY, TOKEN_METADATA_KEY
+from ogapi.tls import channel_credentials
 from ogapi.v1 import mapping_pb2 as pb
 from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 
@@ -76,13 +77,7 @@ class Transport:
         return self.tls or bool(self.ca or self.cert or self.key)
 
     def credentials(self) -> grpc.ChannelCredentials:
-        if bool(self.cert) != bool(self.key):
-            raise ClientError("--tls-cert and --tls-key go together")
-        try:
-            ca, cert, key = (Path(path).read_bytes() if path else None for path in (self.ca, self.cert, self.key))
-        except OSError as error:
-            raise ClientError(f"cannot read {error.filename}: {error.strerror}") from None
-        return grpc.ssl_channel_credentials(root_certificates=ca, private_key=key, certificate_chain=cert)
+        return channel_credentials(self.ca, self.cert, self.key)
 
 
 class _ApiKey(grpc.UnaryUnaryClientInterceptor, grpc.UnaryStreamClientInterceptor,

@@ -11,6 +11,7 @@ import pytest
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.__main__ import main as ogclient_main
 from ogclient.connection import ClientError, Transport, connect
+from ogserver import healthcheck
 
 from .certificates import CertificateAuthority, make_ca
 from .inprocess import Running, serving, settings
@@ -74,3 +75,10 @@ def test_ogclient_flags(mutual: Running, ca: CertificateAuthority, tmp_path: Pat
     assert ogclient_main([*flags, "list"]) == 0
     assert "preset=sparse-fast" in capsys.readouterr().out
     assert ogclient_main(["--server", mutual.address, "--tls-ca", str(ca.ca), "--timeout", "2", "list"]) == 2
+
+
+def test_the_container_health_check_speaks_tls(mutual: Running, ca: CertificateAuthority) -> None:
+    alice = ca.clients["alice"]
+    tls = ["--tls-ca", str(ca.ca), "--tls-cert", str(alice.cert), "--tls-key", str(alice.key)]
+    assert healthcheck.main([mutual.address, *tls]) == 0
+    assert healthcheck.main([mutual.address]) == 1
