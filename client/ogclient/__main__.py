@@ -133,7 +133,8 @@ def parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--quiet", action="store_true", help="no progress bars")
     evaluate.set_defaults(handler=commands.evaluate_command)
 
-    listing = sub.add_parser("list", help="list the server's sessions", description="List sessions.")
+    listing = sub.add_parser("list", help="list your sessions on the server",
+                             description="List the sessions you created (on an open server: every session).")
     listing.set_defaults(handler=commands.list_sessions)
 
     close = sub.add_parser("close", help="close a session (finishes its recording)", description="Close a session.")
