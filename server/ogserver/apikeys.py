@@ -40,7 +40,11 @@ def load(access: Access) -> dict[str, str]:
     names = dict(access.api_keys)
     if access.api_keys_file:
         path = Path(access.api_keys_file)
-        names.update(parse(path.read_text(), str(path)))
+        try:
+            text = path.read_text()
+        except OSError as error:
+            raise ValueError(f"access.api_keys_file: cannot read {path}: {error.strerror}") from None
+        names.update(parse(text, str(path)))
     for name in names:
         if not NAME.fullmatch(name):
             raise ValueError(f"API key name {name!r}: use 1-64 letters, digits or _.@-")

@@ -4,7 +4,8 @@ gRPC's request iterator blocks until the client sends, so a client that sends no
 the call's thread (and whatever the call reserved) for ever. ``Paced`` reads the iterator in a
 helper thread, one message at a time and only when asked, so backpressure still reaches the
 client; a wait past either limit raises DEADLINE_EXCEEDED in the caller. The helper starts
-with the first read and ends when the call does.
+with the first read and ends at the end of the stream or at ``close()``, which a caller that
+stops reading early must call.
 """
 
 from __future__ import annotations
@@ -76,7 +77,7 @@ class Paced(Generic[T]):
         try:
             item = self._items.get(timeout=max(wait, 0.0) if math.isfinite(wait) else None)
         except queue.Empty:
-            self._end()
+            self.close()
             raise self._timeout(over_total=wait < idle) from None
         if isinstance(item, _End):
             self._ended = True
@@ -85,8 +86,8 @@ class Paced(Generic[T]):
             raise StopIteration
         return item
 
-    def _end(self) -> None:
-        """Let the helper thread go once the blocked read returns (the call ends after the refusal)."""
+    def close(self) -> None:
+        """Read no more: the helper ends now, or once a read in progress returns (when the call ends)."""
         self._ended = True
         self._asks.put(False)
 

@@ -89,6 +89,7 @@ class MappingService(pb_grpc.MappingServicer):
                     self.metrics.ack(ack)
                     yield ack
             finally:
+                requests.close()
                 self.registry.touch(session)
 
     def Render(self, request: pb.RenderRequest, context: grpc.ServicerContext) -> pb.RenderResponse:
@@ -117,7 +118,10 @@ class MappingService(pb_grpc.MappingServicer):
             owner = self._caller(context)
             chunks = Paced(request_iterator, Timeout(self.access.restore_idle_seconds, "restore_idle_seconds"),
                            Timeout(self.access.restore_seconds, "restore_seconds"))
-            return credentials(self.registry.restore(owner, lambda: self._receive(chunks)))
+            try:
+                return credentials(self.registry.restore(owner, lambda: self._receive(chunks)))
+            finally:
+                chunks.close()
 
     def _receive(self, chunks: Iterator[pb.RestoreChunk]) -> Upload:
         """The snapshot's bytes, refused as soon as the label or the size is over its limit."""

@@ -74,6 +74,16 @@ def test_paced_reads_only_when_asked() -> None:
     assert read == [0]
 
 
+def test_a_paced_stream_closed_early_lets_its_helper_go() -> None:
+    paced = Paced(iter(range(10)), Timeout(5, "idle"))
+    assert next(paced) == 0
+    paced.close()
+    paced._helper.join(2)
+    assert not paced._helper.is_alive()
+    with pytest.raises(StopIteration):
+        next(paced)
+
+
 def test_paced_hands_on_the_client_streams_failure() -> None:
     def failing() -> Iterator[int]:
         yield 1
@@ -176,6 +186,11 @@ def test_api_keys_file_round_trip(tmp_path, capsys: pytest.CaptureFixture[str]) 
 def test_bad_api_keys_files_are_refused(text: str, line: int) -> None:
     with pytest.raises(ValueError, match=f"keys:{line}: expected a new NAME:SHA256HEX"):
         apikeys.parse(text, "keys")
+
+
+def test_a_missing_api_keys_file_is_a_settings_error(tmp_path) -> None:
+    with pytest.raises(ValueError, match="access.api_keys_file: cannot read"):
+        Callers(Access(api_keys_file=str(tmp_path / "missing")))
 
 
 @pytest.mark.parametrize(("api_key", "message"), [
