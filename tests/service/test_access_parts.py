@@ -189,7 +189,7 @@ def test_bad_api_keys_files_are_refused(text: str, line: int) -> None:
 
 
 def test_a_missing_api_keys_file_is_a_settings_error(tmp_path) -> None:
-    with pytest.raises(ValueError, match="access.api_keys_file: cannot read"):
+    with pytest.raises(ValueError, match=r"access\.api_keys_file: cannot read"):
         Callers(Access(api_keys_file=str(tmp_path / "missing")))
 
 
