@@ -66,11 +66,11 @@ def stats(config: pb.SessionConfig, engine: MapStats, counters: SessionCounters)
 def session_info(
     config: pb.SessionConfig, counters: SessionCounters, streaming: bool, recording: Path
 ) -> pb.SessionInfo:
-    """A session as ListSessions shows it: never its token."""
+    """A session as ListSessions shows it: never its token, and the recording's file name, not its server path."""
     return pb.SessionInfo(
         session_id=config.session_id, preset=config.preset, label=config.label, device=config.device,
         created_unix=config.created_unix, frames=counters.mapped, anchors=counters.anchors,
-        queue_depth=counters.pending, streaming=streaming, recording=str(recording),
+        queue_depth=counters.pending, streaming=streaming, recording=recording.name,
     )
 
 

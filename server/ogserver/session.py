@@ -26,6 +26,7 @@ from ogmapping.frame import Frame
 from ogmapping.mapper import Mapper, Rendered
 from ogmapping.stats import MapStats
 from ogserver import messages
+from ogserver.budget import ByteBudget, frame_bytes
 from ogserver.counters import SessionCounters
 from ogserver.errors import ServiceError
 from ogserver.events import Acked, SessionClosed, StreamEvent
@@ -44,6 +45,7 @@ class Job:
     sequence: int
     received: float  # time.monotonic() when the frame was read
     sink: queue.SimpleQueue[StreamEvent] | None  # where the stream that sent it waits for its ack
+    size: int  # bytes it holds of the session's max_queued_bytes
 
 
 class Session:
@@ -58,6 +60,7 @@ class Session:
         self.token = token
         self._started = time.monotonic()
         self._slots = threading.Semaphore(limits.queue_depth)
+        self._budget = ByteBudget(limits.max_queued_bytes)
         self._jobs: queue.SimpleQueue[Job | None] = queue.SimpleQueue()
         self._lock = threading.Lock()
         self._closed = threading.Event()
@@ -118,15 +121,20 @@ class Session:
         while not self._slots.acquire(timeout=0.2):
             if self._closed.is_set():
                 return False
+        size = frame_bytes(frame)
+        if not self._budget.acquire(size, self._closed):
+            self._slots.release()
+            return False
         with self._lock:
             if self._closed.is_set():
+                self._budget.release(size)
                 self._slots.release()
                 return False
             self._received += 1
             self._pending += 1
             if self._first_received is None:
                 self._first_received = received
-            self._jobs.put(Job(frame, record, self._received, received, sink))
+            self._jobs.put(Job(frame, record, self._received, received, sink, size))
         return True
 
     def _run(self) -> None:
@@ -136,6 +144,7 @@ class Session:
             finally:
                 with self._lock:
                     self._pending -= 1
+                self._budget.release(job.size)
                 self._slots.release()
             if job.sink is not None:
                 job.sink.put(Acked(ack))

@@ -45,6 +45,8 @@ def _read(session: Session, requests: Requests, sink: queue.SimpleQueue[StreamEv
                 sink.put(Rejected(messages.error_ack(index, refusal)))
                 continue
             accepted += 1
+    except ServiceError as refusal:  # the client sent nothing for the stream idle timeout
+        error = refusal
     except Exception as failure:  # a cancelled call ends its request iterator with an error
         log.debug("session %s: frame stream ended: %s", session.id, failure)
     finally:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 
 from google.protobuf.descriptor import Descriptor
-from ogapi import SESSION_METADATA_KEY, TOKEN_METADATA_KEY
+from ogapi import API_KEY_METADATA_KEY, SESSION_METADATA_KEY, TOKEN_METADATA_KEY
 from ogapi.v1 import mapping_pb2 as pb
 
 ENUM_VALUES = {value.name for enum in pb.DESCRIPTOR.enum_types_by_name.values() for value in enum.values}
@@ -13,7 +13,7 @@ ENUM_VALUES = {value.name for enum in pb.DESCRIPTOR.enum_types_by_name.values() 
 ENUM_LIKE = re.compile(r"\b[A-Z][A-Z0-9]*_[A-Z0-9_]+\b")
 # "name: reason": a field path or metadata key, no spaces, before the first ": ".
 NAMED = re.compile(r"^([A-Za-z0-9_.-]+): ")
-METADATA_KEYS = {SESSION_METADATA_KEY, TOKEN_METADATA_KEY}
+METADATA_KEYS = {SESSION_METADATA_KEY, TOKEN_METADATA_KEY, API_KEY_METADATA_KEY}
 
 
 def assert_spelled_as_the_proto(message: str, request: Descriptor, named: bool = True) -> None:
