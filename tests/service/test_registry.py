@@ -11,6 +11,7 @@ import pytest
 from mcap.reader import make_reader
 from ogclient.messages import frame_to_proto
 from ogserver.app import build
+from ogserver.callers import ANONYMOUS
 from ogserver.errors import ServiceError
 from ogserver.registry import Registry
 from ogserver.session import Session
@@ -26,7 +27,7 @@ def registry(tmp_path: Path) -> Registry:
 
 
 def map_frames(registry: Registry, count: int) -> Session:
-    session = registry.create(create_request(FROZEN))
+    session = registry.create(create_request(FROZEN), ANONYMOUS)
     sink: queue.SimpleQueue = queue.SimpleQueue()
     frames = scene("0:4")
     for position in range(count):
@@ -40,11 +41,11 @@ def test_create_on_a_full_disk_is_refused_and_leaves_no_file(tmp_path: Path, ful
     sessions = registry(tmp_path)
     full_disk.free = 0
     with pytest.raises(ServiceError) as refusal:
-        sessions.create(create_request(FROZEN))
+        sessions.create(create_request(FROZEN), ANONYMOUS)
     assert refusal.value.code == grpc.StatusCode.RESOURCE_EXHAUSTED and str(tmp_path) not in refusal.value.message
     assert list(tmp_path.iterdir()) == [] and sessions.sessions() == []
     full_disk.free = None
-    sessions.close(sessions.create(create_request(FROZEN)))  # the refused one took no slot
+    sessions.close(sessions.create(create_request(FROZEN), ANONYMOUS))  # the refused one took no slot
 
 
 def test_close_on_a_full_disk_keeps_the_session_until_it_can_finish(tmp_path: Path, full_disk: FullDisk) -> None:
