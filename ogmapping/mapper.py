@@ -24,7 +24,7 @@ import torch
 from ogmapping import allocation, refine, snapshot
 from ogmapping.anchors import AnchorMap
 from ogmapping.camera import Intrinsics
-from ogmapping.config import MapperConfig
+from ogmapping.config import ConfigBounds, MapperConfig
 from ogmapping.decoders import Decoders
 from ogmapping.encoding import HashGridEncoding, feature_dim, initial_anchor_features
 from ogmapping.frame import Frame
@@ -390,9 +390,10 @@ class Mapper:
         return snapshot.encode(self.state())
 
     @classmethod
-    def restore(cls, data: bytes, device: str | torch.device = "cpu") -> Mapper:
-        """A mapper from snapshot bytes; mapping can continue from it."""
-        return cls.from_state(snapshot.decode(data), device)
+    def restore(cls, data: bytes, device: str | torch.device = "cpu", bounds: ConfigBounds | None = None) -> Mapper:
+        """A mapper from snapshot bytes; mapping can continue from it. A config beyond ``bounds``
+        (a server's) raises ValueError before anything is allocated for it."""
+        return cls.from_state(snapshot.decode(data, bounds), device)
 
 
 def _checked_shapes(

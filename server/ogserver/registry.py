@@ -67,7 +67,7 @@ class Registry:
             raise invalid("preset", f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
         overrides = dict(request.overrides)
         try:
-            config = resolve(preset, overrides=overrides)
+            config = resolve(preset, overrides=overrides, bounds=self.settings.config_bounds)
         except ValueError as error:
             raise invalid("overrides", error) from None
         with self._slot():
@@ -77,7 +77,7 @@ class Registry:
     def restore(self, data: bytes, label: str, sha256: str) -> Session:
         with self._slot():
             try:
-                mapper = Mapper.restore(data, device=self.device)
+                mapper = Mapper.restore(data, device=self.device, bounds=self.settings.config_bounds)
             except ValueError as error:
                 raise invalid("data", f"not a usable snapshot: {error}") from None
             return self._open(mapper, "", {}, label, sha256)

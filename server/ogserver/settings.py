@@ -11,6 +11,8 @@ from typing import Any
 
 import yaml
 
+from ogmapping.config import ConfigBounds
+
 MIB = 1 << 20
 
 
@@ -43,6 +45,8 @@ class Settings:
     grace_seconds: float = 5.0  # how long shutdown waits for calls in flight
     warm_up: bool = True  # map a tiny synthetic scene before serving, so the first session pays no load costs
     limits: Limits = field(default_factory=Limits)
+    # --- input: what one session's config may cost
+    config_bounds: ConfigBounds = field(default_factory=ConfigBounds)  # on CreateSession's and snapshots' configs
 
     def validate(self) -> None:
         if not self.address or ":" not in self.address:
@@ -50,6 +54,7 @@ class Settings:
         if self.torch_threads < 0 or self.grace_seconds < 0:
             raise ValueError("torch_threads and grace_seconds must not be negative")
         self.limits.validate()
+        self.config_bounds.validate()
 
     def threads(self) -> int:
         return self.torch_threads or max(1, min(os.cpu_count() or 1, 8))
