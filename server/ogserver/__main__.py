@@ -36,6 +36,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--no-warm-up", dest="warm_up", action="store_false", default=None,
                    help="serve at once, without first mapping a tiny synthetic scene (which loads the compiled "
                         "kernels, ~2 s, so the first session does not wait for them)")
+    p.add_argument("--frame-seconds", dest="frame_seconds", type=float,
+                   help="wall-clock budget of one frame's optimisation; it then stops early and its ack says "
+                        "so (60; 0 = no limit)")
     limits = p.add_argument_group("limits (exceeding one gives RESOURCE_EXHAUSTED)")
     limits.add_argument("--max-sessions", dest="max_sessions", type=int, help="open sessions at once (4)")
     limits.add_argument("--queue-depth", dest="queue_depth", type=int,

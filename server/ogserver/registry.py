@@ -90,7 +90,7 @@ class Registry:
             created_unix=time.time(), server_version=__version__, restored_from_sha256=restored,
         )
         recorder = Recorder(self.record_dir / f"{session_id}.mcap", config)
-        session = Session(config, auth.new_token(), mapper, recorder, self.settings.limits)
+        session = Session(config, auth.new_token(), mapper, recorder, self.settings.limits, self.settings.frame_seconds)
         with self._lock:
             self._sessions[session_id] = session
         log.info("session %s opened (preset %r, device %s)", session_id, preset or "restored", mapper.device)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,8 +46,9 @@ class Settings:
     grace_seconds: float = 5.0  # how long shutdown waits for calls in flight
     warm_up: bool = True  # map a tiny synthetic scene before serving, so the first session pays no load costs
     limits: Limits = field(default_factory=Limits)
-    # --- input: what one session's config may cost
+    # --- input: what one session's config and one frame may cost
     config_bounds: ConfigBounds = field(default_factory=ConfigBounds)  # on CreateSession's and snapshots' configs
+    frame_seconds: float = 60.0  # a frame's optimisation stops after this long, or at once on close; 0 = no limit
 
     def validate(self) -> None:
         if not self.address or ":" not in self.address:
@@ -55,6 +57,8 @@ class Settings:
             raise ValueError("torch_threads and grace_seconds must not be negative")
         self.limits.validate()
         self.config_bounds.validate()
+        if not (math.isfinite(self.frame_seconds) and self.frame_seconds >= 0):
+            raise ValueError(f"frame_seconds must be >= 0 and finite (got {self.frame_seconds})")
 
     def threads(self) -> int:
         return self.torch_threads or max(1, min(os.cpu_count() or 1, 8))
