@@ -33,7 +33,7 @@ def _read(
         for message in requests:
             try:
                 session.check_capacity()
-                frame = validation.frame(message, max_pixels)
+                frame = validation.frame(message, max_pixels, session.mapper.config.octree)
             except ServiceError as refusal:
                 session.count_rejected()
                 sink.put(Rejected(messages.error_ack(message.index, refusal)))

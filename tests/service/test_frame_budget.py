@@ -31,7 +31,7 @@ def long_session(tmp_path: Path, frame_seconds: float) -> Session:
 
 def submit_first_frame(session: Session, sink: queue.SimpleQueue) -> None:
     message = frame_to_proto(scene("0:1").load(0))
-    assert session.submit(validate_frame(message, 1 << 20), message, sink)
+    assert session.submit(validate_frame(message, 1 << 20, session.mapper.config.octree), message, sink)
 
 
 def test_close_interrupts_the_frame_being_mapped(tmp_path: Path) -> None:

@@ -16,6 +16,8 @@ from ogclient.messages import frame_to_proto
 from ogserver.recorder import Recorder, quaternion
 from ogserver.validation import frame as validate_frame
 
+from ogmapping.config import OctreeConfig
+
 from .scene import scene
 
 FOXGLOVE = {
@@ -32,7 +34,7 @@ def write(path: Path, count: int, encoding: FrameEncoding | None = None, close: 
     frames = scene("0:4")
     for position in range(count):
         message = frame_to_proto(frames.load(position), encoding)
-        recorder.write_frame(message, validate_frame(message, 1 << 20), time.time_ns())
+        recorder.write_frame(message, validate_frame(message, 1 << 20, OctreeConfig()), time.time_ns())
         recorder.write_ack(pb.FrameAck(index=position, accepted=True, sequence=position + 1))
     if close:
         recorder.close(pb.Stats(frames=count))
@@ -94,7 +96,7 @@ def test_a_zero_timestamp_is_kept_and_a_missing_one_becomes_the_arrival_time(tmp
     unstamped = frame_to_proto(frames.load(1))
     unstamped.ClearField("timestamp")
     for message in (stamped, unstamped):
-        recorder.write_frame(message, validate_frame(message, 1 << 20), arrival_ns)
+        recorder.write_frame(message, validate_frame(message, 1 << 20, OctreeConfig()), arrival_ns)
     recorder.close()
     with open(path, "rb") as stream:
         reader = make_reader(stream, decoder_factories=[DecoderFactory()])

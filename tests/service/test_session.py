@@ -16,7 +16,7 @@ from ogserver.session import Session
 from ogserver.settings import Limits
 from ogserver.validation import frame as validate_frame
 
-from ogmapping.config import resolve
+from ogmapping.config import OctreeConfig, resolve
 from ogmapping.mapper import Mapper
 
 from .scene import FROZEN, PRESET, scene
@@ -30,7 +30,7 @@ def make_session(tmp_path: Path, limits: Limits) -> Session:
 
 def submit(session: Session, position: int, sink: queue.SimpleQueue) -> None:
     message = frame_to_proto(scene("0:8").load(position))
-    assert session.submit(validate_frame(message, 1 << 20), message, sink)
+    assert session.submit(validate_frame(message, 1 << 20, OctreeConfig()), message, sink)
 
 
 def test_anchor_limit_refuses_further_frames(tmp_path: Path) -> None:
@@ -63,5 +63,6 @@ def test_close_drops_queued_frames_and_ends_the_stream(tmp_path: Path) -> None:
     assert isinstance(events[-1], SessionClosed)
     assert sum(isinstance(event, Acked) for event in events) == counters.mapped <= 4
     assert counters.pending == 0
-    assert not session.submit(validate_frame(frame_to_proto(scene("0:1").load(0)), 1 << 20), pb.Frame(), None)
+    frame = validate_frame(frame_to_proto(scene("0:1").load(0)), 1 << 20, OctreeConfig())
+    assert not session.submit(frame, pb.Frame(), None)
     session.recorder.close()
