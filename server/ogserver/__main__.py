@@ -15,10 +15,11 @@ READY_PREFIX = "ogserver listening on"
 
 EPILOG = """\
 settings come from defaults, then --config FILE (YAML or JSON with the same names, limits nested
-under "limits:"), then flags. The server prints "ogserver listening on HOST:PORT" once it serves
-(with port 0 the bound port is printed). SIGTERM or SIGINT stops it gracefully: calls in flight get
---grace seconds, then every session's recording is closed (and with --final-snapshots its map is
-written as RECORD_DIR/<session>.safetensors). See docs/service.md."""
+under "limits:", the bounds on clients' configs under "config_bounds:"), then flags. The server
+prints "ogserver listening on HOST:PORT" once it serves (with port 0 the bound port is printed).
+SIGTERM or SIGINT stops it gracefully: calls in flight get --grace seconds, then every session's
+recording is closed (and with --final-snapshots its map is written as
+RECORD_DIR/<session>.safetensors). See docs/service.md."""
 
 
 def parser() -> argparse.ArgumentParser:
