@@ -23,8 +23,9 @@ import torch
 
 from ogmapping import allocation, refine, snapshot
 from ogmapping.anchors import AnchorMap
+from ogmapping.budget import Budget, Stop
 from ogmapping.camera import Intrinsics
-from ogmapping.config import MapperConfig
+from ogmapping.config import ConfigBounds, MapperConfig
 from ogmapping.decoders import Decoders
 from ogmapping.encoding import HashGridEncoding, feature_dim, initial_anchor_features
 from ogmapping.frame import Frame
@@ -54,6 +55,7 @@ class FrameResult:
     new_anchors: int
     loss: float
     seconds: float
+    stopped: Stop | None = None  # why optimisation ended before ``iterations`` reached the planned count
 
 
 @dataclass
@@ -122,12 +124,12 @@ class Mapper:
 
     # ------------------------------------------------------------------ mapping
 
-    def process(self, frame: Frame) -> FrameResult:
-        """Map one frame; returns what happened to it."""
+    def process(self, frame: Frame, budget: Budget | None = None) -> FrameResult:
+        """Map one frame; returns what happened to it. Optimisation ends early once ``budget`` says stop."""
         with torch_threads(self.profile.threads):
-            return self._process(frame)
+            return self._process(frame, budget or Budget())
 
-    def _process(self, frame: Frame) -> FrameResult:
+    def _process(self, frame: Frame, budget: Budget) -> FrameResult:
         start = time.perf_counter()
         with self._timed("preprocess"):
             frame = prepare(frame, self.config.octree.depth_min, self.config.octree.depth_max)
@@ -150,7 +152,7 @@ class Mapper:
                                 reference_statistics(rgb, compiled=self.profile.compiled))
             if is_keyframe:
                 self.keyframes.insert(view)
-        loss, grown = self._optimise(iterations, view) if iterations else (float("nan"), 0)
+        loss, grown, done, stopped = self._optimise(iterations, view, budget, start)
         self.frames += 1
         self.camera_position_sum += torch.as_tensor(frame.c2w[:3, 3], dtype=torch.float64)
         self.camera_positions += 1
@@ -159,10 +161,11 @@ class Mapper:
             keyframe=is_keyframe,
             anchors=len(self.anchors),
             gaussians=self.last_gaussians,
-            iterations=iterations,
+            iterations=done,
             new_anchors=int(new_codes.numel()) + grown,
             loss=loss,
             seconds=time.perf_counter() - start,
+            stopped=stopped,
         )
 
     def _add_coarse_anchors(self, codes: torch.Tensor) -> None:
@@ -187,12 +190,17 @@ class Mapper:
             return settings.frame_iterations if self.keyframes else 0
         return settings.first_iterations if not self.keyframes else settings.iterations
 
-    def _optimise(self, iterations: int, view: Keyframe) -> tuple[float, int]:
-        """``iterations`` steps, each on a fresh window around ``view``; grow and prune every
-        ``refine.interval`` steps of the whole session (frames may get fewer steps than that)."""
+    def _optimise(
+        self, iterations: int, view: Keyframe | None, budget: Budget, started: float
+    ) -> tuple[float, int, int, Stop | None]:
+        """Up to ``iterations`` steps, each on a fresh window around ``view``; grow and prune every
+        ``refine.interval`` steps of the whole session (frames may get fewer steps than that).
+        Returns the last loss, the anchors grown, the steps done and why they stopped short, if they did."""
         loss_value, grown = float("nan"), 0
         interval = self.config.refine.interval
-        for _ in range(iterations):
+        for done in range(iterations):
+            if (stopped := budget.stop(started)) is not None:
+                return loss_value, grown, done, stopped
             with self.lock:
                 loss_value = self._iteration(self.keyframes.draw_window(view))
                 self.iterations += 1
@@ -202,7 +210,7 @@ class Mapper:
                                              self.config.octree.voxel_size, self.optimizer)
                         refine.prune(self.anchors, self.config.refine, self.optimizer)
                         refine.end_interval(self.anchors)
-        return loss_value, grown
+        return loss_value, grown, iterations, None
 
     def _iteration(self, window: list[Keyframe]) -> float:
         self.optimizer.zero_grad(set_to_none=True)
@@ -390,9 +398,10 @@ class Mapper:
         return snapshot.encode(self.state())
 
     @classmethod
-    def restore(cls, data: bytes, device: str | torch.device = "cpu") -> Mapper:
-        """A mapper from snapshot bytes; mapping can continue from it."""
-        return cls.from_state(snapshot.decode(data), device)
+    def restore(cls, data: bytes, device: str | torch.device = "cpu", bounds: ConfigBounds | None = None) -> Mapper:
+        """A mapper from snapshot bytes; mapping can continue from it. A config beyond ``bounds``
+        (a server's) raises ValueError before anything is allocated for it."""
+        return cls.from_state(snapshot.decode(data, bounds), device)
 
 
 def _checked_shapes(

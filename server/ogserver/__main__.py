@@ -15,12 +15,13 @@ READY_PREFIX = "ogserver listening on"
 
 EPILOG = """\
 settings come from defaults, then --config FILE (YAML or JSON with the same names, limits nested
-under "limits:", TLS, callers, timeouts and metrics under "access:"), then flags. The server prints
-"ogserver listening on HOST:PORT" once it serves (with port 0 the bound port is printed). SIGTERM or
-SIGINT stops it gracefully: calls in flight get --grace seconds, then every session's recording is
-closed (and with --final-snapshots its map is written as RECORD_DIR/<session>.safetensors). Nothing
-waits without a bound: what is still running --stop-timeout seconds later is left behind, the
-recordings are closed regardless and the process exits. See docs/service.md."""
+under "limits:", TLS, callers, timeouts and metrics under "access:", the bounds on clients' configs under
+"config_bounds:"), then flags. The server prints "ogserver listening on HOST:PORT" once it serves
+(with port 0 the bound port is printed). SIGTERM or SIGINT stops it gracefully: calls in flight get
+--grace seconds, then every session's recording is closed (and with --final-snapshots its map is
+written as RECORD_DIR/<session>.safetensors). Nothing waits without a bound: what is still running
+--stop-timeout seconds later is left behind, the recordings are closed regardless and the process
+exits. See docs/service.md."""
 
 
 def parser() -> argparse.ArgumentParser:
@@ -41,6 +42,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--no-warm-up", dest="warm_up", action="store_false", default=None,
                    help="serve at once, without first mapping a tiny synthetic scene (which loads the compiled "
                         "kernels, ~2 s, so the first session does not wait for them)")
+    p.add_argument("--frame-seconds", dest="frame_seconds", type=float,
+                   help="wall-clock budget of one frame's optimisation; it then stops early and its ack says "
+                        "so (60; 0 = no limit)")
     limits = p.add_argument_group("limits (exceeding one gives RESOURCE_EXHAUSTED)")
     limits.add_argument("--max-sessions", dest="max_sessions", type=int, help="open sessions at once (4)")
     limits.add_argument("--queue-depth", dest="queue_depth", type=int,

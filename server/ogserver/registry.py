@@ -107,7 +107,7 @@ class Registry:
             raise invalid("preset", f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
         overrides = dict(request.overrides)
         try:
-            config = resolve(preset, overrides=overrides)
+            config = resolve(preset, overrides=overrides, bounds=self.settings.config_bounds)
         except ValueError as error:
             raise invalid("overrides", error) from None
         with self._reserve(owner):
@@ -119,7 +119,7 @@ class Registry:
         with self._reserve(owner):
             upload = receive()
             try:
-                mapper = Mapper.restore(upload.data, device=self.device)
+                mapper = Mapper.restore(upload.data, device=self.device, bounds=self.settings.config_bounds)
             except ValueError as error:
                 raise invalid("data", f"not a usable snapshot: {error}") from None
             return self._open(mapper, "", {}, upload.label, upload.sha256, owner)
@@ -134,7 +134,7 @@ class Registry:
             created_unix=time.time(), server_version=__version__, restored_from_sha256=restored,
         )
         recorder = Recorder(self.record_dir / f"{session_id}.mcap", config)
-        session = Session(config, auth.new_token(), mapper, recorder, self.settings.limits)
+        session = Session(config, auth.new_token(), mapper, recorder, self.settings.limits, self.settings.frame_seconds)
         with self._lock:
             self._sessions[session_id] = session
             self._tenancy[session_id] = Tenancy(owner, time.monotonic())

@@ -11,6 +11,7 @@ answers in engine results and its own counters; the messages module turns them i
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
 import time
@@ -22,6 +23,7 @@ import grpc
 from ogapi import SESSION_METADATA_KEY
 from ogapi.v1 import mapping_pb2 as pb
 
+from ogmapping.budget import Budget
 from ogmapping.frame import Frame
 from ogmapping.mapper import Mapper, Rendered
 from ogmapping.stats import MapStats
@@ -50,7 +52,8 @@ class Job:
 
 class Session:
     def __init__(
-        self, config: pb.SessionConfig, token: str, mapper: Mapper, recorder: Recorder, limits: Limits
+        self, config: pb.SessionConfig, token: str, mapper: Mapper, recorder: Recorder, limits: Limits,
+        frame_seconds: float = 0.0,
     ) -> None:
         self.id = config.session_id
         self.mapper = mapper
@@ -64,6 +67,8 @@ class Session:
         self._jobs: queue.SimpleQueue[Job | None] = queue.SimpleQueue()
         self._lock = threading.Lock()
         self._closed = threading.Event()
+        # Each frame's optimisation stops after frame_seconds (0: no limit), or at once when the session closes.
+        self._budget = Budget(seconds=frame_seconds or math.inf)
         self._stream_sink: queue.SimpleQueue[StreamEvent] | None = None
         self._received = self._rejected = self._mapped = self._pending = 0
         self._anchors = mapper.stats().anchors  # a restored map starts with its anchors
@@ -162,7 +167,7 @@ class Session:
 
     def _map(self, job: Job) -> pb.FrameAck:
         try:
-            result = self.mapper.process(job.frame)
+            result = self.mapper.process(job.frame, self._budget)
         except Exception as error:  # the session survives a failing frame; the client sees why
             log.exception("session %s: mapping frame %d failed", self.id, job.frame.index)
             return messages.error_ack(
@@ -207,6 +212,7 @@ class Session:
             if self._closed.is_set():
                 return not self._worker.is_alive()
             self._closed.set()
+            self._budget.cancelled.set()
             sink = self._stream_sink
             dropped = 0
             while True:

@@ -13,6 +13,8 @@ from typing import Any
 
 import yaml
 
+from ogmapping.config import ConfigBounds
+
 MIB = 1 << 20
 
 
@@ -104,6 +106,9 @@ class Settings:
     # gRPC's calls to end; then the recordings are finished regardless.
     stop_timeout_seconds: float = 10.0
     access: Access = field(default_factory=Access)
+    # --- input: what one session's config and one frame may cost
+    config_bounds: ConfigBounds = field(default_factory=ConfigBounds)  # on CreateSession's and snapshots' configs
+    frame_seconds: float = 60.0  # a frame's optimisation stops after this long, or at once on close; 0 = no limit
 
     def validate(self) -> None:
         if not self.address or ":" not in self.address:
@@ -114,6 +119,9 @@ class Settings:
             raise ValueError(f"stop_timeout_seconds must be a finite number >= 0 (got {self.stop_timeout_seconds})")
         self.limits.validate()
         self.access.validate()
+        self.config_bounds.validate()
+        if not (math.isfinite(self.frame_seconds) and self.frame_seconds >= 0):
+            raise ValueError(f"frame_seconds must be >= 0 and finite (got {self.frame_seconds})")
 
     def threads(self) -> int:
         return self.torch_threads or max(1, min(os.cpu_count() or 1, 8))

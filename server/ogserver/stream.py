@@ -36,7 +36,7 @@ def _read(session: Session, requests: Requests, sink: queue.SimpleQueue[StreamEv
             try:
                 message = wire.parsed(request)
                 session.check_capacity()
-                frame = validation.frame(message, max_pixels)
+                frame = validation.frame(message, max_pixels, session.mapper.config.octree)
                 if not session.submit(frame, message, sink):
                     error = ServiceError(grpc.StatusCode.ABORTED, "the session was closed during the stream")
                     break

@@ -20,6 +20,8 @@ from ogserver.storage import StorageError
 from ogserver.validation import MAX_TIMESTAMP_SECONDS
 from ogserver.validation import frame as validate_frame
 
+from ogmapping.config import OctreeConfig
+
 from .conftest import FullDisk
 from .scene import scene
 
@@ -35,7 +37,7 @@ def write_frames(recorder: Recorder, positions: range, encoding: FrameEncoding |
     frames = scene("0:4")
     for position in positions:
         message = frame_to_proto(frames.load(position), encoding or FrameEncoding())
-        recorder.write_frame(frame_record(message, validate_frame(message, 1 << 20), time.time_ns()))
+        recorder.write_frame(frame_record(message, validate_frame(message, 1 << 20, OctreeConfig()), time.time_ns()))
         recorder.write_ack(pb.FrameAck(index=position, accepted=True, sequence=position + 1))
 
 
@@ -113,7 +115,7 @@ def test_a_zero_timestamp_is_kept_and_a_missing_one_becomes_the_arrival_time(tmp
     unstamped = frame_to_proto(frames.load(1))
     unstamped.ClearField("timestamp")
     for message in (stamped, unstamped):
-        recorder.write_frame(frame_record(message, validate_frame(message, 1 << 20), arrival_ns))
+        recorder.write_frame(frame_record(message, validate_frame(message, 1 << 20, OctreeConfig()), arrival_ns))
     recorder.close()
     with open(path, "rb") as stream:
         reader = make_reader(stream, decoder_factories=[DecoderFactory()])
@@ -178,7 +180,7 @@ def test_the_largest_timestamp_validation_accepts_is_recorded(tmp_path: Path) ->
     recorder = Recorder(path, pb.SessionConfig(session_id="0" * 32, preset="sparse"))
     message = frame_to_proto(scene("0:1").load(0))
     message.timestamp = math.nextafter(MAX_TIMESTAMP_SECONDS, 0.0)
-    recorder.write_frame(frame_record(message, validate_frame(message, 1 << 20), time.time_ns()))
+    recorder.write_frame(frame_record(message, validate_frame(message, 1 << 20, OctreeConfig()), time.time_ns()))
     recorder.close()
     with open(path, "rb") as stream:
         times = [record.publish_time for _, _, record in make_reader(stream).iter_messages([layout.TOPIC_COLOR])]

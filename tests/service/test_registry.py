@@ -18,6 +18,8 @@ from ogserver.session import Session
 from ogserver.settings import Settings
 from ogserver.validation import frame as validate_frame
 
+from ogmapping.config import OctreeConfig
+
 from .conftest import FullDisk
 from .scene import FROZEN, create_request, scene
 
@@ -32,7 +34,7 @@ def map_frames(registry: Registry, count: int) -> Session:
     frames = scene("0:4")
     for position in range(count):
         message = frame_to_proto(frames.load(position))
-        assert session.submit(validate_frame(message, 1 << 20), message, sink)
+        assert session.submit(validate_frame(message, 1 << 20, OctreeConfig()), message, sink)
     assert all(sink.get(timeout=60).ack.accepted for _ in range(count))
     return session
 

@@ -18,7 +18,7 @@ from ogserver.session import Session
 from ogserver.settings import Limits
 from ogserver.validation import frame as validate_frame
 
-from ogmapping.config import resolve
+from ogmapping.config import OctreeConfig, resolve
 from ogmapping.mapper import Mapper
 
 from .conftest import FullDisk
@@ -33,7 +33,7 @@ def make_session(tmp_path: Path, limits: Limits, overrides: dict[str, str] = FRO
 
 def submit(session: Session, position: int, sink: queue.SimpleQueue) -> None:
     message = frame_to_proto(scene("0:8").load(position))
-    assert session.submit(validate_frame(message, 1 << 20), message, sink)
+    assert session.submit(validate_frame(message, 1 << 20, OctreeConfig()), message, sink)
 
 
 def test_anchor_limit_refuses_further_frames(tmp_path: Path) -> None:
@@ -66,7 +66,8 @@ def test_close_drops_queued_frames_and_ends_the_stream(tmp_path: Path) -> None:
     assert isinstance(events[-1], SessionClosed)
     assert sum(isinstance(event, Acked) for event in events) == counters.mapped <= 4
     assert counters.pending == 0
-    assert not session.submit(validate_frame(frame_to_proto(scene("0:1").load(0)), 1 << 20), pb.Frame(), None)
+    frame = validate_frame(frame_to_proto(scene("0:1").load(0)), 1 << 20, OctreeConfig())
+    assert not session.submit(frame, pb.Frame(), None)
     session.recorder.close()
 
 
@@ -85,7 +86,7 @@ def test_close_drops_queued_frames_unrecorded_so_a_replay_maps_the_same(tmp_path
     assert mapped < 6 and len(recorded.frames) == len(recorded.acks) == mapped
     replay = Mapper(resolve(PRESET, overrides=TINY))
     for _, message in recorded.frames:
-        replay.process(validate_frame(message, 1 << 20))
+        replay.process(validate_frame(message, 1 << 20, OctreeConfig()))
     assert (replay.stats().frames, replay.stats().anchors) == (stats.frames, stats.anchors)
 
 

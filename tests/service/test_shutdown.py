@@ -12,6 +12,7 @@ from ogclient.connection import SessionRef, connect
 from ogclient.streaming import stream_frames
 from ogserver.validation import frame as validate_frame
 
+from ogmapping.config import OctreeConfig
 from ogmapping.mapper import Mapper
 
 from .conftest import start_local
@@ -50,7 +51,7 @@ def test_sigkill_leaves_every_frame_readable(tmp_path: Path) -> None:
     recorded = recording.load(path)
     assert recorded.config.preset == "sparse-fast"
     for _, message in recorded.frames:  # what a replay would send is intact
-        validate_frame(message, LIMITS["max_image_pixels"])
+        validate_frame(message, LIMITS["max_image_pixels"], OctreeConfig())
 
 
 def test_sigterm_finishes_recordings_and_writes_final_snapshots(tmp_path: Path) -> None:
