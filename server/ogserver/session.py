@@ -63,12 +63,12 @@ class Session:
         self.token = token
         self._started = time.monotonic()
         self._slots = threading.Semaphore(limits.queue_depth)
-        self._budget = ByteBudget(limits.max_queued_bytes)
+        self._queued_bytes = ByteBudget(limits.max_queued_bytes)
         self._jobs: queue.SimpleQueue[Job | None] = queue.SimpleQueue()
         self._lock = threading.Lock()
         self._closed = threading.Event()
         # Each frame's optimisation stops after frame_seconds (0: no limit), or at once when the session closes.
-        self._budget = Budget(seconds=frame_seconds or math.inf)
+        self._time_budget = Budget(seconds=frame_seconds or math.inf)
         self._stream_sink: queue.SimpleQueue[StreamEvent] | None = None
         self._received = self._rejected = self._mapped = self._pending = 0
         self._anchors = mapper.stats().anchors  # a restored map starts with its anchors
@@ -127,12 +127,12 @@ class Session:
             if self._closed.is_set():
                 return False
         size = frame_bytes(frame)
-        if not self._budget.acquire(size, self._closed):
+        if not self._queued_bytes.acquire(size, self._closed):
             self._slots.release()
             return False
         with self._lock:
             if self._closed.is_set():
-                self._budget.release(size)
+                self._queued_bytes.release(size)
                 self._slots.release()
                 return False
             self._received += 1
@@ -149,7 +149,7 @@ class Session:
             finally:
                 with self._lock:
                     self._pending -= 1
-                self._budget.release(job.size)
+                self._queued_bytes.release(job.size)
                 self._slots.release()
             if job.sink is not None:
                 job.sink.put(Acked(ack))
@@ -167,7 +167,7 @@ class Session:
 
     def _map(self, job: Job) -> pb.FrameAck:
         try:
-            result = self.mapper.process(job.frame, self._budget)
+            result = self.mapper.process(job.frame, self._time_budget)
         except Exception as error:  # the session survives a failing frame; the client sees why
             log.exception("session %s: mapping frame %d failed", self.id, job.frame.index)
             return messages.error_ack(
@@ -212,7 +212,7 @@ class Session:
             if self._closed.is_set():
                 return not self._worker.is_alive()
             self._closed.set()
-            self._budget.cancelled.set()
+            self._time_budget.cancelled.set()
             sink = self._stream_sink
             dropped = 0
             while True:
