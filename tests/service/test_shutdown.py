@@ -18,7 +18,9 @@ from ogmapping.mapper import Mapper
 from .conftest import start_local
 from .scene import FROZEN, LIMITS, create_request, messages, scene
 
-SLOW = {**FROZEN, "keyframes.first_iterations": "1000"}  # the first frame maps for minutes on a CPU
+# The first frame would map for minutes on a CPU (500 is the default config_bounds.max_iterations);
+# closing cancels it between two iterations, and --stop-timeout bounds the wait even if it did not.
+SLOW = {**FROZEN, "keyframes.first_iterations": "500"}
 GRACE, STOP_TIMEOUT = 1.0, 2.0
 
 FOXGLOVE_TOPICS = (recording.TOPIC_COLOR, recording.TOPIC_DEPTH, recording.TOPIC_CALIBRATION,
@@ -101,7 +103,6 @@ def test_sigterm_during_a_long_frame_exits_within_the_deadline(tmp_path: Path) -
         channel.close()
         server.stop()
     assert code == 0 and elapsed < GRACE + 2 * STOP_TIMEOUT + 10, (code, elapsed)
-    assert any("past --stop-timeout" in line for line in Path(server.log_path).read_text().splitlines())
     with open(credentials.recording, "rb") as stream:
         summary = make_reader(stream).get_summary()
     counts = {channel.topic: summary.statistics.channel_message_counts[cid]
