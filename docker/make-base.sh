@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# Build a local stand-in for python:3.11-slim where no container registry is reachable:
+# Debian bookworm (minbase) from Debian's own mirror with debootstrap, plus Python 3.11, venv and
+# the CA certificates, imported into podman as $BASE_IMAGE. Needs root, debootstrap and podman.
+#
+#   docker/make-base.sh            # builds it unless an image from this same script exists
+#   docker/make-base.sh --force    # builds it again (e.g. for Debian's security updates)
+#
+# The host's CA bundle replaces the image's, and PIP_CERT points pip at it, so that builds on a
+# machine whose TLS goes through an intercepting proxy reach PyPI the way the host's pip does.
+# The image is labelled with the hash of this script and that bundle: a change to either means a new base.
+set -euo pipefail
+
+BASE_IMAGE="${BASE_IMAGE:-localhost/ogmapping-base:bookworm}"
+MIRROR="${DEBIAN_MIRROR:-http://deb.debian.org/debian}"
+PACKAGES="python3,python3-venv,ca-certificates"
+HOST_CA_BUNDLE="${HOST_CA_BUNDLE:-/etc/ssl/certs/ca-certificates.crt}"
+
+recipe=$(cat "$0" "$HOST_CA_BUNDLE" 2>/dev/null | sha256sum | cut -c1-16)
+if [[ "${1:-}" != "--force" ]] &&
+   [[ "$(podman image inspect --format '{{index .Labels "ogmapping.base.recipe"}}' "$BASE_IMAGE" 2>/dev/null)" == "$recipe" ]]; then
+    echo "make-base: $BASE_IMAGE is up to date (recipe $recipe)"
+    exit 0
+fi
+
+rootfs=$(mktemp -d /tmp/ogmapping-base.XXXXXX)
+trap 'rm -rf "$rootfs"' EXIT
+echo "make-base: debootstrap bookworm ($PACKAGES) from $MIRROR"
+debootstrap --variant=minbase --include="$PACKAGES" bookworm "$rootfs" "$MIRROR" > "$rootfs.log" 2>&1 ||
+    { tail -20 "$rootfs.log"; exit 1; }
+rm -f "$rootfs.log"
+# What python:3.11-slim also leaves out: downloaded packages and package lists.
+rm -rf "$rootfs"/var/cache/apt/archives/*.deb "$rootfs"/var/cache/apt/*.bin "$rootfs"/var/lib/apt/lists/*
+if [[ -f "$HOST_CA_BUNDLE" ]]; then
+    install -m 644 "$HOST_CA_BUNDLE" "$rootfs/etc/ssl/certs/ca-certificates.crt"
+fi
+tar -C "$rootfs" -c . | podman import \
+    --change 'ENV LANG=C.UTF-8' \
+    --change 'ENV PIP_CERT=/etc/ssl/certs/ca-certificates.crt' \
+    --change "LABEL ogmapping.base.recipe=$recipe" \
+    --change 'CMD ["python3"]' \
+    --message "debootstrap bookworm minbase + $PACKAGES (docker/make-base.sh)" \
+    - "$BASE_IMAGE" > /dev/null
+echo "make-base: $BASE_IMAGE built ($(podman image inspect --format '{{.Size}}' "$BASE_IMAGE") bytes)"
