@@ -29,12 +29,22 @@ echo "make-base: debootstrap bookworm ($PACKAGES) from $MIRROR"
 debootstrap --variant=minbase --include="$PACKAGES" bookworm "$rootfs" "$MIRROR" > "$rootfs.log" 2>&1 ||
     { tail -20 "$rootfs.log"; exit 1; }
 rm -f "$rootfs.log"
-# What python:3.11-slim also leaves out: downloaded packages and package lists.
+# What python:3.11-slim (debian:bookworm-slim) leaves out: downloaded packages, package lists, and
+# manuals, documentation but copyrights, and translations, now and from packages installed later.
 rm -rf "$rootfs"/var/cache/apt/archives/*.deb "$rootfs"/var/cache/apt/*.bin "$rootfs"/var/lib/apt/lists/*
+cat > "$rootfs/etc/dpkg/dpkg.cfg.d/slim" <<'SLIM'
+path-exclude /usr/share/doc/*
+path-include /usr/share/doc/*/copyright
+path-exclude /usr/share/man/*
+path-exclude /usr/share/info/*
+path-exclude /usr/share/locale/*
+SLIM
+rm -rf "$rootfs"/usr/share/{man,info,locale}/*
+find "$rootfs/usr/share/doc" -mindepth 2 ! -name copyright ! -type d -delete
 if [[ -f "$HOST_CA_BUNDLE" ]]; then
     install -m 644 "$HOST_CA_BUNDLE" "$rootfs/etc/ssl/certs/ca-certificates.crt"
 fi
-tar -C "$rootfs" -c . | podman import \
+tar -C "$rootfs" -c . | podman import --quiet \
     --change 'ENV LANG=C.UTF-8' \
     --change 'ENV PIP_CERT=/etc/ssl/certs/ca-certificates.crt' \
     --change "LABEL ogmapping.base.recipe=$recipe" \
