@@ -104,6 +104,8 @@ choose_torch
 log "base $BASE_IMAGE, torch from ${TORCH_INDEX_URL:-docker/wheels/}"
 build test "$TEST_IMAGE"
 build runtime "$IMAGE"
+# Earlier builds' images, untagged now: removed, so that runs after code changes do not fill the disk.
+podman image prune -f --filter label=org.opencontainers.image.title=ogmapping > /dev/null
 log "$IMAGE: $(podman image inspect --format '{{.Size}}' "$IMAGE" | numfmt --to=iec) ($TEST_IMAGE: $(podman image inspect --format '{{.Size}}' "$TEST_IMAGE" | numfmt --to=iec))"
 
 podman network create "$RUN_ID" > /dev/null

@@ -23,12 +23,12 @@ if [[ "${1:-}" != "--force" ]] &&
     exit 0
 fi
 
+previous=$(podman image inspect --format '{{.Id}}' "$BASE_IMAGE" 2>/dev/null || true)
 rootfs=$(mktemp -d /tmp/ogmapping-base.XXXXXX)
-trap 'rm -rf "$rootfs"' EXIT
+trap 'rm -rf "$rootfs" "$rootfs.log"' EXIT
 echo "make-base: debootstrap bookworm ($PACKAGES) from $MIRROR"
 debootstrap --variant=minbase --include="$PACKAGES" bookworm "$rootfs" "$MIRROR" > "$rootfs.log" 2>&1 ||
     { tail -20 "$rootfs.log"; exit 1; }
-rm -f "$rootfs.log"
 # What python:3.11-slim (debian:bookworm-slim) leaves out: downloaded packages, package lists, and
 # manuals, documentation but copyrights, and translations, now and from packages installed later.
 rm -rf "$rootfs"/var/cache/apt/archives/*.deb "$rootfs"/var/cache/apt/*.bin "$rootfs"/var/lib/apt/lists/*
@@ -51,4 +51,7 @@ tar -C "$rootfs" -c . | podman import --quiet \
     --change 'CMD ["python3"]' \
     --message "debootstrap bookworm minbase + $PACKAGES (docker/make-base.sh)" \
     - "$BASE_IMAGE" > /dev/null
+if [[ -n "$previous" ]]; then
+    podman rmi "$previous" > /dev/null 2>&1 || true  # kept while images built on it remain
+fi
 echo "make-base: $BASE_IMAGE built ($(podman image inspect --format '{{.Size}}' "$BASE_IMAGE") bytes)"
