@@ -38,7 +38,6 @@ fail() { log "FAILED: $*"; exit 1; }
 
 kube_manifests() {  # podman 4.3 publishes each containerPort on the host, unlike Kubernetes: not that here
     cat deploy/common.yaml
-    echo ---
     sed '/^ *ports:$/{N;/containerPort/d}' deploy/cpu.yaml
 }
 
