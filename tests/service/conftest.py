@@ -1,4 +1,4 @@
-"""A server for the integration tests: $OGMAP_SERVER when set (the compose setup), else a subprocess."""
+"""A server for the integration tests: $OGMAP_SERVER when set (the container test), else a subprocess."""
 
 from __future__ import annotations
 
