@@ -101,10 +101,15 @@ build() {  # target, tag
 choose_base
 choose_torch
 log "base $BASE_IMAGE, torch from ${TORCH_INDEX_URL:-docker/wheels/}"
+replaced=$(podman image inspect --format '{{.Id}}' "$TEST_IMAGE" "$IMAGE" 2>/dev/null || true)
 build test "$TEST_IMAGE"
 build runtime "$IMAGE"
-# Earlier builds' images, untagged now: removed, so that runs after code changes do not fill the disk.
-podman image prune -f --filter label=org.opencontainers.image.title=ogmapping > /dev/null
+# The images these builds replaced: removed, so that runs after code changes do not fill the disk.
+# (Not `podman image prune`: the untagged stages deps, build and deps-test are the build cache.)
+current=$(podman image inspect --format '{{.Id}}' "$TEST_IMAGE" "$IMAGE")
+for image in $replaced; do
+    [[ "$current" == *"$image"* ]] || podman rmi "$image" > /dev/null 2>&1 || true
+done
 log "$IMAGE: $(podman image inspect --format '{{.Size}}' "$IMAGE" | numfmt --to=iec) ($TEST_IMAGE: $(podman image inspect --format '{{.Size}}' "$TEST_IMAGE" | numfmt --to=iec))"
 
 podman network create "$RUN_ID" > /dev/null
