@@ -1,4 +1,5 @@
-"""A server for the integration tests ($OGMAP_SERVER when set, else a subprocess), and a disk that fills up."""
+"""A server for the integration tests ($OGMAP_SERVER when set: the container test; else a subprocess), and a disk
+that fills up."""
 
 from __future__ import annotations
 
