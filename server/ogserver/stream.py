@@ -47,8 +47,11 @@ def _read(session: Session, requests: Requests, sink: queue.SimpleQueue[StreamEv
             accepted += 1
     except ServiceError as refusal:  # the client sent nothing for the stream idle timeout
         error = refusal
-    except Exception as failure:  # a cancelled call ends its request iterator with an error
+    except grpc.RpcError as failure:  # a cancelled call ends its request iterator with an error
         log.debug("session %s: frame stream ended: %s", session.id, failure)
+    except Exception:  # a defect, not the client: never end a stream silently
+        log.exception("session %s: reading the frame stream failed", session.id)
+        error = ServiceError(grpc.StatusCode.INTERNAL, "the server failed while reading the frame stream")
     finally:
         sink.put(ReaderDone(accepted, error))
 

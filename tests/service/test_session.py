@@ -120,3 +120,20 @@ def test_a_failing_recording_answers_every_frame_and_returns_its_slots(tmp_path:
     full_disk.free = None
     session.recorder.close()
     assert len(recording.load(session.recorder.path).frames) == 1
+
+
+def test_a_defect_while_reading_a_stream_ends_it_with_internal_not_silently() -> None:
+    from ogserver import stream
+    from ogserver.events import ReaderDone
+
+    class Broken:
+        id = "0" * 32
+
+        def check_capacity(self) -> None:
+            raise RuntimeError("a programming error")
+
+    sink: queue.SimpleQueue = queue.SimpleQueue()
+    stream._read(Broken(), [frame_to_proto(scene("0:1").load(0))], sink, 1 << 20)  # type: ignore[arg-type]
+    done = sink.get_nowait()
+    assert isinstance(done, ReaderDone) and done.error is not None
+    assert done.error.code == grpc.StatusCode.INTERNAL
