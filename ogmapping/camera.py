@@ -32,14 +32,15 @@ class Intrinsics:
     height: int
 
     def scaled(self, scale: float) -> Intrinsics:
-        """Intrinsics of the same camera with the image resized by ``scale``."""
+        """Intrinsics of the same camera with the image resized by ``scale``; a side never shrinks
+        below one pixel (a 100000x1 image at half size is 50000x1, not empty)."""
         return Intrinsics(
             self.fx * scale,
             self.fy * scale,
             self.cx * scale,
             self.cy * scale,
-            round(self.width * scale),
-            round(self.height * scale),
+            max(1, round(self.width * scale)),
+            max(1, round(self.height * scale)),
         )
 
     def resized(self, width: int, height: int) -> Intrinsics:

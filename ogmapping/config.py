@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,8 @@ from typing import Any
 import yaml
 
 from ogmapping.backends import BACKENDS
+
+MIB = 1 << 20
 
 
 @dataclass
@@ -209,48 +212,94 @@ def load_file(path: str | Path) -> dict[str, Any]:
 
 
 def resolve(
-    preset_name: str, config_file: str | Path | None = None, overrides: dict[str, Any] | None = None
+    preset_name: str,
+    config_file: str | Path | None = None,
+    overrides: dict[str, Any] | None = None,
+    bounds: ConfigBounds | None = None,
 ) -> MapperConfig:
     """The preset, then the file's keys, then ``overrides`` (which win over the file's), checked once as a whole.
 
-    Values may be text or typed; unknown keys, wrong types and out-of-range values raise ValueError
-    naming the key.
+    Values may be text or typed; unknown keys, wrong types, out-of-range values and values beyond
+    ``bounds`` (a server's, when given) raise ValueError naming the key.
     """
     requested = load_file(config_file) if config_file else {}
     requested.update(overrides or {})
-    return apply_overrides(preset(preset_name), requested)
+    config = apply_overrides(preset(preset_name), requested)
+    if bounds is not None:
+        bounds.check(config)
+    return config
 
 
 # The ablation switches (paper section 4); the first value of each is the paper's method.
 ALLOCATIONS = ("octree", "unique", "projection")
 GROWTHS = ("anchor", "error", "none")
 WINDOWS = ("dynamic", "random", "overlap", "coverage")
+MAX_OCTREE_LEVEL = 4
+MAX_HASH_LOG2_SIZE = 30  # 2^30 rows per level: far beyond any bound a server grants, short of int64 trouble
+MAX_HASH_RESOLUTION = 1e4  # cells per metre (0.1 mm cells); hashed corner coordinates stay far inside int64
+MAX_LOSS_WEIGHT = 1e3
+MAX_LEARNING_RATE = 1.0
+SEED_RANGE = (-(1 << 63), (1 << 64) - 1)  # what torch.Generator.manual_seed accepts
+
+
+def _within(value: float, low: float, high: float = math.inf, *, open_low: bool = False) -> bool:
+    above = value > low if open_low else value >= low
+    return math.isfinite(value) and above and value <= high
+
+
+def _ranges(config: MapperConfig) -> dict[str, tuple[bool, str]]:
+    """Each key's check and the range it states; one entry per key, so a refusal names the key it is about."""
+    model, octree, keyframes, refine = config.model, config.octree, config.keyframes, config.refine
+    checks: dict[str, tuple[bool, str]] = {
+        "model.n_offsets": (model.n_offsets >= 1, ">= 1"),
+        "model.feature_dim": (model.feature_dim >= 1, ">= 1"),
+        "model.hidden_dim": (model.hidden_dim >= 1, ">= 1"),
+        "model.hash_levels": (model.hash_levels >= 1, ">= 1"),
+        "model.hash_features_per_level": (model.hash_features_per_level >= 1, ">= 1"),
+        "model.hash_log2_size": (1 <= model.hash_log2_size <= MAX_HASH_LOG2_SIZE, f"in [1, {MAX_HASH_LOG2_SIZE}]"),
+        "model.hash_min_resolution": (_within(model.hash_min_resolution, 0, MAX_HASH_RESOLUTION, open_low=True),
+                                      f"in (0, {MAX_HASH_RESOLUTION:g}]"),
+        "model.hash_max_resolution": (_within(model.hash_max_resolution, 0, MAX_HASH_RESOLUTION, open_low=True),
+                                      f"in (0, {MAX_HASH_RESOLUTION:g}]"),
+        "octree.voxel_size": (_within(octree.voxel_size, 0, open_low=True), "> 0 and finite"),
+        "octree.max_level": (0 <= octree.max_level <= MAX_OCTREE_LEVEL, f"in [0, {MAX_OCTREE_LEVEL}]"),
+        "octree.depth_min": (_within(octree.depth_min, 0), ">= 0 and finite"),
+        "octree.depth_max": (_within(octree.depth_max, octree.depth_min, open_low=True),
+                             f"> octree.depth_min ({octree.depth_min:g}) and finite"),
+        "octree.allocation_stride": (octree.allocation_stride >= 0, ">= 0"),
+        "keyframes.overlap_threshold": (_within(keyframes.overlap_threshold, 0, 1, open_low=True), "in (0, 1]"),
+        "keyframes.local_threshold": (_within(keyframes.local_threshold, 0, 1), "in [0, 1]"),
+        "keyframes.local_count": (keyframes.local_count >= 0, ">= 0"),
+        "keyframes.global_count": (keyframes.global_count >= 0, ">= 0"),
+        "keyframes.iterations": (keyframes.iterations >= 0, ">= 0"),
+        "keyframes.first_iterations": (keyframes.first_iterations >= 0, ">= 0"),
+        "keyframes.frame_iterations": (keyframes.frame_iterations >= 0, ">= 0"),
+        "keyframes.window_scale": (_within(keyframes.window_scale, 0, 1, open_low=True), "in (0, 1]"),
+        "keyframes.window_min_width": (keyframes.window_min_width >= 1, ">= 1"),
+        "refine.interval": (refine.interval >= 1, ">= 1"),
+        "refine.grad_threshold": (_within(refine.grad_threshold, 0), ">= 0 and finite"),
+        "refine.min_observations": (refine.min_observations >= 0, ">= 0"),
+        "refine.prune_opacity": (_within(refine.prune_opacity, 0) and refine.prune_opacity < 1, "in [0, 1)"),
+        "refine.prune_min_observations": (refine.prune_min_observations >= 0, ">= 0"),
+        "refine.max_new_anchors": (refine.max_new_anchors >= 0, ">= 0"),
+        "seed": (SEED_RANGE[0] <= config.seed <= SEED_RANGE[1], f"in [{SEED_RANGE[0]}, {SEED_RANGE[1]}]"),
+    }
+    # Loss weights and learning rates: beyond these the float32 optimisation overflows into NaN or
+    # throws Gaussians kilometres per step (Adam's steps are about the learning rate in size).
+    for section, high in (("loss", MAX_LOSS_WEIGHT), ("optim", MAX_LEARNING_RATE)):
+        for item in dataclasses.fields(getattr(config, section)):
+            value = getattr(getattr(config, section), item.name)
+            checks[f"{section}.{item.name}"] = (_within(value, 0, high), f"in [0, {high:g}]")
+    return checks
 
 
 def validate(config: MapperConfig) -> None:
-    """Reject values the engine cannot run with, naming the key."""
+    """Reject values the engine cannot run with, naming the key and its range."""
     if config.model.encoding not in ("hash", "anchor"):
         raise ValueError(f"model.encoding must be 'hash' or 'anchor', got {config.model.encoding!r}")
-    checks = {
-        "model.n_offsets": config.model.n_offsets >= 1,
-        "model.feature_dim": config.model.feature_dim >= 1,
-        "octree.voxel_size": config.octree.voxel_size > 0,
-        "octree.max_level": 0 <= config.octree.max_level <= 4,
-        "octree.depth_max": config.octree.depth_max > config.octree.depth_min >= 0,
-        "octree.allocation_stride": config.octree.allocation_stride >= 0,
-        "keyframes.overlap_threshold": 0 < config.keyframes.overlap_threshold <= 1,
-        "keyframes.iterations": config.keyframes.iterations >= 0,
-        "keyframes.frame_iterations": config.keyframes.frame_iterations >= 0,
-        "keyframes.local_count": config.keyframes.local_count >= 0,
-        "keyframes.global_count": config.keyframes.global_count >= 0,
-        "keyframes.window_scale": 0 < config.keyframes.window_scale <= 1,
-        "keyframes.window_min_width": config.keyframes.window_min_width >= 1,
-        "refine.interval": config.refine.interval >= 1,
-        "refine.prune_opacity": 0 <= config.refine.prune_opacity < 1,
-    }
-    for key, ok in checks.items():
+    for key, (ok, allowed) in _ranges(config).items():
         if not ok:
-            raise ValueError(f"config {key} is out of range")
+            raise ValueError(f"config {key} is out of range: must be {allowed}, got {_value(config, key)!r}")
     for key, value, allowed in (
         ("octree.allocation", config.octree.allocation, ALLOCATIONS),
         ("refine.growth", config.refine.growth, GROWTHS),
@@ -261,3 +310,72 @@ def validate(config: MapperConfig) -> None:
     backends = ("auto", *BACKENDS)
     if config.backend not in backends:
         raise ValueError(f"backend must be {', '.join(backends[:-1])} or {backends[-1]}, got {config.backend!r}")
+
+
+def _value(config: MapperConfig, key: str) -> Any:
+    target: Any = config
+    for part in key.split("."):
+        target = getattr(target, part)
+    return target
+
+
+@dataclass
+class ConfigBounds:
+    """The most one session's config may ask for: what a server grants its clients, on top of
+    ``validate``'s ranges. Each bound names the config keys it limits; a server operator tightens
+    (or widens) them in the server settings (``config_bounds``)."""
+
+    max_iterations: int = 500  # keyframes.first_iterations, keyframes.iterations, keyframes.frame_iterations
+    max_window_keyframes: int = 16  # keyframes.local_count + keyframes.global_count
+    max_n_offsets: int = 32  # model.n_offsets
+    max_feature_dim: int = 256  # model.feature_dim, model.hidden_dim
+    max_hash_levels: int = 32  # model.hash_levels
+    max_hash_features_per_level: int = 16  # model.hash_features_per_level
+    max_hash_table_mib: int = 256  # model.hash_levels x 2^model.hash_log2_size x hash_features_per_level x 4 bytes
+    max_octree_level: int = MAX_OCTREE_LEVEL  # octree.max_level
+    min_voxel_size: float = 0.01  # octree.voxel_size, metres: smaller coarse cells mean more anchors
+    max_new_anchors: int = 100000  # refine.max_new_anchors
+
+    def validate(self) -> None:
+        for item in dataclasses.fields(self):
+            value, kind = getattr(self, item.name), type(item.default)
+            if isinstance(value, bool) or not isinstance(value, kind) or not _within(value, 0, open_low=True):
+                raise ValueError(f"config_bounds.{item.name} must be a positive {kind.__name__} (got {value!r})")
+
+    def check(self, config: MapperConfig) -> None:
+        """Raise ValueError naming the first config key beyond these bounds."""
+        model, keyframes = config.model, config.keyframes
+        limits: list[tuple[str, float, float, str]] = [
+            *((f"keyframes.{name}", getattr(keyframes, name), self.max_iterations, "max_iterations")
+              for name in ("first_iterations", "iterations", "frame_iterations")),
+            ("keyframes.local_count + keyframes.global_count", keyframes.local_count + keyframes.global_count,
+             self.max_window_keyframes, "max_window_keyframes"),
+            ("model.n_offsets", model.n_offsets, self.max_n_offsets, "max_n_offsets"),
+            ("model.feature_dim", model.feature_dim, self.max_feature_dim, "max_feature_dim"),
+            ("model.hidden_dim", model.hidden_dim, self.max_feature_dim, "max_feature_dim"),
+            ("octree.max_level", config.octree.max_level, self.max_octree_level, "max_octree_level"),
+            ("refine.max_new_anchors", config.refine.max_new_anchors, self.max_new_anchors, "max_new_anchors"),
+        ]
+        if model.encoding == "hash":  # the anchor encoding has no hash table
+            limits += [
+                ("model.hash_levels", model.hash_levels, self.max_hash_levels, "max_hash_levels"),
+                ("model.hash_features_per_level", model.hash_features_per_level, self.max_hash_features_per_level,
+                 "max_hash_features_per_level"),
+            ]
+        for key, value, limit, name in limits:
+            if value > limit:
+                raise ValueError(f"config {key} = {value} is above this server's limit of {limit} "
+                                 f"(config_bounds.{name})")
+        if config.octree.voxel_size < self.min_voxel_size:
+            raise ValueError(f"config octree.voxel_size = {config.octree.voxel_size} is below this server's "
+                             f"limit of {self.min_voxel_size} (config_bounds.min_voxel_size)")
+        table_mib = hash_table_bytes(model) / MIB
+        if model.encoding == "hash" and table_mib > self.max_hash_table_mib:
+            raise ValueError(f"config model.hash_log2_size = {model.hash_log2_size} makes a {table_mib:g} MiB hash "
+                             f"table (hash_levels x 2^hash_log2_size x hash_features_per_level x 4 bytes), above "
+                             f"this server's limit of {self.max_hash_table_mib} MiB (config_bounds.max_hash_table_mib)")
+
+
+def hash_table_bytes(model: ModelConfig) -> int:
+    """The dense encoding's table (float32); its gradient rows and Adam moments take up to three times more."""
+    return model.hash_levels * 2**model.hash_log2_size * model.hash_features_per_level * 4

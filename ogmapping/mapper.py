@@ -23,8 +23,9 @@ import torch
 
 from ogmapping import allocation, refine, snapshot
 from ogmapping.anchors import AnchorMap
+from ogmapping.budget import Budget, Stop
 from ogmapping.camera import Intrinsics
-from ogmapping.config import MapperConfig
+from ogmapping.config import ConfigBounds, MapperConfig
 from ogmapping.decoders import Decoders
 from ogmapping.encoding import HashGridEncoding, feature_dim, initial_anchor_features
 from ogmapping.frame import Frame
@@ -53,6 +54,7 @@ class FrameResult:
     new_anchors: int
     loss: float
     seconds: float
+    stopped: Stop | None = None  # why optimisation ended before ``iterations`` reached the planned count
 
 
 @dataclass
@@ -127,12 +129,12 @@ class Mapper:
 
     # ------------------------------------------------------------------ mapping
 
-    def process(self, frame: Frame) -> FrameResult:
-        """Map one frame; returns what happened to it."""
+    def process(self, frame: Frame, budget: Budget | None = None) -> FrameResult:
+        """Map one frame; returns what happened to it. Optimisation ends early once ``budget`` says stop."""
         with torch_threads(self.profile.threads):
-            return self._process(frame)
+            return self._process(frame, budget or Budget())
 
-    def _process(self, frame: Frame) -> FrameResult:
+    def _process(self, frame: Frame, budget: Budget) -> FrameResult:
         start = time.perf_counter()
         with self._timed("preprocess"):
             frame = prepare(frame, self.config.octree.depth_min, self.config.octree.depth_max)
@@ -152,11 +154,9 @@ class Mapper:
             if is_keyframe:
                 self.keyframes.insert(Keyframe.capture(frame.index, rgb, depth, frame.color_intrinsics, c2w, codes,
                                                        pinned=self.device.type == "cuda"))
-        if iterations:  # the frame itself, at full precision, is the view every step trains on
-            view = View.of(rgb, depth, frame.color_intrinsics, c2w, compiled=self.profile.compiled)
-            loss, grown = self._optimise(iterations, view, is_keyframe)
-        else:
-            loss, grown = float("nan"), 0
+        # The frame itself, at full precision, is the view every step trains on.
+        view = View.of(rgb, depth, frame.color_intrinsics, c2w, compiled=self.profile.compiled) if iterations else None
+        loss, grown, done, stopped = self._optimise(iterations, view, is_keyframe, budget, start)
         self.frames += 1
         self.camera_position_sum += torch.as_tensor(frame.c2w[:3, 3], dtype=torch.float64)
         self.camera_positions += 1
@@ -165,10 +165,11 @@ class Mapper:
             keyframe=is_keyframe,
             anchors=len(self.anchors),
             gaussians=self.last_gaussians,
-            iterations=iterations,
+            iterations=done,
             new_anchors=int(new_codes.numel()) + grown,
             loss=loss,
             seconds=time.perf_counter() - start,
+            stopped=stopped,
         )
 
     def _add_coarse_anchors(self, codes: torch.Tensor) -> None:
@@ -194,14 +195,19 @@ class Mapper:
             return settings.frame_iterations if self.keyframes else 0
         return settings.first_iterations if not self.keyframes else settings.iterations
 
-    def _optimise(self, iterations: int, view: View, view_is_newest: bool) -> tuple[float, int]:
-        """``iterations`` steps, each on ``view`` and a freshly drawn window of keyframes (the newest
-        one is ``view`` itself when ``view_is_newest``); grow and prune every ``refine.interval``
-        steps of the whole session (frames may get fewer steps than that). Returns the last step's
-        loss, read from the device once, after the loop."""
+    def _optimise(
+        self, iterations: int, view: View | None, view_is_newest: bool, budget: Budget, started: float
+    ) -> tuple[float, int, int, Stop | None]:
+        """Up to ``iterations`` steps, each on ``view`` and a freshly drawn window of keyframes (the
+        newest one is ``view`` itself when ``view_is_newest``); grow and prune every
+        ``refine.interval`` steps of the whole session (frames may get fewer steps than that).
+        Returns the last loss (read from the device once, after the loop), the anchors grown, the
+        steps done and why they stopped short, if they did."""
         loss, grown = torch.full((), float("nan")), 0
         interval = self.config.refine.interval
-        for _ in range(iterations):
+        for done in range(iterations):
+            if (stopped := budget.stop(started)) is not None:
+                return float(loss), grown, done, stopped
             with self.lock:
                 loss = self._iteration(view, self.keyframes.draw_window(view_is_newest))
                 self.iterations += 1
@@ -211,7 +217,7 @@ class Mapper:
                                              self.config.octree.voxel_size, self.optimizer)
                         refine.prune(self.anchors, self.config.refine, self.optimizer)
                         refine.end_interval(self.anchors)
-        return float(loss), grown
+        return float(loss), grown, iterations, None
 
     def _iteration(self, view: View, keyframes: list[Keyframe]) -> torch.Tensor:
         """One optimisation step on ``view`` and ``keyframes``; returns its loss as a tensor on the
@@ -406,9 +412,10 @@ class Mapper:
         return snapshot.encode(self.state())
 
     @classmethod
-    def restore(cls, data: bytes, device: str | torch.device = "cpu") -> Mapper:
-        """A mapper from snapshot bytes; mapping can continue from it."""
-        return cls.from_state(snapshot.decode(data), device)
+    def restore(cls, data: bytes, device: str | torch.device = "cpu", bounds: ConfigBounds | None = None) -> Mapper:
+        """A mapper from snapshot bytes; mapping can continue from it. A config beyond ``bounds``
+        (a server's) raises ValueError before anything is allocated for it."""
+        return cls.from_state(snapshot.decode(data, bounds), device)
 
 
 def _checked_shapes(

@@ -58,6 +58,11 @@ class SparseVoxelOctree:
         """Code (M,) of the level-``level`` cell holding each point, duplicates kept."""
         return morton.encode(morton.cell_coords(points, self.cell_size(level)))
 
+    def holds(self, points: torch.Tensor) -> torch.Tensor:
+        """Which points (M, 3) every level can code: finite, and within the finest level's Morton range."""
+        scaled = torch.floor(points / self.cell_size(self.max_level))
+        return (torch.isfinite(scaled) & (scaled >= morton.COORD_MIN) & (scaled <= morton.COORD_MAX)).all(-1)
+
     def centers(self, codes: torch.Tensor, level: int = 0, dtype: torch.dtype = torch.float32) -> torch.Tensor:
         """World-space centres (M, 3) of cells, in metres."""
         coords = morton.decode(codes)

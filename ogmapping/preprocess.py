@@ -14,6 +14,12 @@ import numpy as np
 from ogmapping.camera import Intrinsics
 from ogmapping.frame import Frame
 
+# Registration spreads one depth pixel over at most this many colour pixels per axis: colour
+# cameras sampling more than 8x as densely as their depth camera are refused by the server, and a
+# point almost touching the colour camera (its footprint grows as the depth ratio) is capped.
+MAX_FOOTPRINT = 8.0
+FOOTPRINT_CANDIDATES_PER_CHUNK = 1 << 22  # (colour pixel, depth pixel) pairs tested at once: tens of MB of temporaries
+
 
 def _nearest_indices(source: int, target: int) -> np.ndarray:
     """Source index whose pixel contains each target pixel centre (pixel centres at +0.5)."""
@@ -75,7 +81,7 @@ def reproject_depth(
     ray_y = ((np.arange(depth_k.height, dtype=np.float32) + 0.5 - depth_k.cy) / depth_k.fy)[rows]
     if depth_to_color is None:
         # Same optical centre and axes: the pixel's ray direction alone fixes where it lands.
-        z, depth_ratio = z_depth, np.float32(1.0)
+        z, depth_ratio = z_depth, np.ones_like(z_depth)
         u = color_k.fx * ray_x + color_k.cx
         v = color_k.fy * ray_y + color_k.cy
     else:
@@ -90,35 +96,48 @@ def reproject_depth(
         v = color_k.fy * y / z + color_k.cy
         depth_ratio = z_depth / z
 
-    # Footprint of one depth pixel in colour pixels: its metric size at its depth, seen from the colour camera.
-    width_u = np.float32(color_k.fx / depth_k.fx) * depth_ratio
-    width_v = np.float32(color_k.fy / depth_k.fy) * depth_ratio
-    cells_u = np.floor(u)
-    cells_v = np.floor(v)
+    # Footprint of one depth pixel in colour pixels: its metric size at its depth, seen from the colour camera,
+    # capped so that the candidates per depth pixel, and with them the work, stay bounded.
+    width_u = np.minimum(np.float32(color_k.fx / depth_k.fx) * depth_ratio, np.float32(MAX_FOOTPRINT))
+    width_v = np.minimum(np.float32(color_k.fy / depth_k.fy) * depth_ratio, np.float32(MAX_FOOTPRINT))
+    buffer = np.full(color_k.width * color_k.height, np.inf, dtype=np.float32)
     widest = max(np.max(width_u, initial=0.0), np.max(width_v, initial=0.0))
     if widest <= 1.0:
-        cols_out, rows_out, z_out = cells_u[None, :], cells_v[None, :], z[None, :]
+        _splat(buffer, color_k, np.floor(u), np.floor(v), z)
     else:
         # Candidate colour pixels near each projection; keep the containing one and those whose
-        # centre falls inside the footprint.
+        # centre falls inside the footprint. Depth pixels go in chunks: peak memory stays the same
+        # for any image size.
         offsets = np.arange(-int(np.ceil(widest / 2.0)) - 1, int(np.ceil(widest / 2.0)) + 2)
-        offsets_u = offsets_v = offsets
-        du = (cells_u[None, :] + offsets_u[:, None] + 0.5) - u[None, :]
-        dv = (cells_v[None, :] + offsets_v[:, None] + 0.5) - v[None, :]
-        in_u = (offsets_u[:, None] == 0) | ((du >= -width_u / 2) & (du < width_u / 2))
-        in_v = (offsets_v[:, None] == 0) | ((dv >= -width_v / 2) & (dv < width_v / 2))
-        keep = in_v[:, None, :] & in_u[None, :, :]
-        pick_v, pick_u, sample = np.nonzero(keep)
-        cols_out = cells_u[sample] + offsets_u[pick_u]
-        rows_out = cells_v[sample] + offsets_v[pick_v]
-        z_out = z[sample]
-    cols_out, rows_out, z_out = cols_out.ravel(), rows_out.ravel(), z_out.ravel()
-    inside = (cols_out >= 0) & (cols_out < color_k.width) & (rows_out >= 0) & (rows_out < color_k.height)
-    flat = rows_out[inside].astype(np.int64) * color_k.width + cols_out[inside].astype(np.int64)
-    buffer = np.full(color_k.width * color_k.height, np.inf, dtype=np.float32)
-    np.minimum.at(buffer, flat, z_out[inside])
+        chunk = max(1, FOOTPRINT_CANDIDATES_PER_CHUNK // len(offsets) ** 2)
+        for first in range(0, len(z), chunk):
+            part = slice(first, first + chunk)
+            _splat_footprints(buffer, color_k, offsets, u[part], v[part], z[part], width_u[part], width_v[part])
     buffer[np.isinf(buffer)] = 0.0
     return buffer.reshape(color_k.height, color_k.width)
+
+
+def _splat_footprints(
+    buffer: np.ndarray, color_k: Intrinsics, offsets: np.ndarray,
+    u: np.ndarray, v: np.ndarray, z: np.ndarray, width_u: np.ndarray, width_v: np.ndarray,
+) -> None:
+    """Write each sample's depth into every colour pixel its footprint covers (nearest surface kept)."""
+    cells_u = np.floor(u)
+    cells_v = np.floor(v)
+    du = (cells_u[None, :] + offsets[:, None] + 0.5) - u[None, :]
+    dv = (cells_v[None, :] + offsets[:, None] + 0.5) - v[None, :]
+    in_u = (offsets[:, None] == 0) | ((du >= -width_u / 2) & (du < width_u / 2))
+    in_v = (offsets[:, None] == 0) | ((dv >= -width_v / 2) & (dv < width_v / 2))
+    keep = in_v[:, None, :] & in_u[None, :, :]
+    pick_v, pick_u, sample = np.nonzero(keep)
+    _splat(buffer, color_k, cells_u[sample] + offsets[pick_u], cells_v[sample] + offsets[pick_v], z[sample])
+
+
+def _splat(buffer: np.ndarray, color_k: Intrinsics, cols: np.ndarray, rows: np.ndarray, z: np.ndarray) -> None:
+    """Keep the nearest of ``z`` per colour pixel (cols, rows) inside the image, in the flat ``buffer``."""
+    inside = (cols >= 0) & (cols < color_k.width) & (rows >= 0) & (rows < color_k.height)
+    flat = rows[inside].astype(np.int64) * color_k.width + cols[inside].astype(np.int64)
+    np.minimum.at(buffer, flat, z[inside])
 
 
 def register_depth(frame: Frame) -> Frame:

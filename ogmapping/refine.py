@@ -74,14 +74,23 @@ def _gaussian_positions(anchors: AnchorMap, rows: torch.Tensor, slots: torch.Ten
             * torch.exp(anchors.log_scales.detach()[rows])).to(torch.float32)
 
 
+def _candidates(anchors: AnchorMap, octree: SparseVoxelOctree, candidate: torch.Tensor, mean_grad: torch.Tensor,
+                limit: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(rows, slots, positions) of the strongest candidates whose positions the octree can code: a
+    Gaussian that optimisation carried beyond the map's range grows nothing rather than failing the frame."""
+    rows, slots = _strongest(candidate, mean_grad, limit)
+    positions = _gaussian_positions(anchors, rows, slots)
+    inside = octree.holds(positions)
+    return rows[inside], slots[inside], positions[inside]
+
+
 def propose(anchors: AnchorMap, octree: SparseVoxelOctree, config: RefineConfig) -> Proposals:
     """Anchor-based growth (the paper's): new anchors from Gaussians over their own level's
     threshold, promoted one level where the cell is taken; marks those Gaussians as spawned."""
     mean_grad = _mean_gradient(anchors)
     thresholds = config.grad_threshold * torch.pow(2.0, anchors.levels.to(mean_grad)).unsqueeze(1)
     candidate = (mean_grad >= thresholds) & (anchors.grad_count >= config.min_observations) & ~anchors.spawned
-    rows, slots = _strongest(candidate, mean_grad, config.max_new_anchors)
-    positions = _gaussian_positions(anchors, rows, slots)
+    rows, slots, positions = _candidates(anchors, octree, candidate, mean_grad, config.max_new_anchors)
     levels = anchors.levels[rows].clone()
     codes = torch.zeros_like(levels)
     keep = torch.zeros_like(levels, dtype=torch.bool)
@@ -115,8 +124,7 @@ def propose_error(anchors: AnchorMap, octree: SparseVoxelOctree, config: RefineC
     marked: one may spawn again in a later interval."""
     mean_grad = _mean_gradient(anchors)
     candidate = (mean_grad >= config.grad_threshold) & (anchors.grad_count >= config.min_observations)
-    rows, slots = _strongest(candidate, mean_grad, config.max_new_anchors)
-    positions = _gaussian_positions(anchors, rows, slots)
+    rows, slots, positions = _candidates(anchors, octree, candidate, mean_grad, config.max_new_anchors)
     gradients = mean_grad[rows, slots]
     codes, levels, parents = [], [], []
     for level in range(octree.max_level + 1):

@@ -14,7 +14,7 @@ import torch
 from safetensors.torch import load as load_tensors
 from safetensors.torch import save as save_tensors
 
-from ogmapping.config import MapperConfig
+from ogmapping.config import ConfigBounds, MapperConfig
 from ogmapping.state import MapState
 
 FORMAT = "ogmapping-snapshot"
@@ -57,17 +57,20 @@ def read_metadata(data: bytes) -> dict[str, str]:
     return metadata
 
 
-def decode(data: bytes) -> MapState:
-    """The ``MapState`` in snapshot bytes (float32 again); raises ValueError on anything malformed."""
+def decode(data: bytes, bounds: ConfigBounds | None = None) -> MapState:
+    """The ``MapState`` in snapshot bytes (float32 again); raises ValueError on anything malformed,
+    and on a config beyond ``bounds`` before any tensor is loaded."""
     metadata = read_metadata(data)
-    try:
-        tensors = load_tensors(data)
-    except Exception as error:  # safetensors raises its own error types for corrupt payloads
-        raise ValueError(f"snapshot payload is corrupt: {error}") from error
     try:
         frames, iterations = int(metadata.get("frames", 0)), int(metadata.get("iterations", 0))
         config = MapperConfig.from_dict(json.loads(metadata["config"]))
     except (KeyError, ValueError, TypeError, AttributeError) as error:
         raise ValueError(f"snapshot metadata is malformed: {error}") from error
+    if bounds is not None:
+        bounds.check(config)
+    try:
+        tensors = load_tensors(data)
+    except Exception as error:  # safetensors raises its own error types for corrupt payloads
+        raise ValueError(f"snapshot payload is corrupt: {error}") from error
     tensors = {name: value.float() if name in HALF else value for name, value in tensors.items()}
     return MapState(config, tensors, frames, iterations)

@@ -18,6 +18,12 @@ def seven_scenes() -> Path:
     return SEVEN_SCENES
 
 
+@pytest.fixture(scope="session")
+def seven_scenes_if_present() -> Path | None:
+    """7-Scenes where ../shared lies beside the checkout, else None (for tests that then use synthetic frames)."""
+    return SEVEN_SCENES if SEVEN_SCENES.exists() else None
+
+
 @pytest.fixture
 def replica_room0() -> Path:
     if not REPLICA_ROOM0.exists():

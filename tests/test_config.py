@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from ogmapping.config import MapperConfig, load_file, parse_override_args, preset, resolve
+from ogmapping.config import PRESETS, ConfigBounds, MapperConfig, load_file, parse_override_args, preset, resolve
 
 
 def test_presets_differ_as_the_paper_says():
@@ -54,3 +54,43 @@ def test_ablation_switches_default_to_the_paper_and_are_validated():
                          ("keyframes.window", "dynamic, random, overlap, coverage")):
         with pytest.raises(ValueError, match=f"config {key} must be one of {allowed}, got 'bogus'"):
             resolve("sparse", overrides={key: "bogus"})
+
+
+@pytest.mark.parametrize(("key", "value"), [
+    ("octree.depth_min", "-1"),  # once reported as a depth_max error
+    ("keyframes.first_iterations", "-5"),  # once accepted
+    ("model.hidden_dim", "0"),
+    ("model.hash_log2_size", "40"),
+    ("octree.voxel_size", "inf"),
+    ("octree.depth_max", "nan"),
+    ("refine.grad_threshold", "-1"),
+    ("refine.max_new_anchors", "-1"),
+    ("loss.color", "nan"),
+    ("optim.hash_lr", "-0.1"),
+    ("optim.offsets_lr", "38695"),  # Gaussians thrown out of the map
+    ("loss.depth", "1e300"),  # an infinite float32 loss
+    ("seed", str(1 << 70)),  # beyond what torch's generator takes
+])
+def test_every_range_check_names_its_own_key(key: str, value: str):
+    with pytest.raises(ValueError, match=rf"^config {key} is out of range: must be "):
+        resolve("sparse", overrides={key: value})
+
+
+def test_server_bounds_refuse_costly_configs_and_can_be_tightened():
+    bounds = ConfigBounds()
+    for name in PRESETS:
+        resolve(name, bounds=bounds)
+    for key, value, named in (
+        ("keyframes.first_iterations", "1000000", "config_bounds.max_iterations"),
+        ("model.hash_log2_size", "24", "config_bounds.max_hash_table_mib"),  # 2 GiB of table
+        ("octree.voxel_size", "0.001", "config_bounds.min_voxel_size"),
+        ("keyframes.global_count", "100", "config_bounds.max_window_keyframes"),
+    ):
+        with pytest.raises(ValueError, match=rf"^config {key.split('.')[0]}.*{named}"):
+            resolve("dense", overrides={key: value}, bounds=bounds)
+        resolve("dense", overrides={key: value} if key != "model.hash_log2_size" else {})  # no bounds: accepted
+    tightened = ConfigBounds(max_iterations=10)
+    with pytest.raises(ValueError, match=r"keyframes.first_iterations = 60 is above this server's limit of 10"):
+        resolve("dense", bounds=tightened)
+    with pytest.raises(ValueError, match=r"config_bounds.max_iterations must be a positive int"):
+        ConfigBounds(max_iterations=0).validate()

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+from pathlib import Path
 
 import grpc
 
 from ogclient import commands
-from ogclient.connection import DEFAULT_SERVER, ClientError, connect, describe
+from ogclient.connection import DEFAULT_SERVER, ClientError, Transport, connect, describe
 from ogmapping.datasets import FORMATS
 from ogmapping.options import add_config_arguments, add_dataset_arguments
 
@@ -21,10 +23,12 @@ typical session:
   ogclient snapshot --session kitchen.json --out kitchen.safetensors
   ogclient close --session kitchen.json
   ogclient replay recordings/<session>.mcap --close
+  ogclient repair-recording recordings/<session>.mcap repaired.mcap   # after a server crash
 
 Session commands read the credentials file written by create/stream/replay/restore (--session-out,
-default session.json). --server defaults to $OGMAP_SERVER or 127.0.0.1:50051. Exit status: 0 ok,
-1 the server refused a call (or rejected frames), 2 usage error or server unreachable."""
+default session.json). --server defaults to $OGMAP_SERVER or 127.0.0.1:50051. A server with API keys
+wants one for create/stream/replay/restore/list: --api-key-file FILE or $OGMAP_API_KEY. Exit status:
+0 ok, 1 the server refused a call (or rejected frames), 2 usage error or server unreachable."""
 
 
 def add_session_out(parser: argparse.ArgumentParser) -> None:
@@ -43,6 +47,12 @@ def parser() -> argparse.ArgumentParser:
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
     root.add_argument("--server", default=DEFAULT_SERVER, help=f"HOST:PORT of the ogserver (default {DEFAULT_SERVER})")
     root.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the server to answer (10)")
+    root.add_argument("--tls", action="store_true", help="connect over TLS, trusting the system's CAs")
+    root.add_argument("--tls-ca", metavar="PEM", help="connect over TLS, trusting this CA")
+    root.add_argument("--tls-cert", metavar="PEM", help="client certificate, for a server that requires one")
+    root.add_argument("--tls-key", metavar="PEM", help="the client certificate's private key")
+    root.add_argument("--api-key-file", metavar="FILE",
+                      help="file holding the API key the server gave you (default: $OGMAP_API_KEY)")
     sub = root.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     create = sub.add_parser("create", help="open an empty session", description="Open an empty mapping session.")
@@ -81,6 +91,16 @@ def parser() -> argparse.ArgumentParser:
     replay.add_argument("--close", action="store_true", help="close the session when done")
     replay.add_argument("--quiet", action="store_true", help="no progress bar")
     replay.set_defaults(handler=commands.replay)
+
+    repair = sub.add_parser(
+        "repair-recording", help="give a recording cut by a crash its summary and index (no server needed)",
+        description="Copy every message of a recording that was never closed (the server crashed or was killed) "
+        "into a new file with the summary and index a clean close appends, so any MCAP tool opens it. A file "
+        "damaged before its end (not just cut) is refused.",
+    )
+    repair.add_argument("recording", help="the .mcap file to read")
+    repair.add_argument("out", help="the .mcap file to write")
+    repair.set_defaults(handler=commands.repair_recording, offline=True)
 
     render = sub.add_parser(
         "render", help="render a pose to PNGs",
@@ -124,7 +144,8 @@ def parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--quiet", action="store_true", help="no progress bars")
     evaluate.set_defaults(handler=commands.evaluate_command)
 
-    listing = sub.add_parser("list", help="list the server's sessions", description="List sessions.")
+    listing = sub.add_parser("list", help="list your sessions on the server",
+                             description="List the sessions you created (on an open server: every session).")
     listing.set_defaults(handler=commands.list_sessions)
 
     close = sub.add_parser("close", help="close a session (finishes its recording)", description="Close a session.")
@@ -133,10 +154,23 @@ def parser() -> argparse.ArgumentParser:
     return root
 
 
+def transport(args: argparse.Namespace) -> Transport:
+    if args.api_key_file:
+        try:
+            api_key = Path(args.api_key_file).read_text().strip()
+        except OSError as error:
+            raise ClientError(f"cannot read {args.api_key_file}: {error.strerror}") from None
+    else:
+        api_key = os.environ.get("OGMAP_API_KEY", "")
+    return Transport(args.tls, args.tls_ca or "", args.tls_cert or "", args.tls_key or "", api_key)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
-        channel, stub = connect(args.server, args.timeout)
+        if getattr(args, "offline", False):
+            return args.handler(args)
+        channel, stub = connect(args.server, args.timeout, transport(args))
         with channel:
             return args.handler(commands.Context(stub, args.server), args)
     except ClientError as error:

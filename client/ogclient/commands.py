@@ -101,6 +101,15 @@ def replay(ctx: Context, args: argparse.Namespace) -> int:
     return 1 if result.rejected else 0
 
 
+def repair_recording(args: argparse.Namespace) -> int:
+    """Needs no server: rewrites a recording cut by a crash with the summary and index a clean close appends."""
+    if Path(args.out).resolve() == Path(args.recording).resolve():
+        raise ClientError("the repaired recording must go to a new file, not over the one it is read from")
+    count = recording.repair(args.recording, args.out)
+    print(f"wrote {args.out}: the {count} messages of {args.recording}, with a summary and index")
+    return 0
+
+
 def render(ctx: Context, args: argparse.Namespace) -> int:
     session = SessionRef.load(args.session)
     if args.position is not None:

@@ -1,14 +1,17 @@
-"""Reaching a server and naming a session: channel set-up, credentials files, call metadata."""
+"""Reaching a server and naming a session: channel set-up (TLS, API key), credentials files, call metadata."""
 
 from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import grpc
-from ogapi import SESSION_METADATA_KEY, TOKEN_METADATA_KEY
+from ogapi import API_KEY_METADATA_KEY, SESSION_METADATA_KEY, TOKEN_METADATA_KEY
+from ogapi.tls import channel_credentials
 from ogapi.v1 import mapping_pb2 as pb
 from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 
@@ -59,16 +62,54 @@ class SessionRef:
             raise ClientError(f"cannot read session file {path}: {error}") from None
 
 
-def connect(address: str, timeout: float = 10.0) -> tuple[grpc.Channel, pb_grpc.MappingStub]:
+@dataclass(frozen=True)
+class Transport:
+    """How to reach the server: TLS (the CA to trust, a client certificate for mutual TLS) and an API key."""
+
+    tls: bool = False  # TLS with the system's trusted CAs, unless ``ca`` names one
+    ca: str = ""
+    cert: str = ""
+    key: str = ""
+    api_key: str = ""  # sent as metadata x-api-key on every call
+
+    @property
+    def secure(self) -> bool:
+        return self.tls or bool(self.ca or self.cert or self.key)
+
+    def credentials(self) -> grpc.ChannelCredentials:
+        return channel_credentials(self.ca, self.cert, self.key)
+
+
+class _ApiKey(grpc.UnaryUnaryClientInterceptor, grpc.UnaryStreamClientInterceptor,
+              grpc.StreamUnaryClientInterceptor, grpc.StreamStreamClientInterceptor):
+    def __init__(self, key: str) -> None:
+        self._key = key
+
+    def intercept_unary_unary(self, continuation: Callable[..., Any], details: Any, request: Any) -> Any:
+        metadata = [*(details.metadata or ()), (API_KEY_METADATA_KEY, self._key)]
+        return continuation(details._replace(metadata=metadata), request)
+
+    intercept_unary_stream = intercept_stream_unary = intercept_stream_stream = intercept_unary_unary
+
+
+def connect(
+    address: str, timeout: float = 10.0, transport: Transport = Transport()
+) -> tuple[grpc.Channel, pb_grpc.MappingStub]:
     """An open channel, or ClientError when nothing answers at ``address`` within ``timeout``."""
     options = [
         ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
         ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
     ]
-    channel = grpc.insecure_channel(address, options=options)
+    if transport.secure:
+        channel = grpc.secure_channel(address, transport.credentials(), options=options)
+    else:
+        channel = grpc.insecure_channel(address, options=options)
     try:
         grpc.channel_ready_future(channel).result(timeout=timeout)
     except grpc.FutureTimeoutError:
         channel.close()
-        raise ClientError(f"cannot reach an ogserver at {address} (no connection within {timeout:g} s)") from None
+        hint = " (over TLS: check --tls-ca and the server's certificate and name)" if transport.secure else ""
+        raise ClientError(f"cannot reach an ogserver at {address} (no connection within {timeout:g} s){hint}") from None
+    if transport.api_key:
+        channel = grpc.intercept_channel(channel, _ApiKey(transport.api_key))
     return channel, pb_grpc.MappingStub(channel)

@@ -2,4 +2,5 @@
 
 TOKEN_METADATA_KEY = "x-session-token"
 SESSION_METADATA_KEY = "x-session-id"
+API_KEY_METADATA_KEY = "x-api-key"  # creating, restoring and listing sessions on a server with API keys
 SERVICE_NAME = "ogapi.v1.Mapping"

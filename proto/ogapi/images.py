@@ -27,6 +27,9 @@ DEFAULT_JPEG_QUALITY = 90
 COLOR_ENCODINGS = (pb.COLOR_JPEG, pb.COLOR_PNG, pb.COLOR_RAW_RGB8, pb.COLOR_RAW_F32)
 DEPTH_ENCODINGS = (pb.DEPTH_PNG16, pb.DEPTH_RAW_F32)
 COMPRESSED_FORMATS = {pb.COLOR_JPEG: "jpeg", pb.COLOR_PNG: "png"}  # as ``sniff`` names them
+# The largest side each compressed format can be written with: libjpeg's JPEG_MAX_DIMENSION
+# (the format's own field holds 65535) and libpng's default user limit (OpenCV keeps it).
+MAX_ENCODED_SIDE = {"jpeg": 65500, "png": 1_000_000}
 
 
 def color_name(encoding: int) -> str:
@@ -100,6 +103,7 @@ def encode_color(rgb: np.ndarray, encoding: int, jpeg_quality: int = DEFAULT_JPE
     pixels = to_uint8(rgb)
     if encoding == pb.COLOR_RAW_RGB8:
         return np.ascontiguousarray(pixels).tobytes()
+    check_encodable(rgb.shape[1], rgb.shape[0], encoded_format(encoding))
     bgr = cv2.cvtColor(pixels, cv2.COLOR_RGB2BGR)
     if encoding == pb.COLOR_PNG:
         ok, buffer = cv2.imencode(".png", bgr)
@@ -144,6 +148,7 @@ def encode_depth(depth: np.ndarray, encoding: int, depth_scale: float = 1000.0) 
         return np.ascontiguousarray(depth, dtype="<f4").tobytes()
     if encoding != pb.DEPTH_PNG16:
         raise ValueError(f"unknown depth encoding {depth_name(encoding)}")
+    check_encodable(depth.shape[1], depth.shape[0], encoded_format(encoding, depth=True))
     units = np.where(np.isfinite(depth), depth, 0.0) * depth_scale
     units = np.where((units > 0) & (units <= MAX_DEPTH_UNITS), np.rint(units), 0).astype(np.uint16)
     ok, buffer = cv2.imencode(".png", units)
@@ -163,7 +168,7 @@ def decode_depth(data: bytes, encoding: int, depth_scale: float, width: int, hei
         return depth
     if encoding != pb.DEPTH_PNG16:
         raise ValueError(f"unknown depth encoding {depth_name(encoding)}")
-    if not (np.isfinite(depth_scale) and depth_scale > 0):
+    if not usable_depth_scale(depth_scale):
         raise ValueError(f"depth_scale must be positive and finite for DEPTH_PNG16 (got {depth_scale})")
     header = sniff(data)
     if header.format != "png" or header.bit_depth != 16 or not header.gray:
@@ -173,6 +178,27 @@ def decode_depth(data: bytes, encoding: int, depth_scale: float, width: int, hei
     if units is None or units.dtype != np.uint16 or units.ndim != 2:
         raise ValueError("DEPTH_PNG16 data could not be decoded")
     return units.astype(np.float32) / np.float32(depth_scale)
+
+
+def check_encodable(width: int, height: int, image_format: str) -> None:
+    """Raise ValueError when an image of this size cannot be written as ``image_format`` ("jpeg" or
+    "png"; other names, the raw encodings, have no limit of their own)."""
+    limit = MAX_ENCODED_SIDE.get(image_format)
+    if limit is not None and max(width, height) > limit:
+        raise ValueError(f"{image_format.upper()} images are at most {limit} pixels a side (got {width}x{height})")
+
+
+def encoded_format(encoding: int, depth: bool = False) -> str:
+    """The compressed format ("jpeg", "png") a colour or depth encoding writes, or "" for a raw one."""
+    if depth:
+        return "png" if encoding == pb.DEPTH_PNG16 else ""
+    return COMPRESSED_FORMATS.get(encoding, "")
+
+
+def usable_depth_scale(depth_scale: float) -> bool:
+    """Positive, finite and a normal float32 (depth is divided by it in float32: 1e-300 would make it infinite)."""
+    float32 = np.finfo(np.float32)
+    return bool(float32.tiny <= depth_scale <= float32.max)
 
 
 def _check_length(data: bytes, expected: int, encoding: int, depth: bool = False) -> None:

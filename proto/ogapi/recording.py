@@ -1,8 +1,10 @@
-"""The layout of a session recording (MCAP, protobuf) and a reader that survives a crashed writer.
+"""The layout of a session recording (MCAP, protobuf), a reader that survives a crashed writer,
+and a repair that gives a cut recording the summary and index a clean close appends.
 
-The server flushes a complete MCAP chunk after every frame, so a file cut off by a crash holds
-every frame up to the last one written; ``read_messages`` streams through it without needing the
-summary section a clean close appends.
+The server flushes a complete MCAP chunk before it maps each frame and ends the file after it with
+a provisional end (a Footer without a summary) that the next flush overwrites, so a file cut by a
+crash between two flushes is a complete MCAP that any reader opens. ``read_messages`` also reads a
+file cut inside a record, up to that record, and ``repair`` rewrites either kind with a summary.
 """
 
 from __future__ import annotations
@@ -12,14 +14,18 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from mcap.exceptions import EndOfFile
-from mcap.reader import NonSeekingReader
+import zstandard
+from google.protobuf.message import DecodeError
+from mcap.exceptions import EndOfFile, McapError
+from mcap.records import Channel, Header, Message, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
 
 from ogapi.v1 import mapping_pb2 as pb
 
 TOPIC_SESSION = "/ogmap/session"  # ogapi.v1.SessionConfig, first message
-TOPIC_FRAMES = "/ogmap/frames"  # ogapi.v1.Frame, every accepted frame as received
-TOPIC_ACKS = "/ogmap/acks"  # ogapi.v1.FrameAck, one per mapped frame
+TOPIC_FRAMES = "/ogmap/frames"  # ogapi.v1.Frame, every frame the session mapped (or tried to), as received
+TOPIC_ACKS = "/ogmap/acks"  # ogapi.v1.FrameAck, one per recorded frame once it is mapped
 TOPIC_STATS = "/ogmap/stats"  # ogapi.v1.Stats, at close
 TOPIC_COLOR = "/camera/color"  # foxglove.CompressedImage
 TOPIC_DEPTH = "/camera/depth"  # foxglove.CompressedImage, 16-bit PNG
@@ -27,6 +33,10 @@ TOPIC_CALIBRATION = "/camera/calibration"  # foxglove.CameraCalibration
 TOPIC_TRANSFORM = "/tf"  # foxglove.FrameTransform, world -> camera
 WORLD_FRAME = "world"
 CAMERA_FRAME = "camera"
+
+
+class RecordingError(ValueError):
+    """A file that is not a recording, or one damaged before its end (a cut end is not damage)."""
 
 
 @dataclass(frozen=True)
@@ -37,19 +47,93 @@ class RecordedMessage:
     data: bytes
 
 
-def read_messages(path: str | Path, topics: set[str] | None = None) -> Iterator[RecordedMessage]:
-    """Messages in file order; a file that ends mid-record (a crashed writer) just ends early."""
+def _records(path: str | Path) -> Iterator[Header | Schema | Channel | Message]:
+    """The records in file order, chunks opened and their CRCs checked; a file that ends inside a
+    record (a crashed writer) just ends early."""
     with open(path, "rb") as stream:
-        reader = NonSeekingReader(stream)
-        messages = reader.iter_messages(topics=topics, log_time_order=False)
+        records = StreamReader(stream, validate_crcs=True).records
         while True:
             try:
-                schema, channel, message = next(messages)
+                record = next(records)
             except StopIteration:
                 return
             except (EndOfFile, struct.error):  # the file ends inside a record
                 return
-            yield RecordedMessage(channel.topic, schema.name if schema else "", message.log_time, message.data)
+            except (McapError, ValueError, zstandard.ZstdError) as error:
+                raise RecordingError(f"{path} is not a readable recording: {error}") from None
+            if isinstance(record, Header | Schema | Channel | Message):
+                yield record
+
+
+def _unknown_channel(path: str | Path, message: Message) -> RecordingError:
+    return RecordingError(f"{path} is not a readable recording: a message on unknown channel {message.channel_id}")
+
+
+def read_messages(path: str | Path, topics: set[str] | None = None) -> Iterator[RecordedMessage]:
+    """Messages in file order, up to where the file ends; ``RecordingError`` where it is damaged."""
+    schemas: dict[int, str] = {}
+    channels: dict[int, tuple[str, str]] = {}
+    for record in _records(path):
+        if isinstance(record, Schema):
+            schemas[record.id] = record.name
+        elif isinstance(record, Channel):
+            channels[record.id] = (record.topic, schemas.get(record.schema_id, ""))
+        elif isinstance(record, Message):
+            if record.channel_id not in channels:
+                raise _unknown_channel(path, record)
+            topic, schema = channels[record.channel_id]
+            if topics is None or topic in topics:
+                yield RecordedMessage(topic, schema, record.log_time, record.data)
+
+
+@dataclass(frozen=True)
+class Copied:
+    messages: int
+    channels: dict[str, int]  # the writer's channel id for each topic copied
+
+
+def copy_records(source: str | Path, writer: Writer) -> Copied:
+    """Start ``writer`` with the source's header, then add the source's schemas, channels and
+    messages in file order (those a summary repeats, once)."""
+    started = False
+    schemas: dict[int, int] = {}
+    channels: dict[int, int] = {}
+    topics: dict[str, int] = {}
+    messages = 0
+    for record in _records(source):
+        if isinstance(record, Header) and not started:
+            writer.start(profile=record.profile, library=record.library)
+            started = True
+        elif isinstance(record, Schema) and record.id not in schemas:
+            schemas[record.id] = writer.register_schema(record.name, record.encoding, record.data)
+        elif isinstance(record, Channel) and record.id not in channels:
+            channels[record.id] = writer.register_channel(
+                record.topic, record.message_encoding, schemas.get(record.schema_id, 0), record.metadata
+            )
+            topics[record.topic] = channels[record.id]
+        elif isinstance(record, Message):
+            if record.channel_id not in channels:
+                raise _unknown_channel(source, record)
+            writer.add_message(channels[record.channel_id], log_time=record.log_time, data=record.data,
+                               publish_time=record.publish_time, sequence=record.sequence)
+            messages += 1
+    if not started:
+        raise RecordingError(f"{source} is not a recording: it holds no MCAP header")
+    return Copied(messages, topics)
+
+
+def repair(source: str | Path, target: str | Path) -> int:
+    """Write ``target`` with every message ``source`` holds and the summary and index a clean close
+    appends, so any MCAP reader opens it (``target`` is removed if that fails); the message count."""
+    try:
+        with open(target, "wb") as stream:
+            writer = Writer(stream, compression=CompressionType.ZSTD)
+            copied = copy_records(source, writer)
+            writer.finish()
+    except BaseException:
+        Path(target).unlink(missing_ok=True)
+        raise
+    return copied.messages
 
 
 @dataclass
@@ -63,14 +147,18 @@ class Recording:
 
 
 def load(path: str | Path) -> Recording:
+    """The recording's ogapi messages; ``RecordingError`` for a damaged file or message."""
     recording = Recording(config=None, frames=[], acks=[], stats=None)
     for item in read_messages(path, {TOPIC_SESSION, TOPIC_FRAMES, TOPIC_ACKS, TOPIC_STATS}):
-        if item.topic == TOPIC_SESSION:
-            recording.config = pb.SessionConfig.FromString(item.data)
-        elif item.topic == TOPIC_FRAMES:
-            recording.frames.append((item.log_time_ns, pb.Frame.FromString(item.data)))
-        elif item.topic == TOPIC_ACKS:
-            recording.acks.append(pb.FrameAck.FromString(item.data))
-        else:
-            recording.stats = pb.Stats.FromString(item.data)
+        try:
+            if item.topic == TOPIC_SESSION:
+                recording.config = pb.SessionConfig.FromString(item.data)
+            elif item.topic == TOPIC_FRAMES:
+                recording.frames.append((item.log_time_ns, pb.Frame.FromString(item.data)))
+            elif item.topic == TOPIC_ACKS:
+                recording.acks.append(pb.FrameAck.FromString(item.data))
+            else:
+                recording.stats = pb.Stats.FromString(item.data)
+        except DecodeError:
+            raise RecordingError(f"{path} is not a readable recording: a damaged {item.topic} message") from None
     return recording

@@ -15,10 +15,13 @@ READY_PREFIX = "ogserver listening on"
 
 EPILOG = """\
 settings come from defaults, then --config FILE (YAML or JSON with the same names, limits nested
-under "limits:"), then flags. The server prints "ogserver listening on HOST:PORT" once it serves
+under "limits:", TLS, callers, timeouts and metrics under "access:", the bounds on clients' configs under
+"config_bounds:"), then flags. The server prints "ogserver listening on HOST:PORT" once it serves
 (with port 0 the bound port is printed). SIGTERM or SIGINT stops it gracefully: calls in flight get
 --grace seconds, then every session's recording is closed (and with --final-snapshots its map is
-written as RECORD_DIR/<session>.safetensors). See docs/service.md."""
+written as RECORD_DIR/<session>.safetensors). Nothing waits without a bound: what is still running
+--stop-timeout seconds later is left behind, the recordings are closed regardless and the process
+exits. See docs/service.md."""
 
 
 def parser() -> argparse.ArgumentParser:
@@ -33,9 +36,15 @@ def parser() -> argparse.ArgumentParser:
                    help="write each session's map into the record dir when it closes")
     p.add_argument("--torch-threads", dest="torch_threads", type=int, help="torch CPU threads (default min(cores, 8))")
     p.add_argument("--grace", dest="grace_seconds", type=float, help="shutdown grace for calls in flight, seconds (5)")
+    p.add_argument("--stop-timeout", dest="stop_timeout_seconds", type=float,
+                   help="how long closing a session waits for the frame being mapped, and shutdown for gRPC "
+                        "after the grace, before closing the recordings regardless, seconds (10)")
     p.add_argument("--no-warm-up", dest="warm_up", action="store_false", default=None,
                    help="serve at once, without first mapping a tiny synthetic scene (which loads the compiled "
                         "kernels, ~2 s, so the first session does not wait for them)")
+    p.add_argument("--frame-seconds", dest="frame_seconds", type=float,
+                   help="wall-clock budget of one frame's optimisation; it then stops early and its ack says "
+                        "so (60; 0 = no limit)")
     limits = p.add_argument_group("limits (exceeding one gives RESOURCE_EXHAUSTED)")
     limits.add_argument("--max-sessions", dest="max_sessions", type=int, help="open sessions at once (4)")
     limits.add_argument("--queue-depth", dest="queue_depth", type=int,
@@ -47,7 +56,26 @@ def parser() -> argparse.ArgumentParser:
     limits.add_argument("--max-anchors", dest="max_anchors", type=int,
                         help="refuse frames once a map holds this many anchors (0 = no limit)")
     limits.add_argument("--max-snapshot-bytes", dest="max_snapshot_bytes", type=int,
-                        help="largest snapshot RestoreSession accepts (2 GiB)")
+                        help="largest snapshot RestoreSession accepts (256 MiB)")
+    access = p.add_argument_group("access: TLS, callers, per-caller limits, timeouts, metrics (more in --config)")
+    access.add_argument("--tls-cert", dest="tls_cert", metavar="PEM", help="server certificate chain: serve TLS only")
+    access.add_argument("--tls-key", dest="tls_key", metavar="PEM", help="the certificate's private key")
+    access.add_argument("--tls-client-ca", dest="tls_client_ca", metavar="PEM",
+                        help="require client certificates signed by this CA (mutual TLS; the certificate's "
+                             "name is the caller)")
+    access.add_argument("--api-keys-file", dest="api_keys_file", metavar="FILE",
+                        help="NAME:SHA256 lines; creating, restoring and listing sessions then need a key as "
+                             "metadata x-api-key (make one with python -m ogserver.apikeys NAME)")
+    access.add_argument("--metrics-address", dest="metrics_address", metavar="HOST:PORT",
+                        help="serve Prometheus metrics at http://HOST:PORT/metrics (default off)")
+    access.add_argument("--max-sessions-per-client", dest="max_sessions_per_client", type=int,
+                        help="sessions one caller may hold (0 = only --max-sessions)")
+    access.add_argument("--max-concurrent-calls", dest="max_concurrent_calls", type=int,
+                        help="mapping calls served at once; health checks are answered beside them (32)")
+    access.add_argument("--session-idle-seconds", dest="session_idle_seconds", type=float,
+                        help="close sessions unused this long (3600; 0 = never)")
+    access.add_argument("--stream-idle-seconds", dest="stream_idle_seconds", type=float,
+                        help="end frame streams whose client sends nothing this long (300; 0 = never)")
     p.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING (default INFO)")
     return p
 
@@ -78,10 +106,19 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{READY_PREFIX} {host}:{server.port} (device {server.registry.device})", flush=True)
     while not stop.wait(0.5):
         pass
-    logging.getLogger("ogserver").info("shutting down")
-    for closed in server.stop(settings.grace_seconds):
+    log = logging.getLogger("ogserver")
+    log.info("shutting down")
+    stopped = server.stop(settings.grace_seconds, settings.stop_timeout_seconds)
+    for closed in stopped.closed:
         print(f"closed session {closed.stats.session_id}: recording {closed.recording}"
               + (f", snapshot {closed.snapshot}" if closed.snapshot else ""), flush=True)
+    if not stopped.complete:
+        # Threads still running would keep the interpreter from exiting, or crash it on the way out.
+        log.warning("exiting with calls or frames still running past --stop-timeout; every recording is closed")
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
     return 0
 
 

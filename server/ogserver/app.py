@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from concurrent import futures
 from dataclasses import dataclass
+from pathlib import Path
 
 import ogmapping  # noqa: F401 (before torch: it sets the OpenMP wait policy torch's pool reads at start)
 
@@ -13,16 +14,25 @@ import grpc
 import torch
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from ogapi import SERVICE_NAME
-from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 
 from ogmapping.profile import resolve_device
 from ogmapping.warmup import warm_up
-from ogserver import reflection
+from ogserver import reflection, storage, transport, wire
+from ogserver.callers import Callers
+from ogserver.calls import HEADROOM, CallGate
+from ogserver.expiry import Expiry
+from ogserver.metrics import Endpoint, Metrics
 from ogserver.registry import Closed, Registry
 from ogserver.service import MappingService
 from ogserver.settings import Settings
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Stopped:
+    closed: list[Closed]
+    complete: bool  # False if gRPC or a session's frame was still running at the deadline
 
 
 @dataclass
@@ -31,37 +41,75 @@ class Server:
     registry: Registry
     health: health.HealthServicer
     port: int
+    expiry: Expiry
+    metrics: Endpoint | None  # the /metrics HTTP server, when metrics_address is set
 
-    def stop(self, grace: float) -> list[Closed]:
-        """Report NOT_SERVING, let calls in flight finish (up to ``grace``), then close every session."""
+    def stop(self, grace: float, timeout: float) -> Stopped:
+        """Report NOT_SERVING, let calls in flight finish (up to ``grace``), wait up to ``timeout`` more
+        for gRPC to stop, then close every session, waiting up to ``timeout`` for frames being mapped."""
+        self.expiry.stop()
         self.health.enter_graceful_shutdown()
-        self.grpc_server.stop(grace).wait()
-        return self.registry.close_all()
+        grpc_stopped = self.grpc_server.stop(grace).wait(grace + timeout)
+        if not grpc_stopped:
+            log.warning("gRPC calls were still running %.1f s after the grace; closing the sessions anyway", timeout)
+        closed = self.registry.close_all(timeout)
+        if self.metrics is not None:
+            self.metrics.stop()
+        return Stopped(closed, grpc_stopped and all(item.stopped for item in closed))
 
 
 def build(settings: Settings) -> Server:
     """A started server; ``port`` is the bound one (useful with port 0)."""
+    storage.check_writable(Path(settings.record_dir))
     device = str(resolve_device(settings.device))
     torch.set_num_threads(settings.threads())
-    limits = settings.limits
-    workers = 2 * limits.max_sessions + 8  # each frame stream holds a thread for its lifetime
+    limits, access = settings.limits, settings.access
+    callers = Callers(access)
+    credentials = transport.server_credentials(access)
+    # Mapping calls are held to max_concurrent_calls (each frame stream holds a thread for its lifetime);
+    # the headroom keeps health checks answered when they are all taken.
+    workers = access.max_concurrent_calls + HEADROOM
     options = [
         ("grpc.max_receive_message_length", limits.max_message_bytes),
         ("grpc.max_send_message_length", limits.max_message_bytes),
+        *transport.keepalive_options(access),
     ]
-    server = grpc.server(futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="grpc"), options=options)
     if settings.warm_up:
         log.info("warming up on %s: %.1f s", device, warm_up(device))
     registry = Registry(settings, device)
-    pb_grpc.add_MappingServicer_to_server(MappingService(registry), server)
+    metrics = Metrics(registry)
+    server = grpc.server(
+        futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="grpc"), options=options,
+        interceptors=[CallGate(access.max_concurrent_calls, metrics.call)], maximum_concurrent_rpcs=workers,
+    )
+    wire.add_mapping_service(MappingService(registry, callers, metrics), server)
     health_servicer = health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     for name in ("", SERVICE_NAME):
         health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
     reflection.enable(server, (SERVICE_NAME, health.SERVICE_NAME))
-    port = server.add_insecure_port(settings.address)
+    if credentials is None:
+        port = server.add_insecure_port(settings.address)
+    else:
+        port = server.add_secure_port(settings.address, credentials)
     if port == 0:
         raise ValueError(f"could not bind {settings.address}")
+    endpoint = Endpoint.start(access.metrics_address, metrics) if access.metrics_address else None
     server.start()
     log.info("device %s, %d torch threads, record dir %s", device, torch.get_num_threads(), settings.record_dir)
-    return Server(server, registry, health_servicer, port)
+    _announce_access(settings, callers, credentials is not None, endpoint)
+    return Server(server, registry, health_servicer, port, Expiry(registry).start(), endpoint)
+
+
+def _announce_access(settings: Settings, callers: Callers, tls: bool, metrics: Endpoint | None) -> None:
+    """Say in the log who may call; warn when anyone who reaches a non-local address may."""
+    transport_name = "mutual TLS" if settings.access.tls_client_ca else "TLS" if tls else "plaintext (no TLS)"
+    if callers.open:
+        level = logging.INFO if settings.address.startswith(("127.", "localhost:", "[::1]:")) else logging.WARNING
+        log.log(level, "%s, open: no API keys or client certificates, so anyone who reaches %s may create, "
+                "restore and list sessions", transport_name, settings.address)
+    else:
+        log.info("%s; creating, restoring and listing sessions need %s", transport_name, callers.describe())
+    if metrics is not None:
+        host = settings.access.metrics_address.rsplit(":", 1)[0]
+        log.info("Prometheus metrics on http://%s:%d/metrics", host, metrics.port)

@@ -14,3 +14,22 @@ class SessionCounters:
     anchors: int  # the map's anchors after the last mapped frame
     processing_fps: float  # mapped frames over the time from the first received to the last mapped
     uptime_seconds: float
+
+
+@dataclass(frozen=True)
+class FrameTotals:
+    """Frames over sessions, for counters that only grow (metrics): open sessions plus closed ones."""
+
+    received: int = 0
+    rejected: int = 0
+    mapped: int = 0
+    unmapped: int = 0  # received but never mapped: the mapper failed on it, or the session closed first
+
+    @classmethod
+    def of(cls, counters: SessionCounters) -> FrameTotals:
+        return cls(counters.received, counters.rejected, counters.mapped,
+                   counters.received - counters.mapped - counters.pending)
+
+    def __add__(self, other: FrameTotals) -> FrameTotals:
+        return FrameTotals(self.received + other.received, self.rejected + other.rejected,
+                           self.mapped + other.mapped, self.unmapped + other.unmapped)

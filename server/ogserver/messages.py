@@ -11,9 +11,11 @@ import json
 from collections.abc import Iterator
 from pathlib import Path
 
+import grpc
 from ogapi.images import encode_color, encode_depth
 from ogapi.v1 import mapping_pb2 as pb
 
+from ogmapping.budget import Stop
 from ogmapping.mapper import FrameResult, Rendered
 from ogmapping.stats import MapStats
 from ogserver.counters import SessionCounters
@@ -30,12 +32,25 @@ def error_ack(index: int, error: ServiceError) -> pb.FrameAck:
     )
 
 
+# An accepted frame whose optimisation stopped early: its ack keeps ``accepted`` and carries why in ``error``.
+STOPPED = {
+    Stop.DEADLINE: (grpc.StatusCode.DEADLINE_EXCEEDED, "the frame's time budget (frame_seconds) ran out"),
+    Stop.CANCELLED: (grpc.StatusCode.CANCELLED, "the session was closing"),
+}
+
+
 def frame_ack(result: FrameResult, sequence: int, latency_seconds: float, queue_depth: int) -> pb.FrameAck:
-    return pb.FrameAck(
+    ack = pb.FrameAck(
         index=result.index, accepted=True, sequence=sequence, keyframe=result.keyframe,
         anchors=result.anchors, gaussians=result.gaussians, iterations=result.iterations,
         latency_seconds=latency_seconds, process_seconds=result.seconds, queue_depth=queue_depth,
     )
+    if result.stopped is not None:
+        code, reason = STOPPED[result.stopped]
+        ack.error.CopyFrom(pb.Error(code=code.value[0], code_name=code.name,
+                                    message=f"mapped, but optimisation stopped after {result.iterations} "
+                                            f"iterations: {reason}"))
+    return ack
 
 
 def render_response(spec: RenderSpec, rendered: Rendered) -> pb.RenderResponse:
@@ -66,11 +81,11 @@ def stats(config: pb.SessionConfig, engine: MapStats, counters: SessionCounters)
 def session_info(
     config: pb.SessionConfig, counters: SessionCounters, streaming: bool, recording: Path
 ) -> pb.SessionInfo:
-    """A session as ListSessions shows it: never its token."""
+    """A session as ListSessions shows it: never its token, and the recording's file name, not its server path."""
     return pb.SessionInfo(
         session_id=config.session_id, preset=config.preset, label=config.label, device=config.device,
         created_unix=config.created_unix, frames=counters.mapped, anchors=counters.anchors,
-        queue_depth=counters.pending, streaming=streaming, recording=str(recording),
+        queue_depth=counters.pending, streaming=streaming, recording=recording.name,
     )
 
 

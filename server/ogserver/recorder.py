@@ -1,25 +1,35 @@
 """One MCAP file per session: the ogapi messages a replay needs, plus Foxglove channels to look at.
 
-Every frame is followed by a flush that closes the MCAP chunk in progress, so a crash loses at
-most the acks after the last frame; a clean close appends the summary and index.
+A frame is recorded when the session's worker takes it up, before it is mapped, and each frame is
+followed by a flush that writes the MCAP chunk in progress and a provisional end (``RecordingFile``):
+a crash loses at most the acks after the last frame, and leaves a file any MCAP reader opens; a clean
+close appends the summary and index. The first write that fails (a full disk) stops the recording
+for good: the file is cut back to the last complete frame, and closing rewrites it with a summary.
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import os
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
+import grpc
 import numpy as np
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
 from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+from google.protobuf.message import Message
 from google.protobuf.timestamp_pb2 import Timestamp
+from mcap.data_stream import RecordBuilder
+from mcap.records import DataEnd, Footer
 from mcap.well_known import MessageEncoding
-from mcap.writer import CompressionType, Writer
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 from mcap_protobuf.schema import register_schema
 from ogapi import recording as layout
 from ogapi.images import encode_color, encode_depth
@@ -27,7 +37,10 @@ from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.camera import Intrinsics
 from ogmapping.frame import Frame
+from ogserver.errors import ServiceError
+from ogserver.storage import StorageError, storage_error
 
+log = logging.getLogger(__name__)
 PROFILE = "protobuf"
 
 
@@ -66,78 +79,227 @@ def _calibration(camera: Intrinsics, stamp: Timestamp) -> CameraCalibration:
     )
 
 
-class Recorder:
-    """Thread-safe writer of one session's recording."""
+def _provisional_end() -> bytes:
+    """DataEnd, a Footer that announces no summary, and the closing magic: what makes a file an MCAP."""
+    builder = RecordBuilder()
+    DataEnd(data_section_crc=0).write(builder)
+    Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(builder)
+    return builder.end() + MCAP0_MAGIC
 
-    def __init__(self, path: Path, config: pb.SessionConfig) -> None:
-        self.path = path
-        path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(path, "wb")  # noqa: SIM115 - lives as long as the session
-        self._writer = Writer(self._file, compression=CompressionType.ZSTD)
-        self._writer.start(profile=PROFILE, library="ogserver")
-        self._channels: dict[str, int] = {}
-        self._lock = threading.Lock()
-        self._closed = False
-        with self._lock:
-            self._write(layout.TOPIC_SESSION, config, time.time_ns())
-            self._writer.flush()
 
-    def _write(self, topic: str, message: Any, log_time: int, publish_time: int | None = None) -> None:
+PROVISIONAL_END = _provisional_end()
+
+
+class RecordingFile:
+    """The file under the MCAP writer: bytes reach the disk only at a flush, which also writes
+    ``PROVISIONAL_END`` after them for the next flush to overwrite, so a file cut between two
+    flushes is a complete MCAP. A flush that fails is cut back to the one before."""
+
+    def __init__(self, path: Path) -> None:
+        self._file = open(path, "wb", buffering=0)  # noqa: SIM115 - lives as long as the recording
+        self._pending = bytearray()
+        self._committed = 0  # bytes of MCAP data on disk; what follows them is ``_end``
+        self._end = b""
+
+    def write(self, data: bytes) -> int:
+        self._pending += data
+        return len(data)
+
+    def tell(self) -> int:
+        return self._committed + len(self._pending)
+
+    def flush(self) -> None:
+        self._commit(PROVISIONAL_END)
+
+    def finish(self) -> None:
+        """Write what the MCAP writer's ``finish`` left: the real end (never shorter than the provisional one)."""
+        self._commit(b"")
+
+    def close(self) -> None:
+        self._file.close()
+
+    def _commit(self, end: bytes) -> None:
+        data = bytes(self._pending) + end
+        self._pending.clear()
+        try:
+            self._write_at(self._committed, data)
+        except OSError:
+            with contextlib.suppress(OSError):  # in place, so a full disk takes it; readers stop at a cut anyway
+                self._file.truncate(self._committed + len(self._end))
+                self._write_at(self._committed, self._end)
+            raise
+        self._committed += len(data) - len(end)
+        self._end = end
+
+    def _write_at(self, offset: int, data: bytes) -> None:
+        self._file.seek(offset)
+        view = memoryview(data)
+        while view:
+            view = view[self._file.write(view):]
+
+
+class _Channels:
+    """An MCAP writer with one protobuf channel per topic, registered on first use."""
+
+    def __init__(self, writer: Writer, channels: dict[str, int] | None = None) -> None:
+        self.writer = writer
+        self._channels = dict(channels or {})
+
+    def add(self, topic: str, message: Message, log_time: int, publish_time: int | None = None) -> None:
         channel = self._channels.get(topic)
         if channel is None:
-            schema = register_schema(self._writer, type(message))
-            channel = self._writer.register_channel(topic, MessageEncoding.Protobuf, schema)
+            schema = register_schema(self.writer, type(message))
+            channel = self.writer.register_channel(topic, MessageEncoding.Protobuf, schema)
             self._channels[topic] = channel
-        self._writer.add_message(
+        self.writer.add_message(
             channel, log_time=log_time, data=message.SerializeToString(),
             publish_time=log_time if publish_time is None else publish_time,
         )
 
-    def write_frame(self, message: pb.Frame, frame: Frame, received_ns: int) -> None:
-        """The frame as received, then its Foxglove views, then a flush to disk."""
-        sensor_ns = round(frame.timestamp * 1e9) if frame.timestamp is not None else received_ns
-        stamp = _timestamp(sensor_ns)
-        if message.color.encoding in (pb.COLOR_JPEG, pb.COLOR_PNG):
-            color_data = message.color.data
-            color_format = "jpeg" if message.color.encoding == pb.COLOR_JPEG else "png"
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """One frame as the recording holds it: the message as received, then its Foxglove views."""
+
+    received_ns: int
+    sensor_ns: int
+    views: list[tuple[str, Message]]
+
+
+def frame_record(message: pb.Frame, frame: Frame, received_ns: int) -> FrameRecord:
+    """Encoded off the worker's path (raw images become PNGs for Foxglove); validation bounds the timestamp."""
+    sensor_ns = round(frame.timestamp * 1e9) if frame.timestamp is not None else received_ns
+    stamp = _timestamp(sensor_ns)
+    if message.color.encoding in (pb.COLOR_JPEG, pb.COLOR_PNG):
+        color_data = message.color.data
+        color_format = "jpeg" if message.color.encoding == pb.COLOR_JPEG else "png"
+    else:
+        color_data, color_format = encode_color(frame.rgb, pb.COLOR_PNG), "png"
+    depth_data = (
+        message.depth.data if message.depth.encoding == pb.DEPTH_PNG16
+        else encode_depth(frame.depth, pb.DEPTH_PNG16, 1000.0)
+    )
+    x, y, z, w = quaternion(frame.c2w[:3, :3])
+    tx, ty, tz = (float(v) for v in frame.c2w[:3, 3])
+    return FrameRecord(received_ns, sensor_ns, [
+        (layout.TOPIC_FRAMES, message),
+        (layout.TOPIC_COLOR, CompressedImage(
+            timestamp=stamp, frame_id=layout.CAMERA_FRAME, data=color_data, format=color_format)),
+        (layout.TOPIC_DEPTH, CompressedImage(
+            timestamp=stamp, frame_id=layout.CAMERA_FRAME, data=depth_data, format="png")),
+        (layout.TOPIC_CALIBRATION, _calibration(frame.color_intrinsics, stamp)),
+        (layout.TOPIC_TRANSFORM, FrameTransform(
+            timestamp=stamp, parent_frame_id=layout.WORLD_FRAME, child_frame_id=layout.CAMERA_FRAME,
+            translation=Vector3(x=tx, y=ty, z=tz), rotation=Quaternion(x=x, y=y, z=z, w=w))),
+    ])
+
+
+def _open_mcap(path: Path) -> tuple[RecordingFile, Writer]:
+    file = RecordingFile(path)
+    return file, Writer(file, compression=CompressionType.ZSTD)
+
+
+class Recorder:
+    """Thread-safe writer of one session's recording. Every write failure is a ``StorageError``;
+    after the first, ``failure`` holds it and frames are refused with it."""
+
+    def __init__(self, path: Path, config: pb.SessionConfig) -> None:
+        self.path = path
+        self.failure: StorageError | None = None
+        self._lock = threading.Lock()
+        self._closed = False
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._file, writer = _open_mcap(path)
+        except OSError as error:
+            log.error("recording %s: cannot create it: %s", path, error)
+            raise storage_error(error, "a new session's recording") from None
+        self._mcap = _Channels(writer)
+        try:
+            writer.start(profile=PROFILE, library="ogserver")
+            self._mcap.add(layout.TOPIC_SESSION, config, time.time_ns())
+            writer.flush()
+        except OSError as error:
+            self._file.close()
+            path.unlink(missing_ok=True)  # no empty file for a session that never opened
+            log.error("recording %s: cannot start it: %s", path, error)
+            raise storage_error(error, "a new session's recording") from None
+
+    def _fail(self, error: Exception) -> StorageError:
+        """Stop recording for good: the file holds every frame up to the last one written whole."""
+        if isinstance(error, OSError):
+            log.error("recording %s failed: %s", self.path, error)
+            failure = storage_error(error, "the session's recording")
         else:
-            color_data, color_format = encode_color(frame.rgb, pb.COLOR_PNG), "png"
-        depth_data = (
-            message.depth.data if message.depth.encoding == pb.DEPTH_PNG16
-            else encode_depth(frame.depth, pb.DEPTH_PNG16, 1000.0)
-        )
-        x, y, z, w = quaternion(frame.c2w[:3, :3])
-        tx, ty, tz = (float(v) for v in frame.c2w[:3, 3])
-        views: list[tuple[str, Any]] = [
-            (layout.TOPIC_FRAMES, message),
-            (layout.TOPIC_COLOR, CompressedImage(
-                timestamp=stamp, frame_id=layout.CAMERA_FRAME, data=color_data, format=color_format)),
-            (layout.TOPIC_DEPTH, CompressedImage(
-                timestamp=stamp, frame_id=layout.CAMERA_FRAME, data=depth_data, format="png")),
-            (layout.TOPIC_CALIBRATION, _calibration(frame.color_intrinsics, stamp)),
-            (layout.TOPIC_TRANSFORM, FrameTransform(
-                timestamp=stamp, parent_frame_id=layout.WORLD_FRAME, child_frame_id=layout.CAMERA_FRAME,
-                translation=Vector3(x=tx, y=ty, z=tz), rotation=Quaternion(x=x, y=y, z=z, w=w))),
-        ]
+            log.exception("recording %s failed", self.path)
+            failure = StorageError(grpc.StatusCode.INTERNAL,
+                                   f"the server could not write the session's recording: {type(error).__name__}")
+        self.failure = StorageError(failure.code, f"{failure.message}; the session takes no more frames")
+        return self.failure
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ServiceError(grpc.StatusCode.ABORTED, "the session was closed")
+        if self.failure is not None:
+            raise self.failure
+
+    def write_frame(self, record: FrameRecord) -> None:
+        """The frame and its views, then a flush to disk: once this returns, a crash keeps the frame."""
         with self._lock:
-            if self._closed:
-                return
-            for topic, view in views:
-                self._write(topic, view, received_ns, sensor_ns)
-            self._writer.flush()
+            self._check_open()
+            try:
+                for topic, view in record.views:
+                    self._mcap.add(topic, view, record.received_ns, record.sensor_ns)
+                self._mcap.writer.flush()
+            except Exception as error:
+                raise self._fail(error) from None
 
     def write_ack(self, ack: pb.FrameAck) -> None:
-        with self._lock:
-            if not self._closed:
-                self._write(layout.TOPIC_ACKS, ack, time.time_ns())
-
-    def close(self, stats: pb.Stats | None = None) -> None:
-        """Write the final stats and the summary; later writes are ignored."""
+        """Buffered with the next frame's flush; after a close (a frame outlasting it), dropped."""
         with self._lock:
             if self._closed:
                 return
-            self._closed = True
-            if stats is not None:
-                self._write(layout.TOPIC_STATS, stats, time.time_ns())
-            self._writer.finish()
+            self._check_open()
+            try:
+                self._mcap.add(layout.TOPIC_ACKS, ack, time.time_ns())
+            except Exception as error:
+                raise self._fail(error) from None
+
+    def close(self, stats: pb.Stats | None = None) -> None:
+        """Write the final stats and the summary; later writes are dropped. A recording that failed
+        is rewritten with a summary instead; if that fails too (StorageError), closing can be retried."""
+        with self._lock:
+            if self._closed:
+                return
+            if self.failure is None:
+                try:
+                    if stats is not None:
+                        self._mcap.add(layout.TOPIC_STATS, stats, time.time_ns())
+                    self._mcap.writer.finish()
+                    self._file.finish()
+                except Exception as error:
+                    self._fail(error)
+            if self.failure is not None:
+                self._rewrite(stats)
             self._file.close()
+            self._closed = True
+
+    def _rewrite(self, stats: pb.Stats | None) -> None:
+        """A failed recording, finished: what its file holds, copied into a new one with the stats and
+        a summary (this needs as much free space as the recording takes), which then replaces it."""
+        partial = self.path.with_name(self.path.name + ".partial")
+        try:
+            file, writer = _open_mcap(partial)
+            try:
+                copied = layout.copy_records(self.path, writer)
+                if stats is not None:
+                    _Channels(writer, copied.channels).add(layout.TOPIC_STATS, stats, time.time_ns())
+                writer.finish()
+                file.finish()
+            finally:
+                file.close()
+            os.replace(partial, self.path)
+        except OSError as error:
+            partial.unlink(missing_ok=True)
+            log.error("recording %s: cannot finish it: %s", self.path, error)
+            raise storage_error(error, "the session's recording") from None

@@ -1,4 +1,9 @@
-"""All live sessions: creation within the limits, lookup with token check, and closing."""
+"""All live sessions: creation within the limits, lookup with token check, idle expiry and closing.
+
+Each session has an owner (the caller identity that created it, see ``callers.py``) and the time it
+was last used; both live here, beside the session, so the per-caller quota, ListSessions and idle
+expiry need nothing from the session itself.
+"""
 
 from __future__ import annotations
 
@@ -7,7 +12,8 @@ import logging
 import threading
 import time
 import uuid
-from collections.abc import Iterator
+from collections import Counter
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,10 +24,12 @@ from ogapi.v1 import mapping_pb2 as pb
 from ogmapping.config import PRESETS, resolve
 from ogmapping.mapper import Mapper
 from ogserver import __version__, auth, messages, validation
-from ogserver.errors import ServiceError, exhausted, invalid
+from ogserver.counters import FrameTotals
+from ogserver.errors import ServiceError, invalid
 from ogserver.recorder import Recorder
 from ogserver.session import Session
 from ogserver.settings import Settings
+from ogserver.storage import StorageError, storage_error
 
 log = logging.getLogger(__name__)
 DEFAULT_PRESET = "sparse"  # as ogmap run
@@ -32,6 +40,22 @@ class Closed:
     stats: pb.Stats
     recording: Path
     snapshot: Path | None
+    stopped: bool  # the frame being mapped, if any, finished before the recording was closed
+
+
+@dataclass(frozen=True)
+class Upload:
+    """A snapshot received by RestoreSession."""
+
+    data: bytes
+    label: str
+    sha256: str
+
+
+@dataclass
+class Tenancy:
+    owner: str
+    last_used: float  # time.monotonic() of the last call naming the session
 
 
 class Registry:
@@ -40,48 +64,69 @@ class Registry:
         self.device = device
         self.record_dir = Path(settings.record_dir)
         self._sessions: dict[str, Session] = {}
-        self._reserved = 0
+        self._tenancy: dict[str, Tenancy] = {}
+        # Being closed: no longer served, still counted under max_sessions and the owner's quota (a close
+        # that is slow or fails must not free a place early); back to _sessions if its recording fails.
+        self._retiring: dict[str, Session] = {}
+        self._closed_totals = FrameTotals()
+        self._reserved: Counter[str] = Counter()
         self._lock = threading.Lock()
         self._closing = False
 
     @contextmanager
-    def _slot(self) -> Iterator[None]:
-        """Hold a place under max_sessions while a map is being built."""
+    def _reserve(self, owner: str) -> Iterator[None]:
+        """Hold a place under max_sessions and the owner's quota while a map is being built."""
         limit = self.settings.limits.max_sessions
+        quota = self.settings.access.max_sessions_per_client
         with self._lock:
             if self._closing:
-                raise ServiceError(grpc.StatusCode.UNAVAILABLE, "server: shutting down")
-            if len(self._sessions) + self._reserved >= limit:
-                raise exhausted("sessions", f"the server already holds its limit of {limit} sessions")
-            self._reserved += 1
+                raise ServiceError(grpc.StatusCode.UNAVAILABLE, "the server is shutting down")
+            if len(self._sessions) + len(self._retiring) + self._reserved.total() >= limit:
+                raise ServiceError(grpc.StatusCode.RESOURCE_EXHAUSTED,
+                                   f"the server already holds its limit of {limit} sessions")
+            held = self._reserved[owner] + sum(tenancy.owner == owner for tenancy in self._tenancy.values())
+            if quota and held >= quota:
+                raise ServiceError(grpc.StatusCode.RESOURCE_EXHAUSTED,
+                                   f"the caller {owner} already holds its limit of {quota} sessions")
+            self._reserved[owner] += 1
         try:
             yield
         finally:
             with self._lock:
-                self._reserved -= 1
+                self._reserved[owner] -= 1
 
-    def create(self, request: pb.CreateSessionRequest) -> Session:
+    def check_label(self, label: str) -> None:
+        limit = self.settings.access.max_label_chars
+        if len(label) > limit:
+            raise invalid("label", f"longer than the server's limit of {limit} characters ({len(label)})")
+
+    def create(self, request: pb.CreateSessionRequest, owner: str) -> Session:
+        self.check_label(request.label)
         preset = request.preset or DEFAULT_PRESET
         if preset not in PRESETS:
             raise invalid("preset", f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
         overrides = dict(request.overrides)
         try:
-            config = resolve(preset, overrides=overrides)
+            config = resolve(preset, overrides=overrides, bounds=self.settings.config_bounds)
         except ValueError as error:
             raise invalid("overrides", error) from None
-        with self._slot():
+        with self._reserve(owner):
             mapper = Mapper(config, device=self.device)
-            return self._open(mapper, preset, overrides, request.label, "")
+            return self._open(mapper, preset, overrides, request.label, "", owner)
 
-    def restore(self, data: bytes, label: str, sha256: str) -> Session:
-        with self._slot():
+    def restore(self, owner: str, receive: Callable[[], Upload]) -> Session:
+        """Reserve the session's place before ``receive`` reads the snapshot: a full server refuses at once."""
+        with self._reserve(owner):
+            upload = receive()
             try:
-                mapper = Mapper.restore(data, device=self.device)
+                mapper = Mapper.restore(upload.data, device=self.device, bounds=self.settings.config_bounds)
             except ValueError as error:
-                raise invalid("snapshot", error) from None
-            return self._open(mapper, "", {}, label, sha256)
+                raise invalid("data", f"not a usable snapshot: {error}") from None
+            return self._open(mapper, "", {}, upload.label, upload.sha256, owner)
 
-    def _open(self, mapper: Mapper, preset: str, overrides: dict[str, str], label: str, restored: str) -> Session:
+    def _open(
+        self, mapper: Mapper, preset: str, overrides: dict[str, str], label: str, restored: str, owner: str
+    ) -> Session:
         session_id = uuid.uuid4().hex
         config = pb.SessionConfig(
             session_id=session_id, preset=preset, overrides=overrides,
@@ -89,52 +134,120 @@ class Registry:
             created_unix=time.time(), server_version=__version__, restored_from_sha256=restored,
         )
         recorder = Recorder(self.record_dir / f"{session_id}.mcap", config)
-        session = Session(config, auth.new_token(), mapper, recorder, self.settings.limits)
+        session = Session(config, auth.new_token(), mapper, recorder, self.settings.limits, self.settings.frame_seconds)
         with self._lock:
             self._sessions[session_id] = session
-        log.info("session %s opened (preset %r, device %s)", session_id, preset or "restored", mapper.device)
+            self._tenancy[session_id] = Tenancy(owner, time.monotonic())
+        log.info("session %s opened for %s (preset %r, device %s)", session_id, owner, preset or "restored",
+                 mapper.device)
         return session
 
-    def get(self, session_id: str, token: str) -> Session:
-        session_id = validation.session_id(session_id)
+    def get(self, session_id: str, token: str, field: str = "session_id") -> Session:
+        """The session, after checking the id's form (refusals name ``field``) and the token."""
+        session_id = validation.session_id(session_id, field)
         with self._lock:
             session = self._sessions.get(session_id)
         if session is None:
-            raise ServiceError(grpc.StatusCode.NOT_FOUND, f"session_id: no session {session_id}")
+            raise ServiceError(grpc.StatusCode.NOT_FOUND, f"{field}: no session {session_id}")
         auth.check_token(token, session.token)
+        self.touch(session)
         return session
 
-    def sessions(self) -> list[Session]:
+    def touch(self, session: Session) -> None:
+        """The session is in use now: idle expiry counts from here."""
         with self._lock:
-            return list(self._sessions.values())
+            if session.id in self._tenancy:
+                self._tenancy[session.id].last_used = time.monotonic()
+
+    def sessions(self, owner: str | None = None) -> list[Session]:
+        """Every open session, or those ``owner`` created."""
+        with self._lock:
+            return [session for session_id, session in self._sessions.items()
+                    if owner is None or self._tenancy[session_id].owner == owner]
+
+    def frame_totals(self) -> FrameTotals:
+        """Frames over every session this server has held: open, closing and closed."""
+        with self._lock:
+            live = [*self._sessions.values(), *self._retiring.values()]
+            totals = self._closed_totals
+        for session in live:
+            totals += FrameTotals.of(session.counters())
+        return totals
+
+    def _take(self, session_id: str) -> Session | None:
+        """Out of the open sessions, into the retiring ones until ``_finish``; call with the lock held."""
+        session = self._sessions.pop(session_id, None)
+        if session is not None:
+            self._retiring[session_id] = session
+        return session
 
     def close(self, session: Session) -> Closed:
+        """Finish the session and forget it; if its recording or final snapshot cannot be written
+        (StorageError), it stays open, so the client can fetch its map or close it again later."""
         with self._lock:
-            if self._sessions.pop(session.id, None) is None:
+            if self._take(session.id) is None:
                 raise ServiceError(grpc.StatusCode.NOT_FOUND, f"session_id: session {session.id} is already closed")
-        return self._finish(session)
+        try:
+            return self._finish(session, self.settings.stop_timeout_seconds)
+        except StorageError as error:
+            with self._lock:
+                self._sessions[session.id] = self._retiring.pop(session.id)
+            raise StorageError(error.code, f"{error.message}; the session is still open, close it again later") \
+                from None
 
-    def _finish(self, session: Session) -> Closed:
-        session.close()
+    def expire_idle(self) -> list[Closed]:
+        """Close, as CloseSession would, every session unused for ``session_idle_seconds``.
+
+        A session with an open frame stream or frames still queued is in use.
+        """
+        limit = self.settings.access.session_idle_seconds
+        if not limit:
+            return []
+        with self._lock:
+            now = time.monotonic()
+            idle = [session for session_id, session in self._sessions.items()
+                    if now - self._tenancy[session_id].last_used >= limit
+                    and not session.streaming and not session.counters().pending]
+            for session in idle:
+                self._take(session.id)
+        for session in idle:
+            log.info("session %s expired after %g s without use", session.id, limit)
+        return self._finish_each(idle, time.monotonic() + self.settings.stop_timeout_seconds)
+
+    def _finish(self, session: Session, timeout: float) -> Closed:
+        stopped = session.close(timeout)
         stats = messages.stats(session.config, session.map_stats(), session.counters())
         snapshot = None
         if self.settings.final_snapshots:
             snapshot = self.record_dir / f"{session.id}.safetensors"
-            snapshot.write_bytes(session.snapshot())
+            try:
+                snapshot.write_bytes(session.snapshot())
+            except OSError as error:
+                snapshot.unlink(missing_ok=True)
+                log.error("session %s: cannot write its final snapshot %s: %s", session.id, snapshot, error)
+                raise storage_error(error, "the session's final snapshot") from None
         session.recorder.close(stats)
+        with self._lock:
+            self._retiring.pop(session.id, None)
+            self._tenancy.pop(session.id, None)
+            self._closed_totals += FrameTotals.of(session.counters())
         log.info("session %s closed after %d frames", session.id, stats.frames)
-        return Closed(stats, session.recorder.path, snapshot)
+        return Closed(stats, session.recorder.path, snapshot, stopped)
 
-    def close_all(self) -> list[Closed]:
-        """Shutdown: refuse new sessions, then close every open one (recording, final snapshot)."""
+    def close_all(self, timeout: float) -> list[Closed]:
+        """Shutdown: refuse new sessions, then close every open one (recording, final snapshot),
+        waiting for frames being mapped until ``timeout`` seconds from now, all sessions together."""
+        deadline = time.monotonic() + timeout
         with self._lock:
             self._closing = True
-            sessions = list(self._sessions.values())
-            self._sessions.clear()
+            sessions = [session for session_id in list(self._sessions) if (session := self._take(session_id))]
+        return self._finish_each(sessions, deadline)
+
+    def _finish_each(self, sessions: list[Session], deadline: float) -> list[Closed]:
         closed = []
         for session in sessions:
             try:
-                closed.append(self._finish(session))
+                closed.append(self._finish(session, max(0.0, deadline - time.monotonic())))
             except Exception:  # one broken session must not keep the others' recordings open
                 log.exception("session %s: closing failed", session.id)
         return closed

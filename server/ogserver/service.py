@@ -9,13 +9,17 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 
 import grpc
-from ogapi import SESSION_METADATA_KEY, TOKEN_METADATA_KEY
+from ogapi import API_KEY_METADATA_KEY, SESSION_METADATA_KEY, TOKEN_METADATA_KEY
 from ogapi.v1 import mapping_pb2 as pb
 from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 
-from ogserver import messages, stream, validation
+from ogserver import messages, stream, validation, wire
+from ogserver.callers import Callers
 from ogserver.errors import ServiceError, exhausted, invalid
-from ogserver.registry import Registry
+from ogserver.failures import FailedAuthentications, peer_address
+from ogserver.metrics import Metrics
+from ogserver.pacing import Paced, Timeout
+from ogserver.registry import Registry, Upload
 from ogserver.session import Session
 
 log = logging.getLogger(__name__)
@@ -50,16 +54,26 @@ def info(session: Session) -> pb.SessionInfo:
 
 
 class MappingService(pb_grpc.MappingServicer):
-    def __init__(self, registry: Registry) -> None:
+    def __init__(self, registry: Registry, callers: Callers, metrics: Metrics) -> None:
         self.registry = registry
+        self.callers = callers
+        self.metrics = metrics
         self.limits = registry.settings.limits
+        self.access = registry.settings.access
+        self.failures = FailedAuthentications(self.access.max_auth_failures, self.access.auth_failure_window_seconds)
 
-    def _session(self, session_id: str, context: grpc.ServicerContext) -> Session:
-        return self.registry.get(session_id, metadata(context, TOKEN_METADATA_KEY))
+    def _caller(self, context: grpc.ServicerContext) -> str:
+        """Who creates, restores or lists: refused (and counted against the address) when unknown."""
+        with self.failures.guard(peer_address(context.peer())):
+            return self.callers.identify(metadata(context, API_KEY_METADATA_KEY), context.peer_identities())
+
+    def _session(self, session_id: str, context: grpc.ServicerContext, field: str = "session_id") -> Session:
+        with self.failures.guard(peer_address(context.peer())):
+            return self.registry.get(session_id, metadata(context, TOKEN_METADATA_KEY), field)
 
     def CreateSession(self, request: pb.CreateSessionRequest, context: grpc.ServicerContext) -> pb.SessionCredentials:
         with status_errors(context):
-            return credentials(self.registry.create(request))
+            return credentials(self.registry.create(request, self._caller(context)))
 
     def StreamFrames(
         self, request_iterator: Iterable[pb.Frame], context: grpc.ServicerContext
@@ -68,8 +82,15 @@ class MappingService(pb_grpc.MappingServicer):
             session_id = metadata(context, SESSION_METADATA_KEY)
             if not session_id:
                 raise invalid(SESSION_METADATA_KEY, "metadata is required for StreamFrames")
-            session = self._session(session_id, context)
-            yield from stream.serve(session, request_iterator, context, self.limits.max_image_pixels)
+            session = self._session(session_id, context, SESSION_METADATA_KEY)
+            requests = Paced(request_iterator, Timeout(self.access.stream_idle_seconds, "stream_idle_seconds"))
+            try:
+                for ack in stream.serve(session, requests, context, self.limits.max_image_pixels):
+                    self.metrics.ack(ack)
+                    yield ack
+            finally:
+                requests.close()
+                self.registry.touch(session)
 
     def Render(self, request: pb.RenderRequest, context: grpc.ServicerContext) -> pb.RenderResponse:
         with status_errors(context):
@@ -94,24 +115,37 @@ class MappingService(pb_grpc.MappingServicer):
         self, request_iterator: Iterable[pb.RestoreChunk], context: grpc.ServicerContext
     ) -> pb.SessionCredentials:
         with status_errors(context):
-            parts: list[bytes] = []
-            total, label, first = 0, "", True
-            for chunk in request_iterator:
-                if first:
-                    label, first = chunk.label, False
-                total += len(chunk.data)
-                if total > self.limits.max_snapshot_bytes:
-                    limit = self.limits.max_snapshot_bytes
-                    raise exhausted("snapshot", f"larger than the server limit of {limit} bytes")
-                parts.append(chunk.data)
-            data = b"".join(parts)
-            if not data:
-                raise invalid("snapshot", "no data received")
-            return credentials(self.registry.restore(data, label, hashlib.sha256(data).hexdigest()))
+            owner = self._caller(context)
+            chunks = Paced(map(wire.parsed, request_iterator),
+                           Timeout(self.access.restore_idle_seconds, "restore_idle_seconds"),
+                           Timeout(self.access.restore_seconds, "restore_seconds"))
+            try:
+                return credentials(self.registry.restore(owner, lambda: self._receive(chunks)))
+            finally:
+                chunks.close()
+
+    def _receive(self, chunks: Iterator[pb.RestoreChunk]) -> Upload:
+        """The snapshot's bytes, refused as soon as the label or the size is over its limit."""
+        parts: list[bytes] = []
+        total, label, first = 0, "", True
+        for chunk in chunks:
+            if first:
+                label, first = chunk.label, False
+                self.registry.check_label(label)
+            total += len(chunk.data)
+            if total > self.limits.max_snapshot_bytes:
+                limit = self.limits.max_snapshot_bytes
+                raise exhausted("data", f"the snapshot is larger than the server limit of {limit} bytes")
+            parts.append(chunk.data)
+        data = b"".join(parts)
+        if not data:
+            raise invalid("data", "no snapshot bytes received")
+        return Upload(data, label, hashlib.sha256(data).hexdigest())
 
     def ListSessions(self, request: pb.ListSessionsRequest, context: grpc.ServicerContext) -> pb.ListSessionsResponse:
         with status_errors(context):
-            return pb.ListSessionsResponse(sessions=[info(session) for session in self.registry.sessions()])
+            owned = self.registry.sessions(self._caller(context))
+            return pb.ListSessionsResponse(sessions=[info(session) for session in owned])
 
     def CloseSession(self, request: pb.CloseSessionRequest, context: grpc.ServicerContext) -> pb.CloseSessionResponse:
         with status_errors(context):

@@ -2,32 +2,39 @@
 
 Frames are mapped strictly in arrival order by the session's own thread, so sessions map in
 parallel while renders, stats and snapshots (other threads) are served by the mapper between
-optimisation iterations. The session answers in engine results and its own counters; the
-messages module turns them into ogapi messages.
+optimisation iterations. The worker records each frame as it takes it up, before mapping it, so
+the recording holds exactly the frames the session mapped (or tried to): frames still queued when
+the session closes are dropped unrecorded, and a replay maps what the original did. The session
+answers in engine results and its own counters; the messages module turns them into ogapi messages.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 
 import grpc
+from ogapi import SESSION_METADATA_KEY
 from ogapi.v1 import mapping_pb2 as pb
 
+from ogmapping.budget import Budget
 from ogmapping.frame import Frame
 from ogmapping.mapper import Mapper, Rendered
 from ogmapping.stats import MapStats
 from ogserver import messages
+from ogserver.budget import ByteBudget, frame_bytes
 from ogserver.counters import SessionCounters
-from ogserver.errors import ServiceError, exhausted
+from ogserver.errors import ServiceError
 from ogserver.events import Acked, SessionClosed, StreamEvent
-from ogserver.recorder import Recorder
+from ogserver.recorder import FrameRecord, Recorder, frame_record
 from ogserver.settings import Limits
+from ogserver.storage import StorageError
 from ogserver.validation import RenderSpec
 
 log = logging.getLogger(__name__)
@@ -36,14 +43,17 @@ log = logging.getLogger(__name__)
 @dataclass
 class Job:
     frame: Frame
+    record: FrameRecord
     sequence: int
     received: float  # time.monotonic() when the frame was read
     sink: queue.SimpleQueue[StreamEvent] | None  # where the stream that sent it waits for its ack
+    size: int  # bytes it holds of the session's max_queued_bytes
 
 
 class Session:
     def __init__(
-        self, config: pb.SessionConfig, token: str, mapper: Mapper, recorder: Recorder, limits: Limits
+        self, config: pb.SessionConfig, token: str, mapper: Mapper, recorder: Recorder, limits: Limits,
+        frame_seconds: float = 0.0,
     ) -> None:
         self.id = config.session_id
         self.mapper = mapper
@@ -53,9 +63,12 @@ class Session:
         self.token = token
         self._started = time.monotonic()
         self._slots = threading.Semaphore(limits.queue_depth)
+        self._queued_bytes = ByteBudget(limits.max_queued_bytes)
         self._jobs: queue.SimpleQueue[Job | None] = queue.SimpleQueue()
         self._lock = threading.Lock()
         self._closed = threading.Event()
+        # Each frame's optimisation stops after frame_seconds (0: no limit), or at once when the session closes.
+        self._time_budget = Budget(seconds=frame_seconds or math.inf)
         self._stream_sink: queue.SimpleQueue[StreamEvent] | None = None
         self._received = self._rejected = self._mapped = self._pending = 0
         self._anchors = mapper.stats().anchors  # a restored map starts with its anchors
@@ -75,11 +88,10 @@ class Session:
         """Claim the session's single frame stream; a second one would interleave frames."""
         with self._lock:
             if self._closed.is_set():
-                raise ServiceError(grpc.StatusCode.NOT_FOUND, f"session_id: session {self.id} is closed")
+                raise ServiceError(grpc.StatusCode.NOT_FOUND, f"{SESSION_METADATA_KEY}: session {self.id} is closed")
             if self._stream_sink is not None:
-                raise ServiceError(
-                    grpc.StatusCode.FAILED_PRECONDITION, "session_id: the session already has an active frame stream"
-                )
+                raise ServiceError(grpc.StatusCode.FAILED_PRECONDITION,
+                                   f"{SESSION_METADATA_KEY}: the session already has an active frame stream")
             self._stream_sink = sink
         try:
             yield
@@ -90,47 +102,72 @@ class Session:
     # ------------------------------------------------------------------ frames
 
     def check_capacity(self) -> None:
+        """Refuse frames the session cannot take: its recording failed, or its map is full."""
+        if self.recorder.failure is not None:
+            raise self.recorder.failure
         if self.limits.max_anchors and self._anchors >= self.limits.max_anchors:
-            raise exhausted("frame", f"the map reached the server's limit of {self.limits.max_anchors} anchors")
+            raise ServiceError(grpc.StatusCode.RESOURCE_EXHAUSTED,
+                               f"the map reached the server's limit of {self.limits.max_anchors} anchors")
 
     def count_rejected(self) -> None:
         with self._lock:
             self._rejected += 1
 
     def submit(self, frame: Frame, message: pb.Frame, sink: queue.SimpleQueue[StreamEvent] | None) -> bool:
-        """Record and queue a validated frame, waiting while the queue is full; False once closed."""
+        """Queue a validated frame, waiting while the queue is full; False once closed, StorageError
+        if the frame cannot be recorded."""
         received, received_ns = time.monotonic(), time.time_ns()
+        try:
+            record = frame_record(message, frame, received_ns)
+        except Exception:
+            log.exception("session %s: frame %d cannot be recorded", self.id, frame.index)
+            raise StorageError(grpc.StatusCode.INTERNAL, "the server could not encode the frame for its recording") \
+                from None
         while not self._slots.acquire(timeout=0.2):
             if self._closed.is_set():
                 return False
+        size = frame_bytes(frame)
+        if not self._queued_bytes.acquire(size, self._closed):
+            self._slots.release()
+            return False
         with self._lock:
             if self._closed.is_set():
+                self._queued_bytes.release(size)
                 self._slots.release()
                 return False
             self._received += 1
             self._pending += 1
-            sequence = self._received
             if self._first_received is None:
                 self._first_received = received
-        self.recorder.write_frame(message, frame, received_ns)
-        self._jobs.put(Job(frame, sequence, received, sink))
+            self._jobs.put(Job(frame, record, self._received, received, sink, size))
         return True
 
     def _run(self) -> None:
         while (job := self._jobs.get()) is not None:
             try:
-                ack = self._map(job)
+                ack = self._record_and_map(job)
             finally:
                 with self._lock:
                     self._pending -= 1
+                self._queued_bytes.release(job.size)
                 self._slots.release()
-            self.recorder.write_ack(ack)
             if job.sink is not None:
                 job.sink.put(Acked(ack))
 
+    def _record_and_map(self, job: Job) -> pb.FrameAck:
+        """A frame is mapped only once the recording holds it; one it cannot hold gets an error ack."""
+        try:
+            self.recorder.write_frame(job.record)
+        except ServiceError as refusal:
+            return messages.error_ack(job.frame.index, refusal)
+        ack = self._map(job)
+        with suppress(StorageError):  # logged by the recorder; the frame is mapped and recorded, its ack is not
+            self.recorder.write_ack(ack)
+        return ack
+
     def _map(self, job: Job) -> pb.FrameAck:
         try:
-            result = self.mapper.process(job.frame)
+            result = self.mapper.process(job.frame, self._time_budget)
         except Exception as error:  # the session survives a failing frame; the client sees why
             log.exception("session %s: mapping frame %d failed", self.id, job.frame.index)
             return messages.error_ack(
@@ -168,26 +205,32 @@ class Session:
 
     # ------------------------------------------------------------------ end
 
-    def close(self) -> None:
-        """Stop taking frames, drop the queued ones, wait for the frame being mapped, end any stream."""
+    def close(self, timeout: float | None = None) -> bool:
+        """Stop taking frames, drop the queued ones (never recorded), wait up to ``timeout`` for the
+        frame being mapped, end any stream; whether the worker stopped in time."""
         with self._lock:
             if self._closed.is_set():
-                return
+                return not self._worker.is_alive()
             self._closed.set()
+            self._time_budget.cancelled.set()
             sink = self._stream_sink
-        dropped = 0
-        while True:
-            try:
-                job = self._jobs.get_nowait()
-            except queue.Empty:
-                break
-            if job is not None:
-                dropped += 1
-        with self._lock:
+            dropped = 0
+            while True:
+                try:
+                    job = self._jobs.get_nowait()
+                except queue.Empty:
+                    break
+                if job is not None:
+                    dropped += 1
             self._pending -= dropped
-        self._jobs.put(None)
-        self._worker.join()
+            self._jobs.put(None)
+        self._worker.join(timeout)
         if sink is not None:
             sink.put(SessionClosed())
         if dropped:
             log.info("session %s: closed with %d queued frames dropped", self.id, dropped)
+        if self._worker.is_alive():
+            log.warning("session %s: the frame being mapped did not finish within %.1f s; closing anyway",
+                        self.id, timeout)
+            return False
+        return True

@@ -4,12 +4,16 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import yaml
+
+from ogmapping.config import ConfigBounds
 
 MIB = 1 << 20
 
@@ -20,10 +24,11 @@ class Limits:
 
     max_sessions: int = 4
     queue_depth: int = 8  # frames read ahead per session before backpressure
+    max_queued_bytes: int = 256 * MIB  # access: decoded frames one session holds queued before backpressure
     max_image_pixels: int = 4096 * 3072  # per colour/depth image and per render
     max_message_bytes: int = 64 * MIB  # gRPC send/receive limit
     max_anchors: int = 0  # frames are refused once a map holds this many anchors; 0 = no limit
-    max_snapshot_bytes: int = 2048 * MIB  # largest snapshot RestoreSession accepts
+    max_snapshot_bytes: int = 256 * MIB  # largest snapshot RestoreSession accepts (buffered before it is read)
 
     def validate(self) -> None:
         for item in dataclasses.fields(self):
@@ -31,6 +36,59 @@ class Limits:
             minimum = 0 if item.name == "max_anchors" else 1
             if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
                 raise ValueError(f"limits.{item.name} must be an integer >= {minimum} (got {value!r})")
+
+
+# --- access: who may call (TLS, API keys), how much one caller may hold, how long the server waits, metrics
+SHA256_HEX = re.compile(r"[0-9a-f]{64}")
+
+
+@dataclass
+class Access:
+    """Transport security, callers and the limits that keep one caller from starving the others.
+
+    Timeouts in seconds; 0 turns a timeout (or a per-caller limit) off.
+    """
+
+    tls_cert: str = ""  # PEM certificate chain; with tls_key the server speaks only TLS
+    tls_key: str = ""
+    tls_client_ca: str = ""  # PEM CA bundle: clients must present a certificate it signed (mutual TLS)
+    api_keys_file: str = ""  # lines "NAME:SHA256HEX" (python -m ogserver.apikeys NAME makes one)
+    api_keys: dict[str, str] = field(default_factory=dict)  # NAME -> sha256 hex of the key, as in the file
+    metrics_address: str = ""  # HOST:PORT for Prometheus /metrics; empty = off
+    max_sessions_per_client: int = 0  # sessions one caller identity may hold; 0 = only max_sessions
+    max_label_chars: int = 256
+    max_concurrent_calls: int = 32  # mapping calls at once; health checks are served beside them
+    session_idle_seconds: float = 3600.0  # a session without calls, stream or queued frames this long is closed
+    stream_idle_seconds: float = 300.0  # a frame stream whose client sends nothing this long is ended
+    restore_idle_seconds: float = 30.0  # the longest wait for the next RestoreSession chunk
+    restore_seconds: float = 600.0  # the longest a whole RestoreSession upload may take
+    keepalive_seconds: float = 60.0  # HTTP/2 ping interval, so dead clients release their streams
+    keepalive_timeout_seconds: float = 20.0
+    max_auth_failures: int = 20  # failed authentications per client address and window, then refused
+    auth_failure_window_seconds: float = 60.0
+
+    def validate(self) -> None:
+        if bool(self.tls_cert) != bool(self.tls_key):
+            raise ValueError("access.tls_cert and access.tls_key go together")
+        if self.tls_client_ca and not self.tls_cert:
+            raise ValueError("access.tls_client_ca needs access.tls_cert and access.tls_key")
+        if self.metrics_address and ":" not in self.metrics_address:
+            raise ValueError(f"access.metrics_address must be HOST:PORT (got {self.metrics_address!r})")
+        for name, digest in self.api_keys.items():
+            if not isinstance(digest, str) or not SHA256_HEX.fullmatch(digest):
+                raise ValueError(f"access.api_keys.{name} must be the key's sha256 as 64 lowercase hex digits")
+        for item in dataclasses.fields(self):
+            value = getattr(self, item.name)
+            if isinstance(value, float) and not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"access.{item.name} must be a finite number >= 0 (got {value!r})")
+            minimum = 1 if item.name == "max_concurrent_calls" else 0
+            if isinstance(value, int) and value < minimum:
+                raise ValueError(f"access.{item.name} must be an integer >= {minimum} (got {value!r})")
+
+    @property
+    def open(self) -> bool:
+        """No API keys and no client certificates: every caller is the same anonymous one."""
+        return not (self.api_keys or self.api_keys_file or self.tls_client_ca)
 
 
 @dataclass
@@ -43,13 +101,27 @@ class Settings:
     grace_seconds: float = 5.0  # how long shutdown waits for calls in flight
     warm_up: bool = True  # map a tiny synthetic scene before serving, so the first session pays no load costs
     limits: Limits = field(default_factory=Limits)
+    # --- record: shutdown and closing never wait without a bound
+    # How long closing a session waits for the frame being mapped, and shutdown (after the grace) for
+    # gRPC's calls to end; then the recordings are finished regardless.
+    stop_timeout_seconds: float = 10.0
+    access: Access = field(default_factory=Access)
+    # --- input: what one session's config and one frame may cost
+    config_bounds: ConfigBounds = field(default_factory=ConfigBounds)  # on CreateSession's and snapshots' configs
+    frame_seconds: float = 60.0  # a frame's optimisation stops after this long, or at once on close; 0 = no limit
 
     def validate(self) -> None:
         if not self.address or ":" not in self.address:
             raise ValueError(f"address must be HOST:PORT (got {self.address!r})")
         if self.torch_threads < 0 or self.grace_seconds < 0:
             raise ValueError("torch_threads and grace_seconds must not be negative")
+        if not 0 <= self.stop_timeout_seconds < float("inf"):
+            raise ValueError(f"stop_timeout_seconds must be a finite number >= 0 (got {self.stop_timeout_seconds})")
         self.limits.validate()
+        self.access.validate()
+        self.config_bounds.validate()
+        if not (math.isfinite(self.frame_seconds) and self.frame_seconds >= 0):
+            raise ValueError(f"frame_seconds must be >= 0 and finite (got {self.frame_seconds})")
 
     def threads(self) -> int:
         return self.torch_threads or max(1, min(os.cpu_count() or 1, 8))
@@ -86,7 +158,7 @@ def load(path: str | Path | None = None, flags: dict[str, Any] | None = None) ->
     for key, value in (flags or {}).items():
         if value is None:
             continue
-        target = settings.limits if hasattr(settings.limits, key) else settings
+        target = next((section for section in (settings.limits, settings.access) if hasattr(section, key)), settings)
         _assign(target, {key: value})
     settings.validate()
     return settings

@@ -1,8 +1,8 @@
 """StreamFrames: a reader thread validates and queues frames while the call yields acks.
 
-A frame that fails validation is answered with an error ack (``accepted`` false, ``error`` set)
-and the stream goes on; the response stream ends once the client has half-closed and every
-accepted frame has been acknowledged. The reader, the session's worker and gRPC's cancellation
+A frame that does not parse or fails validation is answered with an error ack (``accepted`` false,
+``error`` set) and the stream goes on; the response stream ends once the client has half-closed and
+every accepted frame has been acknowledged. The reader, the session's worker and gRPC's cancellation
 callback post typed events (``events.py``) to one queue, which the call reads in order.
 """
 
@@ -17,7 +17,7 @@ from typing import assert_never
 import grpc
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogserver import messages, validation
+from ogserver import messages, validation, wire
 from ogserver.errors import ServiceError
 from ogserver.events import Acked, Cancelled, ReaderDone, Rejected, SessionClosed, StreamEvent
 from ogserver.session import Session
@@ -25,31 +25,39 @@ from ogserver.session import Session
 log = logging.getLogger(__name__)
 
 
-def _read(
-    session: Session, requests: Iterable[pb.Frame], sink: queue.SimpleQueue[StreamEvent], max_pixels: int
-) -> None:
+Requests = Iterable[pb.Frame | wire.Unparsable]
+
+
+def _read(session: Session, requests: Requests, sink: queue.SimpleQueue[StreamEvent], max_pixels: int) -> None:
     accepted, error = 0, None
     try:
-        for message in requests:
+        for request in requests:
+            index = 0 if isinstance(request, wire.Unparsable) else request.index  # unknown when it does not parse
             try:
+                message = wire.parsed(request)
                 session.check_capacity()
-                frame = validation.frame(message, max_pixels)
+                frame = validation.frame(message, max_pixels, session.mapper.config.octree)
+                if not session.submit(frame, message, sink):
+                    error = ServiceError(grpc.StatusCode.ABORTED, "the session was closed during the stream")
+                    break
             except ServiceError as refusal:
                 session.count_rejected()
-                sink.put(Rejected(messages.error_ack(message.index, refusal)))
+                sink.put(Rejected(messages.error_ack(index, refusal)))
                 continue
-            if not session.submit(frame, message, sink):
-                error = ServiceError(grpc.StatusCode.ABORTED, "session_id: the session was closed during the stream")
-                break
             accepted += 1
-    except Exception as failure:  # a cancelled call ends its request iterator with an error
+    except ServiceError as refusal:  # the client sent nothing for the stream idle timeout
+        error = refusal
+    except grpc.RpcError as failure:  # a cancelled call ends its request iterator with an error
         log.debug("session %s: frame stream ended: %s", session.id, failure)
+    except Exception:  # a defect, not the client: never end a stream silently
+        log.exception("session %s: reading the frame stream failed", session.id)
+        error = ServiceError(grpc.StatusCode.INTERNAL, "the server failed while reading the frame stream")
     finally:
         sink.put(ReaderDone(accepted, error))
 
 
 def serve(
-    session: Session, requests: Iterable[pb.Frame], context: grpc.ServicerContext, max_pixels: int
+    session: Session, requests: Requests, context: grpc.ServicerContext, max_pixels: int
 ) -> Iterator[pb.FrameAck]:
     sink: queue.SimpleQueue[StreamEvent] = queue.SimpleQueue()
     with session.stream(sink):
@@ -65,7 +73,7 @@ def serve(
                 case Cancelled():
                     return
                 case SessionClosed():
-                    raise ServiceError(grpc.StatusCode.ABORTED, "session_id: the session was closed during the stream")
+                    raise ServiceError(grpc.StatusCode.ABORTED, "the session was closed during the stream")
                 case ReaderDone(error=ServiceError() as error):
                     raise error
                 case ReaderDone() as finished:

@@ -18,26 +18,52 @@ from ogapi.images import (
     COLOR_ENCODINGS,
     DEFAULT_JPEG_QUALITY,
     DEPTH_ENCODINGS,
+    check_encodable,
     color_name,
     decode_color,
     decode_depth,
     depth_name,
+    encoded_format,
+    usable_depth_scale,
 )
 from ogapi.v1 import mapping_pb2 as pb
 
+from ogmapping import extent
 from ogmapping.camera import Intrinsics, validate_pose
+from ogmapping.config import OctreeConfig
 from ogmapping.frame import Frame
+from ogmapping.preprocess import MAX_FOOTPRINT
 from ogserver.errors import exhausted, invalid
 
 SESSION_ID_PATTERN = re.compile(r"[0-9a-f]{32}")
+RECORDABLE_NANOSECONDS = 2**64  # exclusive
+MAX_TIMESTAMP_SECONDS = RECORDABLE_NANOSECONDS / 1e9
+# A pinhole camera the engine computes with in float32: a field of view between about 0.06 and 179
+# degrees, and a principal point within ten image sizes of the image (fx = 1e300 is no camera).
+FOCAL_RANGE = (1e-2, 1e3)  # fx and fy, as multiples of the image's larger side
+MAX_PRINCIPAL_OFFSET = 10.0  # |cx - width / 2| and |cy - height / 2|, as multiples of the larger side
 
 
-def session_id(value: str) -> str:
+def session_id(value: str, field: str = "session_id") -> str:
+    """``field`` names where the id came from: a request's ``session_id`` or the ``x-session-id`` metadata."""
     if not value:
-        raise invalid("session_id", "is required")
+        raise invalid(field, "is required")
     if not SESSION_ID_PATTERN.fullmatch(value):
-        raise invalid("session_id", f"must be 32 lowercase hex characters (got {value[:40]!r})")
+        raise invalid(field, f"must be 32 lowercase hex characters (got {value[:40]!r})")
     return value
+
+
+def timestamp(message: pb.Frame) -> float | None:
+    """Seconds, or None when absent; the recording stores them as MCAP's unsigned 64-bit nanoseconds."""
+    if not message.HasField("timestamp"):
+        return None
+    seconds = float(message.timestamp)
+    if not math.isfinite(seconds):
+        raise invalid("timestamp", f"must be finite (got {seconds})")
+    if not 0.0 <= seconds * 1e9 < RECORDABLE_NANOSECONDS:
+        raise invalid("timestamp", f"must be from 0 up to {MAX_TIMESTAMP_SECONDS:.1f} seconds, what a recording's "
+                                   f"unsigned 64-bit nanoseconds hold (got {seconds:g})")
+    return seconds
 
 
 def pose(values: Sequence[float], field: str) -> np.ndarray:
@@ -65,7 +91,35 @@ def intrinsics(message: pb.CameraIntrinsics, field: str, max_pixels: int) -> Int
         raise exhausted(
             field, f"{message.width}x{message.height} exceeds the server limit of {max_pixels} pixels"
         )
+    side = max(message.width, message.height)
+    low, high = FOCAL_RANGE[0] * side, FOCAL_RANGE[1] * side
+    for name in ("fx", "fy"):
+        if not low <= getattr(message, name) <= high:
+            raise invalid(f"{field}.{name}", f"must lie in [{low:g}, {high:g}] for a {message.width}x{message.height} "
+                                             f"image (got {getattr(message, name):g})")
+    for name, centre in (("cx", message.width / 2), ("cy", message.height / 2)):
+        if abs(getattr(message, name) - centre) > MAX_PRINCIPAL_OFFSET * side:
+            raise invalid(f"{field}.{name}", f"must lie within {MAX_PRINCIPAL_OFFSET:g} image sizes of the image "
+                                             f"centre (got {getattr(message, name):g})")
     return Intrinsics(message.fx, message.fy, message.cx, message.cy, message.width, message.height)
+
+
+def registration(color_camera: Intrinsics, depth_camera: Intrinsics) -> None:
+    """Registration spreads a depth pixel over the colour pixels it covers: refuse the cameras
+    where that would be more than ``MAX_FOOTPRINT`` per axis (its work grows as the square)."""
+    for name in ("fx", "fy"):
+        ratio = getattr(color_camera, name) / getattr(depth_camera, name)
+        if ratio > MAX_FOOTPRINT:
+            raise invalid(f"depth_intrinsics.{name}", f"the colour camera samples {ratio:g}x as densely as the "
+                                                      f"depth camera; registration allows at most {MAX_FOOTPRINT:g}x")
+
+
+def within_map(c2w: np.ndarray, camera: Intrinsics, octree: OctreeConfig) -> None:
+    """Refuse a frame whose points could land beyond what the session's octree can address."""
+    reach, radius = extent.frame_radius(c2w, camera, octree.depth_max), extent.map_radius(octree)
+    if reach > radius:
+        raise invalid("c2w", f"puts the frame's points up to {reach:.0f} m from the origin along an axis; "
+                             f"this session's map reaches {radius:.0f} m (set by octree.voxel_size and max_level)")
 
 
 def color_image(message: pb.ColorImage, camera: Intrinsics, field: str) -> np.ndarray:
@@ -84,7 +138,7 @@ def depth_image(message: pb.DepthImage, camera: Intrinsics, field: str) -> np.nd
     if message.encoding not in DEPTH_ENCODINGS:
         raise invalid(f"{field}.encoding", f"must be one of {_names(DEPTH_ENCODINGS, depth_name)} "
                                            f"(got {depth_name(message.encoding)})")
-    if message.encoding == pb.DEPTH_PNG16 and not (math.isfinite(message.depth_scale) and message.depth_scale > 0):
+    if message.encoding == pb.DEPTH_PNG16 and not usable_depth_scale(message.depth_scale):
         raise invalid(f"{field}.depth_scale",
                       f"must be positive and finite for DEPTH_PNG16 (got {message.depth_scale})")
     if not message.data:
@@ -95,11 +149,10 @@ def depth_image(message: pb.DepthImage, camera: Intrinsics, field: str) -> np.nd
         raise invalid(field, error) from None
 
 
-def frame(message: pb.Frame, max_pixels: int) -> Frame:
-    """A fully checked and decoded engine Frame; cheap checks run before any decoding."""
-    timestamp = float(message.timestamp) if message.HasField("timestamp") else None
-    if timestamp is not None and not math.isfinite(timestamp):
-        raise invalid("timestamp", f"must be finite (got {timestamp})")
+def frame(message: pb.Frame, max_pixels: int, octree: OctreeConfig) -> Frame:
+    """A fully checked and decoded engine Frame for a session with ``octree``; cheap checks run
+    before any decoding."""
+    seconds = timestamp(message)
     c2w = pose(message.c2w, "c2w")
     if not message.HasField("color_intrinsics"):
         raise invalid("color_intrinsics", "is required")
@@ -108,6 +161,8 @@ def frame(message: pb.Frame, max_pixels: int) -> Frame:
         intrinsics(message.depth_intrinsics, "depth_intrinsics", max_pixels)
         if message.HasField("depth_intrinsics") else color_camera
     )
+    registration(color_camera, depth_camera)
+    within_map(c2w, color_camera, octree)
     depth_to_color = pose(message.depth_to_color, "depth_to_color") if message.depth_to_color else None
     if not message.HasField("color"):
         raise invalid("color", "is required")
@@ -117,7 +172,7 @@ def frame(message: pb.Frame, max_pixels: int) -> Frame:
     depth = depth_image(message.depth, depth_camera, "depth")
     return Frame(
         index=int(message.index), rgb=rgb, depth=depth, color_intrinsics=color_camera,
-        depth_intrinsics=depth_camera, c2w=c2w, timestamp=timestamp,
+        depth_intrinsics=depth_camera, c2w=c2w, timestamp=seconds,
         depth_to_color=depth_to_color,
     )
 
@@ -152,6 +207,15 @@ def render_request(message: pb.RenderRequest, max_pixels: int) -> RenderSpec:
                                         f"(got {depth_name(depth_encoding)})")
     if message.jpeg_quality > 100:
         raise invalid("jpeg_quality", f"must be 1..100 or 0 for the default (got {message.jpeg_quality})")
+    for wanted, image_format, field in (
+        (pb.RENDER_OUTPUT_COLOR in outputs, encoded_format(color_encoding), "color_encoding"),
+        (pb.RENDER_OUTPUT_DEPTH in outputs, encoded_format(depth_encoding, depth=True), "depth_encoding"),
+    ):
+        try:
+            if wanted:
+                check_encodable(camera.width, camera.height, image_format)
+        except ValueError as error:
+            raise invalid("intrinsics", f"{error}; ask a smaller render or another {field}") from None
     return RenderSpec(
         c2w=c2w, intrinsics=camera,
         color=pb.RENDER_OUTPUT_COLOR in outputs, depth=pb.RENDER_OUTPUT_DEPTH in outputs,

@@ -1,16 +1,21 @@
-"""A server for the integration tests: $OGMAP_SERVER when set (the compose setup), else a subprocess."""
+"""A server for the integration tests ($OGMAP_SERVER when set: the container test; else a subprocess), and a disk
+that fills up."""
 
 from __future__ import annotations
 
+import errno
+import io
 import os
 from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
 
 import grpc
 import pytest
 from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 from ogclient.connection import connect
 from ogclient.local_server import LocalServer
+from ogserver import recorder
 
 from .scene import TEST_SERVER_CONFIG
 
@@ -40,3 +45,39 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerHandle]:
         channel.close()
         if local is not None:
             local.stop()
+
+
+class FullDisk:
+    """The recorder's files on a disk with ``free`` bytes left (None: unlimited), like a disk filling
+    up: a write gets what still fits, the next one ENOSPC. Overwriting costs nothing, growing a file
+    costs free bytes, and bytes a truncate frees are not given back."""
+
+    def __init__(self) -> None:
+        self.free: int | None = None
+
+    def open(self, path: str | Path, mode: str = "r", buffering: int = -1) -> io.RawIOBase | io.BufferedWriter:
+        assert mode == "wb", "the recorder only writes new files"
+        disk = self
+
+        class FillingFile(io.FileIO):
+            def write(self, data: bytes) -> int:
+                if disk.free is None:
+                    return super().write(data)
+                position, size = self.tell(), os.fstat(self.fileno()).st_size
+                fits = max(0, size - position) + disk.free
+                if fits == 0:
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+                written = super().write(memoryview(data)[:fits])
+                disk.free -= max(0, position + written - size)
+                return written
+
+        file = FillingFile(path, "wb")
+        return file if buffering == 0 else io.BufferedWriter(file)
+
+
+@pytest.fixture
+def full_disk(monkeypatch: pytest.MonkeyPatch) -> FullDisk:
+    """Every recording opened from now on is written through a ``FullDisk`` (unlimited until told)."""
+    disk = FullDisk()
+    monkeypatch.setattr(recorder, "open", disk.open, raising=False)
+    return disk

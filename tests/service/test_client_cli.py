@@ -1,4 +1,4 @@
-"""The ogclient command line: help everywhere, one clear line when the server is not there."""
+"""The ogclient command line: help everywhere, one clear line when the server is not there or a file is bad."""
 
 from __future__ import annotations
 
@@ -7,11 +7,15 @@ import subprocess
 import sys
 
 import pytest
+from mcap.reader import make_reader
+from ogapi.v1 import mapping_pb2 as pb
 from ogclient.__main__ import main, parser
 from ogclient.commands import overrides_from_args
 from ogserver import healthcheck
+from ogserver.recorder import Recorder
 
-COMMANDS = ["create", "stream", "replay", "render", "snapshot", "restore", "stats", "eval", "list", "close"]
+COMMANDS = ["create", "stream", "replay", "repair-recording", "render", "snapshot", "restore", "stats", "eval", "list",
+            "close"]
 
 
 def free_port() -> int:
@@ -60,3 +64,19 @@ def test_server_rejects_bad_flags() -> None:
 
 def test_healthcheck_says_no_when_nothing_listens() -> None:
     assert not healthcheck.check(f"127.0.0.1:{free_port()}", timeout=0.5)
+
+
+def test_repair_recording_needs_no_server(tmp_path, capsys: pytest.CaptureFixture) -> None:
+    path, cut, repaired = tmp_path / "session.mcap", tmp_path / "cut.mcap", tmp_path / "repaired.mcap"
+    recorder = Recorder(path, pb.SessionConfig(session_id="0" * 32, preset="sparse"))
+    cut.write_bytes(path.read_bytes()[:-20])  # the session config, then a crash while writing the next frame
+    recorder.close()
+    unreachable = ["--server", f"127.0.0.1:{free_port()}", "--timeout", "0.5"]
+    assert main([*unreachable, "repair-recording", str(cut), str(repaired)]) == 0
+    assert "1 messages" in capsys.readouterr().out
+    with open(repaired, "rb") as stream:
+        assert make_reader(stream).get_summary().statistics.message_count == 1
+    cut.write_bytes(b"not an mcap file at all")
+    assert main([*unreachable, "repair-recording", str(cut), str(tmp_path / "again.mcap")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "not a readable recording" in err

@@ -36,6 +36,7 @@ from ogmapping.metrics import psnr
 
 from .bad_frames import CASES, broken
 from .conftest import ServerHandle
+from .proto_names import assert_spelled_as_the_proto
 from .scene import FROZEN, LIMITS, TINY, create_request, messages, scene
 
 OK = grpc.StatusCode
@@ -296,53 +297,53 @@ def render_request(session: SessionRef, c2w=None, fx: float = 70.0, width: int =
 
 
 UNARY_CASES = {
-    "unknown session": (lambda stub, s: stub.GetStats(pb.GetStatsRequest(session_id="0" * 32),
-                                                      metadata=s.metadata()), OK.NOT_FOUND),
-    "malformed session id": (lambda stub, s: stub.GetStats(pb.GetStatsRequest(session_id="../etc"),
-                                                           metadata=s.metadata()), OK.INVALID_ARGUMENT),
-    "wrong token": (lambda stub, s: stub.GetStats(pb.GetStatsRequest(session_id=s.session_id),
-                                                  metadata=SessionRef(s.session_id, "nope").metadata()),
-                    OK.UNAUTHENTICATED),
-    "missing token": (lambda stub, s: stub.GetStats(pb.GetStatsRequest(session_id=s.session_id)),
-                      OK.UNAUTHENTICATED),
-    "snapshot of unknown session": (lambda stub, s: list(stub.GetSnapshot(
+    "unknown session": ("GetStats", lambda stub, s: stub.GetStats(
+        pb.GetStatsRequest(session_id="0" * 32), metadata=s.metadata()), OK.NOT_FOUND),
+    "malformed session id": ("GetStats", lambda stub, s: stub.GetStats(
+        pb.GetStatsRequest(session_id="../etc"), metadata=s.metadata()), OK.INVALID_ARGUMENT),
+    "wrong token": ("GetStats", lambda stub, s: stub.GetStats(
+        pb.GetStatsRequest(session_id=s.session_id), metadata=SessionRef(s.session_id, "nope").metadata()),
+        OK.UNAUTHENTICATED),
+    "missing token": ("GetStats", lambda stub, s: stub.GetStats(
+        pb.GetStatsRequest(session_id=s.session_id)), OK.UNAUTHENTICATED),
+    "snapshot of unknown session": ("GetSnapshot", lambda stub, s: list(stub.GetSnapshot(
         pb.GetSnapshotRequest(session_id=unknown(s).session_id), metadata=s.metadata())), OK.NOT_FOUND),
-    "close with wrong token": (lambda stub, s: stub.CloseSession(pb.CloseSessionRequest(session_id=s.session_id),
-                                                                 metadata=(("x-session-token", "x"),)),
-                               OK.UNAUTHENTICATED),
-    "stream without session id": (lambda stub, s: list(stub.StreamFrames(iter([]), metadata=s.metadata())),
-                                  OK.INVALID_ARGUMENT),
-    "stream to unknown session": (lambda stub, s: list(stub.StreamFrames(
+    "close with wrong token": ("CloseSession", lambda stub, s: stub.CloseSession(
+        pb.CloseSessionRequest(session_id=s.session_id), metadata=(("x-session-token", "x"),)), OK.UNAUTHENTICATED),
+    "stream without session id": ("StreamFrames", lambda stub, s: list(stub.StreamFrames(
+        iter([]), metadata=s.metadata())), OK.INVALID_ARGUMENT),
+    "stream to unknown session": ("StreamFrames", lambda stub, s: list(stub.StreamFrames(
         iter([]), metadata=unknown(s).stream_metadata())), OK.NOT_FOUND),
-    "stream with wrong token": (lambda stub, s: list(stub.StreamFrames(
+    "stream with wrong token": ("StreamFrames", lambda stub, s: list(stub.StreamFrames(
         iter([]), metadata=SessionRef(s.session_id, "nope").stream_metadata())), OK.UNAUTHENTICATED),
-    "render non-orthonormal pose": (lambda stub, s: stub.Render(render_request(s, [2.0] * 16),
-                                                                metadata=s.metadata()), OK.INVALID_ARGUMENT),
-    "render NaN intrinsics": (lambda stub, s: stub.Render(render_request(s, fx=float("nan")),
-                                                          metadata=s.metadata()), OK.INVALID_ARGUMENT),
-    "render too large": (lambda stub, s: stub.Render(render_request(s, width=4000), metadata=s.metadata()),
-                         OK.RESOURCE_EXHAUSTED),
-    "unknown config key": (lambda stub, s: stub.CreateSession(create_request({"keyframes.iters": "3"})),
-                           OK.INVALID_ARGUMENT),
-    "bad config value": (lambda stub, s: stub.CreateSession(create_request({"keyframes.iterations": "many"})),
-                         OK.INVALID_ARGUMENT),
-    "unknown preset": (lambda stub, s: stub.CreateSession(pb.CreateSessionRequest(preset="fastest")),
-                       OK.INVALID_ARGUMENT),
-    "corrupt snapshot": (lambda stub, s: stub.RestoreSession(iter([pb.RestoreChunk(data=b"\x10" * 64)])),
-                         OK.INVALID_ARGUMENT),
-    "empty snapshot": (lambda stub, s: stub.RestoreSession(iter([])), OK.INVALID_ARGUMENT),
+    "render non-orthonormal pose": ("Render", lambda stub, s: stub.Render(
+        render_request(s, [2.0] * 16), metadata=s.metadata()), OK.INVALID_ARGUMENT),
+    "render NaN intrinsics": ("Render", lambda stub, s: stub.Render(
+        render_request(s, fx=float("nan")), metadata=s.metadata()), OK.INVALID_ARGUMENT),
+    "render too large": ("Render", lambda stub, s: stub.Render(
+        render_request(s, width=4000), metadata=s.metadata()), OK.RESOURCE_EXHAUSTED),
+    "unknown config key": ("CreateSession", lambda stub, s: stub.CreateSession(
+        create_request({"keyframes.iters": "3"})), OK.INVALID_ARGUMENT),
+    "bad config value": ("CreateSession", lambda stub, s: stub.CreateSession(
+        create_request({"keyframes.iterations": "many"})), OK.INVALID_ARGUMENT),
+    "unknown preset": ("CreateSession", lambda stub, s: stub.CreateSession(
+        pb.CreateSessionRequest(preset="fastest")), OK.INVALID_ARGUMENT),
+    "corrupt snapshot": ("RestoreSession", lambda stub, s: stub.RestoreSession(
+        iter([pb.RestoreChunk(data=b"\x10" * 64)])), OK.INVALID_ARGUMENT),
+    "empty snapshot": ("RestoreSession", lambda stub, s: stub.RestoreSession(iter([])), OK.INVALID_ARGUMENT),
 }
 
 
 @pytest.mark.parametrize("case", list(UNARY_CASES))
 def test_bad_calls_get_their_status_and_leave_the_session_usable(server: ServerHandle, spare: SessionRef,
                                                                  case: str) -> None:
-    call, code = UNARY_CASES[case]
+    rpc, call, code = UNARY_CASES[case]
     before = stats(server, spare)
     with pytest.raises(grpc.RpcError) as refusal:
         call(server.stub, spare)
     assert refusal.value.code() == code, refusal.value.details()
-    assert refusal.value.details()
+    request = pb.DESCRIPTOR.services_by_name["Mapping"].methods_by_name[rpc].input_type
+    assert_spelled_as_the_proto(refusal.value.details(), request)
     after = stats(server, spare)
     assert (after.frames, after.anchors) == (before.frames, before.anchors)
 
@@ -392,6 +393,15 @@ def test_closing_finishes_the_recording(server: ServerHandle, mapped: Mapped, sp
     replayed_id = SessionRef.load(session_file).session_id
     replayed = recording.load(Path(closed["spare"].recording).with_name(f"{replayed_id}.mcap"))
     assert len(replayed.frames) == spare_stats.frames_received and replayed.stats is not None
+
+
+def test_replay_of_a_damaged_recording_is_one_line(server: ServerHandle, tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture) -> None:
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)) * 4)
+    assert ogclient_main(["--server", server.address, "replay", str(damaged), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.startswith("ogclient: ") and "not a readable recording" in err
 
 
 def test_container_healthcheck_module(server: ServerHandle) -> None:

@@ -1,10 +1,12 @@
-"""Recordings without a server: layout, Foxglove channels, and reading a file cut off mid-write."""
+"""Recordings without a server: layout, Foxglove channels, files cut off mid-write, damaged files, a full disk."""
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
+import grpc
 import numpy as np
 import pytest
 from mcap.reader import make_reader
@@ -13,9 +15,14 @@ from ogapi import recording as layout
 from ogapi.convert import FrameEncoding
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.messages import frame_to_proto
-from ogserver.recorder import Recorder, quaternion
+from ogserver.recorder import PROVISIONAL_END, Recorder, frame_record, quaternion
+from ogserver.storage import StorageError
+from ogserver.validation import MAX_TIMESTAMP_SECONDS
 from ogserver.validation import frame as validate_frame
 
+from ogmapping.config import OctreeConfig
+
+from .conftest import FullDisk
 from .scene import scene
 
 FOXGLOVE = {
@@ -26,17 +33,31 @@ FOXGLOVE = {
 }
 
 
-def write(path: Path, count: int, encoding: FrameEncoding | None = None, close: bool = True) -> Recorder:
-    encoding = encoding or FrameEncoding()
-    recorder = Recorder(path, pb.SessionConfig(session_id="0" * 32, preset="sparse"))
+def write_frames(recorder: Recorder, positions: range, encoding: FrameEncoding | None = None) -> None:
     frames = scene("0:4")
-    for position in range(count):
-        message = frame_to_proto(frames.load(position), encoding)
-        recorder.write_frame(message, validate_frame(message, 1 << 20), time.time_ns())
+    for position in positions:
+        message = frame_to_proto(frames.load(position), encoding or FrameEncoding())
+        recorder.write_frame(frame_record(message, validate_frame(message, 1 << 20, OctreeConfig()), time.time_ns()))
         recorder.write_ack(pb.FrameAck(index=position, accepted=True, sequence=position + 1))
+
+
+def write(path: Path, count: int, encoding: FrameEncoding | None = None, close: bool = True) -> Recorder:
+    recorder = Recorder(path, pb.SessionConfig(session_id="0" * 32, preset="sparse"))
+    write_frames(recorder, range(count), encoding)
     if close:
         recorder.close(pb.Stats(frames=count))
     return recorder
+
+
+def standard_read(path: Path) -> tuple[bool, dict[str, int]]:
+    """What mcap's own ``make_reader`` sees: whether there is a summary, and messages per topic."""
+    with open(path, "rb") as stream:
+        reader = make_reader(stream)
+        has_summary = reader.get_summary() is not None
+        counts: dict[str, int] = {}
+        for _, channel, _ in reader.iter_messages():
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+    return has_summary, counts
 
 
 @pytest.mark.parametrize("encoding", [FrameEncoding(), FrameEncoding(color=pb.COLOR_RAW_RGB8, depth=pb.DEPTH_RAW_F32)])
@@ -94,7 +115,7 @@ def test_a_zero_timestamp_is_kept_and_a_missing_one_becomes_the_arrival_time(tmp
     unstamped = frame_to_proto(frames.load(1))
     unstamped.ClearField("timestamp")
     for message in (stamped, unstamped):
-        recorder.write_frame(message, validate_frame(message, 1 << 20), arrival_ns)
+        recorder.write_frame(frame_record(message, validate_frame(message, 1 << 20, OctreeConfig()), arrival_ns))
     recorder.close()
     with open(path, "rb") as stream:
         reader = make_reader(stream, decoder_factories=[DecoderFactory()])
@@ -103,3 +124,107 @@ def test_a_zero_timestamp_is_kept_and_a_missing_one_becomes_the_arrival_time(tmp
     assert images == [(0, 0), (arrival_ns, arrival_ns)]
     recorded = layout.load(path)
     assert [frame.HasField("timestamp") for _, frame in recorded.frames] == [True, False]
+
+
+def test_a_recording_cut_between_frames_opens_in_the_standard_reader(tmp_path: Path) -> None:
+    """A crash between two frames leaves a file ending in the provisional end: a complete MCAP."""
+    path = tmp_path / "session.mcap"
+    recorder = write(path, 3, close=False)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes())
+    recorder.close()
+    assert cut.read_bytes().endswith(PROVISIONAL_END)
+    has_summary, counts = standard_read(cut)
+    assert not has_summary
+    assert counts[layout.TOPIC_FRAMES] == 3 and counts[layout.TOPIC_ACKS] == 2  # the last ack waits for a flush
+
+
+def test_repair_gives_a_recording_cut_inside_a_record_its_summary(tmp_path: Path) -> None:
+    path = tmp_path / "session.mcap"
+    recorder = write(path, 2, close=False)
+    two_frames = path.stat().st_size
+    write_frames(recorder, range(2, 3))
+    data = path.read_bytes()
+    recorder.close()
+    cut, repaired = tmp_path / "cut.mcap", tmp_path / "repaired.mcap"
+    cut.write_bytes(data[: (two_frames + len(data)) // 2])  # inside the third frame's chunk
+    with pytest.raises(Exception):  # noqa: B017 - whatever mcap raises for a file without its end
+        standard_read(cut)
+    count = layout.repair(cut, repaired)
+    has_summary, counts = standard_read(repaired)
+    assert has_summary and counts[layout.TOPIC_SESSION] == 1 and counts[layout.TOPIC_FRAMES] == 2
+    assert count == sum(counts.values())
+    original = [(m.topic, m.log_time_ns, m.data) for m in layout.read_messages(cut)]
+    assert [(m.topic, m.log_time_ns, m.data) for m in layout.read_messages(repaired)] == original
+
+
+@pytest.mark.parametrize("damage", ["not mcap", "flipped byte"])
+def test_a_damaged_recording_is_a_recording_error(tmp_path: Path, damage: str) -> None:
+    path = tmp_path / "session.mcap"
+    write(path, 2)
+    data = bytearray(path.read_bytes())
+    if damage == "not mcap":
+        data[:8] = b"NOT MCAP"
+    else:
+        data[len(data) // 3] ^= 0xFF  # inside a chunk: its CRC no longer matches
+    path.write_bytes(bytes(data))
+    with pytest.raises(layout.RecordingError, match="not a readable recording"):
+        layout.load(path)
+    with pytest.raises(layout.RecordingError):
+        layout.repair(path, tmp_path / "repaired.mcap")
+    assert not (tmp_path / "repaired.mcap").exists()
+
+
+def test_the_largest_timestamp_validation_accepts_is_recorded(tmp_path: Path) -> None:
+    path = tmp_path / "session.mcap"
+    recorder = Recorder(path, pb.SessionConfig(session_id="0" * 32, preset="sparse"))
+    message = frame_to_proto(scene("0:1").load(0))
+    message.timestamp = math.nextafter(MAX_TIMESTAMP_SECONDS, 0.0)
+    recorder.write_frame(frame_record(message, validate_frame(message, 1 << 20, OctreeConfig()), time.time_ns()))
+    recorder.close()
+    with open(path, "rb") as stream:
+        times = [record.publish_time for _, _, record in make_reader(stream).iter_messages([layout.TOPIC_COLOR])]
+    assert times == [round(message.timestamp * 1e9)] and times[0] < 2**64
+
+
+def test_a_full_disk_stops_the_recording_at_the_last_whole_frame(tmp_path: Path, full_disk: FullDisk) -> None:
+    path = tmp_path / "session.mcap"
+    recorder = write(path, 2, close=False)
+    full_disk.free = 1000  # part of the next frame fits
+    with pytest.raises(StorageError) as failure:
+        write_frames(recorder, range(2, 3))
+    assert failure.value.code == grpc.StatusCode.RESOURCE_EXHAUSTED
+    assert "No space left on device" in failure.value.message and str(tmp_path) not in failure.value.message
+    assert recorder.failure is failure.value
+    with pytest.raises(StorageError):  # for good, even with space again
+        full_disk.free = None
+        write_frames(recorder, range(3, 4))
+    has_summary, counts = standard_read(path)  # cut back to the last whole frame, provisional end included
+    assert not has_summary and counts[layout.TOPIC_FRAMES] == 2
+
+
+def test_closing_a_failed_recording_rewrites_it_with_a_summary_once_there_is_space(
+    tmp_path: Path, full_disk: FullDisk
+) -> None:
+    path = tmp_path / "session.mcap"
+    recorder = write(path, 2, close=False)
+    full_disk.free = 0
+    with pytest.raises(StorageError):
+        write_frames(recorder, range(2, 3))
+    with pytest.raises(StorageError) as failure:
+        recorder.close(pb.Stats(frames=2))
+    assert failure.value.code == grpc.StatusCode.RESOURCE_EXHAUSTED
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["session.mcap"]  # no partial rewrite left
+    full_disk.free = None
+    recorder.close(pb.Stats(frames=2))
+    has_summary, counts = standard_read(path)
+    assert has_summary and counts[layout.TOPIC_FRAMES] == 2 and counts[layout.TOPIC_STATS] == 1
+    assert layout.load(path).stats.frames == 2
+
+
+def test_a_recording_that_cannot_start_leaves_no_file(tmp_path: Path, full_disk: FullDisk) -> None:
+    full_disk.free = 10
+    with pytest.raises(StorageError) as failure:
+        Recorder(tmp_path / "session.mcap", pb.SessionConfig(session_id="0" * 32, preset="sparse"))
+    assert failure.value.code == grpc.StatusCode.RESOURCE_EXHAUSTED
+    assert list(tmp_path.iterdir()) == []

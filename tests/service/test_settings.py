@@ -8,6 +8,8 @@ from pathlib import Path
 import pytest
 from ogserver.settings import load
 
+from ogmapping.config import ConfigBounds
+
 from .scene import TEST_SERVER_CONFIG
 
 
@@ -35,6 +37,9 @@ def test_the_test_server_config_loads() -> None:
         ("limits: 3\n", "must be a mapping"),
         ("address: nowhere\n", "HOST:PORT"),
         ("- 1\n", "must hold a mapping"),
+        ("config_bounds:\n  max_iterations: 0\n", "config_bounds.max_iterations must be a positive int"),
+        ("config_bounds:\n  max_iteration: 10\n", "unknown server setting 'config_bounds.max_iteration'"),
+        ("frame_seconds: -1\n", "frame_seconds must be >= 0"),
     ],
 )
 def test_bad_settings_are_refused(tmp_path: Path, text: str, message: str) -> None:
@@ -42,3 +47,12 @@ def test_bad_settings_are_refused(tmp_path: Path, text: str, message: str) -> No
     path.write_text(text)
     with pytest.raises(ValueError, match=message):
         load(path)
+
+
+def test_an_operator_tightens_config_bounds_and_the_frame_budget(tmp_path: Path) -> None:
+    path = tmp_path / "server.yaml"
+    path.write_text("config_bounds:\n  max_iterations: 20\n  min_voxel_size: 0.05\nframe_seconds: 10\n")
+    settings = load(path, {"frame_seconds": 5.0})
+    assert settings.config_bounds.max_iterations == 20 and settings.config_bounds.min_voxel_size == 0.05
+    assert settings.config_bounds.max_n_offsets == ConfigBounds().max_n_offsets, "the other bounds keep their defaults"
+    assert settings.frame_seconds == 5.0

@@ -1,7 +1,9 @@
-"""The server process ending: SIGKILL leaves readable recordings, SIGTERM finishes them and the maps."""
+"""The server process ending: SIGKILL leaves readable recordings, SIGTERM finishes them and the maps,
+within a deadline even while a frame is still being mapped."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 from mcap.reader import make_reader
@@ -10,10 +12,16 @@ from ogclient.connection import SessionRef, connect
 from ogclient.streaming import stream_frames
 from ogserver.validation import frame as validate_frame
 
+from ogmapping.config import OctreeConfig
 from ogmapping.mapper import Mapper
 
 from .conftest import start_local
 from .scene import FROZEN, LIMITS, create_request, messages, scene
+
+# The first frame would map for minutes on a CPU (500 is the default config_bounds.max_iterations);
+# closing cancels it between two iterations, and --stop-timeout bounds the wait even if it did not.
+SLOW = {**FROZEN, "keyframes.first_iterations": "500"}
+GRACE, STOP_TIMEOUT = 1.0, 2.0
 
 FOXGLOVE_TOPICS = (recording.TOPIC_COLOR, recording.TOPIC_DEPTH, recording.TOPIC_CALIBRATION,
                    recording.TOPIC_TRANSFORM)
@@ -45,7 +53,7 @@ def test_sigkill_leaves_every_frame_readable(tmp_path: Path) -> None:
     recorded = recording.load(path)
     assert recorded.config.preset == "sparse-fast"
     for _, message in recorded.frames:  # what a replay would send is intact
-        validate_frame(message, LIMITS["max_image_pixels"])
+        validate_frame(message, LIMITS["max_image_pixels"], OctreeConfig())
 
 
 def test_sigterm_finishes_recordings_and_writes_final_snapshots(tmp_path: Path) -> None:
@@ -63,3 +71,40 @@ def test_sigterm_finishes_recordings_and_writes_final_snapshots(tmp_path: Path) 
     assert summary.statistics.channel_message_counts[stats_channel] == 1
     snapshot = Path(path).with_suffix(".safetensors")
     assert Mapper.restore(snapshot.read_bytes(), "cpu").stats().anchors == anchors
+
+
+def wait_for_recorded_frame(path: str, timeout: float = 60.0) -> None:
+    """The worker records a frame as it takes it up, so then it is being mapped."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            if any(message.topic == recording.TOPIC_FRAMES for message in recording.read_messages(path)):
+                return
+        except recording.RecordingError:  # read while the writer overwrites the file's end
+            pass
+        time.sleep(0.2)
+    raise AssertionError("the frame was never taken up")
+
+
+def test_sigterm_during_a_long_frame_exits_within_the_deadline(tmp_path: Path) -> None:
+    server = start_local(tmp_path / "recordings", "--no-warm-up", "--grace", str(GRACE),
+                         "--stop-timeout", str(STOP_TIMEOUT))
+    channel, stub = connect(server.address, timeout=60)
+    try:
+        credentials = stub.CreateSession(create_request(SLOW, "slow"))
+        session = SessionRef.from_credentials(credentials)
+        responses = stub.StreamFrames(iter(messages(scene("0:1"))), metadata=session.stream_metadata())
+        wait_for_recorded_frame(credentials.recording)
+        start = time.monotonic()
+        code = server.stop()
+        elapsed = time.monotonic() - start
+        responses.cancel()
+    finally:
+        channel.close()
+        server.stop()
+    assert code == 0 and elapsed < GRACE + 2 * STOP_TIMEOUT + 10, (code, elapsed)
+    with open(credentials.recording, "rb") as stream:
+        summary = make_reader(stream).get_summary()
+    counts = {channel.topic: summary.statistics.channel_message_counts[cid]
+              for cid, channel in summary.channels.items()}
+    assert counts[recording.TOPIC_FRAMES] == counts[recording.TOPIC_STATS] == 1

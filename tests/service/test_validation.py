@@ -2,45 +2,30 @@
 
 from __future__ import annotations
 
-import re
-
 import numpy as np
 import pytest
-from google.protobuf.descriptor import Descriptor
+from ogapi.images import encode_color, encode_depth
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.messages import frame_to_proto
 from ogserver import validation
 from ogserver.errors import ServiceError
 
+from ogmapping.config import OctreeConfig
+
 from .bad_frames import CASES, INVALID, broken
+from .proto_names import assert_spelled_as_the_proto
 from .scene import scene
 
 MAX_PIXELS = 65536
+OCTREE = OctreeConfig()
 GOOD = frame_to_proto(scene("0:1").load(0))
-
-
-ENUM_VALUES = {value.name for enum in pb.DESCRIPTOR.enum_types_by_name.values() for value in enum.values}
-# Upper-case words with an underscore are enum-value names (JPEG and PNG alone name file formats).
-ENUM_LIKE = re.compile(r"\b[A-Z][A-Z0-9]*_[A-Z0-9_]+\b")
-
-
-def assert_spelled_as_the_proto(message: str, request: Descriptor) -> None:
-    """The refusal starts with a field path of ``request`` and names enum values as the .proto does."""
-    path, sep, _ = message.partition(": ")
-    assert sep, f"no field path in {message!r}"
-    descriptor: Descriptor | None = request
-    for part in path.split("."):
-        assert descriptor is not None and part in descriptor.fields_by_name, f"{path!r} is not a {request.name} field"
-        descriptor = descriptor.fields_by_name[part].message_type
-    unknown = set(ENUM_LIKE.findall(message)) - ENUM_VALUES
-    assert not unknown, f"{message!r} names {unknown}, which the .proto does not define"
 
 
 @pytest.mark.parametrize("case", list(CASES))
 def test_bad_frame_is_refused(case: str) -> None:
     change, code, field = CASES[case]
     with pytest.raises(ServiceError) as refusal:
-        validation.frame(broken(GOOD, change), MAX_PIXELS)
+        validation.frame(broken(GOOD, change), MAX_PIXELS, OCTREE)
     assert refusal.value.code == code and field in refusal.value.message
     assert_spelled_as_the_proto(refusal.value.message, pb.Frame.DESCRIPTOR)
 
@@ -49,19 +34,19 @@ def test_bad_frame_is_refused(case: str) -> None:
 def test_unknown_encodings_are_named_as_in_the_proto(encoding: str, named: str) -> None:
     message = broken(GOOD, lambda m: setattr(getattr(m, encoding), "encoding", 17))
     with pytest.raises(ServiceError) as refusal:
-        validation.frame(message, MAX_PIXELS)
+        validation.frame(message, MAX_PIXELS, OCTREE)
     assert named in refusal.value.message and "(got 17)" in refusal.value.message
 
 
 def test_good_frame_decodes() -> None:
-    frame = validation.frame(GOOD, MAX_PIXELS)
+    frame = validation.frame(GOOD, MAX_PIXELS, OCTREE)
     assert frame.rgb.shape == (60, 80, 3) and frame.depth.shape == (60, 80)
     assert frame.registered and frame.c2w.shape == (4, 4)
 
 
 def test_separate_depth_camera_is_kept() -> None:
     message = broken(GOOD, lambda m: m.depth_to_color.extend(np.eye(4).reshape(-1).tolist()))
-    frame = validation.frame(message, MAX_PIXELS)
+    frame = validation.frame(message, MAX_PIXELS, OCTREE)
     assert frame.depth_to_color is not None and not frame.registered
 
 
@@ -108,3 +93,31 @@ def test_bad_render_request(changes: dict, code, field: str) -> None:
         validation.render_request(render_request(**changes), MAX_PIXELS)
     assert refusal.value.code == code and refusal.value.message.startswith(field)
     assert_spelled_as_the_proto(refusal.value.message, pb.RenderRequest.DESCRIPTOR)
+
+
+@pytest.mark.parametrize(("width", "height", "changes", "field"), [
+    (70000, 1, {"color_encoding": pb.COLOR_JPEG, "outputs": [pb.RENDER_OUTPUT_COLOR]}, "JPEG images are at most"),
+    (1, 12582912, {"outputs": [pb.RENDER_OUTPUT_COLOR]}, "PNG images are at most"),
+    (1, 12582912, {"outputs": [pb.RENDER_OUTPUT_DEPTH]}, "PNG images are at most"),
+])
+def test_renders_no_encoding_can_hold_are_refused_before_rendering(width, height, changes, field) -> None:
+    """70000x1 JPEG and 1x12582912 PNG renders were rendered, then failed to encode with INTERNAL."""
+    side = max(width, height)
+    camera = pb.CameraIntrinsics(fx=side, fy=side, cx=width / 2, cy=height / 2, width=width, height=height)
+    request = render_request(**changes)
+    request.intrinsics.CopyFrom(camera)
+    with pytest.raises(ServiceError) as refusal:
+        validation.render_request(request, 1 << 24)
+    assert refusal.value.code == INVALID and refusal.value.message.startswith("intrinsics: ")
+    assert field in refusal.value.message
+    assert_spelled_as_the_proto(refusal.value.message, pb.RenderRequest.DESCRIPTOR)
+    raw = render_request(color_encoding=pb.COLOR_RAW_RGB8, depth_encoding=pb.DEPTH_RAW_F32)
+    raw.intrinsics.CopyFrom(camera)
+    assert validation.render_request(raw, 1 << 24).intrinsics.width == width
+
+
+def test_encoders_refuse_sizes_their_format_cannot_hold() -> None:
+    with pytest.raises(ValueError, match="JPEG images are at most 65500 pixels a side"):
+        encode_color(np.zeros((1, 70000, 3), np.uint8), pb.COLOR_JPEG)
+    with pytest.raises(ValueError, match="PNG images are at most 1000000 pixels a side"):
+        encode_depth(np.zeros((1_000_001, 1), np.float32), pb.DEPTH_PNG16)
