@@ -142,6 +142,9 @@ podman stop -t 30 "$SERVER" > /dev/null
 
 log "podman kube play deploy/common.yaml deploy/cpu.yaml"
 podman pod exists "$KUBE_POD" && fail "a pod $KUBE_POD exists already: not replacing it"
+for volume in "${KUBE_VOLUMES[@]}"; do
+    podman volume exists "$volume" && fail "a volume $volume exists already: not touching it"
+done
 kube_played=1
 kube_manifests | podman kube play --network "$RUN_ID" - > "$LOGS/kube-play.log" 2>&1 ||
     { cat "$LOGS/kube-play.log"; fail "podman kube play"; }
