@@ -10,7 +10,8 @@
 #     probe's health check passes, a client streams a few frames, the recording and final snapshot
 #     land on the claimed volume, and the pod stops gracefully.
 # Exits non-zero on any failure and removes its containers, pod, volumes and network either way.
-# Logs go to out/container-test/. Settings (environment): BASE_IMAGE, TORCH_INDEX_URL, SHARED, PYTHON.
+# Logs go to out/container-test/. Settings (environment): BASE_IMAGE, TORCH_INDEX_URL, SHARED, PYTHON,
+# CONTAINERS_CONF (default docker/containers.conf).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -116,7 +117,7 @@ podman network create "$RUN_ID" > /dev/null
 podman volume create "$RUN_ID-recordings" > /dev/null
 data_mount=()
 if [[ -d "$SHARED/data" ]]; then
-    data_mount=(-v "$SHARED:/opt/shared:ro")  # /opt/ogmapping/tests/.. /../shared, as beside a checkout
+    data_mount=(-v "$SHARED:/opt/shared:ro")  # tests/conftest.py: /opt/ogmapping-tests/tests/../../shared
     log "real frames from $SHARED"
 else
     log "$SHARED/data not found: the tests use the synthetic room"
@@ -141,7 +142,14 @@ podman stop -t 30 "$SERVER" > /dev/null
 [[ "$(podman inspect --format '{{.State.ExitCode}}' "$SERVER")" == 0 ]] || fail "the server did not stop cleanly"
 
 log "podman kube play deploy/common.yaml deploy/cpu.yaml"
-podman pod exists "$KUBE_POD" && fail "a pod $KUBE_POD exists already: not replacing it"
+if podman pod exists "$KUBE_POD"; then
+    fail "a pod $KUBE_POD exists already: not replacing it"
+fi
+for volume in "${KUBE_VOLUMES[@]}"; do
+    if podman volume exists "$volume"; then
+        fail "a volume $volume exists already: not touching it"
+    fi
+done
 kube_played=1
 kube_manifests | podman kube play --network "$RUN_ID" - > "$LOGS/kube-play.log" 2>&1 ||
     { cat "$LOGS/kube-play.log"; fail "podman kube play"; }

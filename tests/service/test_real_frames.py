@@ -27,7 +27,7 @@ from .conftest import ServerHandle
 from .scene import TINY
 
 FRAMES = "0:12"  # 11 streamed positions, position 5 held out
-SCALE = 0.25  # 640x480 -> 160x120, inside docker/test-server.yaml's max_image_pixels
+SCALE = 0.25  # 7-Scenes' 640x480 -> 160x120, inside docker/test-server.yaml's max_image_pixels
 
 
 @dataclass
@@ -74,7 +74,8 @@ def test_every_frame_is_mapped(server: ServerHandle, dataset: Dataset, streamed:
 
 def test_renders_resemble_the_frames(server: ServerHandle, dataset: Dataset, streamed: Streamed) -> None:
     results = evaluate(server.stub, streamed.session, dataset.frames, out=streamed.folder / "eval", progress=False)
-    assert results["resolution"] == [160, 120]
+    camera = dataset.frames.load(0).color_intrinsics
+    assert results["resolution"] == [camera.width, camera.height]
     for split in ("streamed", "heldout"):
         assert results[split]["psnr"] > 12.0 and np.isfinite(results[split]["depth_l1_cm"]), (split, results[split])
 
