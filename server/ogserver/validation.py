@@ -118,8 +118,8 @@ def within_map(c2w: np.ndarray, camera: Intrinsics, octree: OctreeConfig) -> Non
     """Refuse a frame whose points could land beyond what the session's octree can address."""
     reach, radius = extent.frame_radius(c2w, camera, octree.depth_max), extent.map_radius(octree)
     if reach > radius:
-        raise invalid("c2w", f"puts the frame's points up to {reach:.0f} m from the origin along an axis; "
-                             f"this session's map reaches {radius:.0f} m (set by octree.voxel_size and max_level)")
+        raise invalid("c2w", f"puts the frame's points up to {reach:.0f} m from the origin along an axis; this "
+                             f"session's map reaches {radius:.0f} m (set by octree.voxel_size and octree.max_level)")
 
 
 def color_image(message: pb.ColorImage, camera: Intrinsics, field: str) -> np.ndarray:
