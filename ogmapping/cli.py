@@ -12,11 +12,12 @@ import numpy as np
 
 from ogmapping.camera import validate_pose
 from ogmapping.config import parse_override_args, resolve
-from ogmapping.options import add_config_arguments, add_dataset_arguments, parse_intrinsics
+from ogmapping.options import add_config_arguments, add_dataset_arguments, dataset_source, parse_intrinsics
 
 EPILOG = """examples:
   ogmap run --data ../shared/data/7scenes-redkitchen --frames 0:100 --scale 0.25 --out runs/kitchen
   ogmap run --data synthetic --format synthetic --preset sparse-fast --out runs/synthetic
+  ogmap run --bag recording.bag --scale 0.5 --out runs/robot     # ROS 1 or 2 bag, see docs/robots.md
   ogmap render --snapshot runs/kitchen/map.safetensors --pose pose.txt --intrinsics 146,146,80,60 \\
       --size 160x120 --out renders/
 """
@@ -26,9 +27,10 @@ def command_run(args: argparse.Namespace) -> int:
     from ogmapping.runner import RunOptions, run
 
     config = resolve(args.preset, args.config, parse_override_args(args.overrides))
-    options = RunOptions(data=args.data, format=args.format, frames=args.frames, stride=args.stride,
+    data, format, dataset_options = dataset_source(args)
+    options = RunOptions(data=data, format=format, frames=args.frames, stride=args.stride,
                          scale=args.scale, preset=args.preset, device=args.device, out=Path(args.out),
-                         progress=not args.quiet)
+                         dataset_options=dataset_options, progress=not args.quiet)
     results = run(options, config)
     summary = {key: results[key] for key in ("streamed", "heldout", "processing_fps", "snapshot_bytes",
                                              "anchors", "gaussians", "device", "resolution")}

@@ -24,6 +24,7 @@ from ogmapping.camera import Intrinsics
 from ogmapping.config import MapperConfig
 from ogmapping.datasets import FrameSource, open_dataset
 from ogmapping.frame import Frame
+from ogmapping.options import dataset_source
 from ogmapping.preprocess import prepare, resize_frame
 from ogmapping.selection import Selection, select
 
@@ -59,8 +60,9 @@ class FrameSet:
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> FrameSet:
-        """From the flags of ``ogmapping.options.add_dataset_arguments``."""
-        return open_frames(args.data, args.format, args.frames, args.stride, args.scale)
+        """From the flags of ``ogmapping.options.add_dataset_arguments`` (``--bag`` and its flags included)."""
+        data, format, options = dataset_source(args)
+        return open_frames(data, format, args.frames, args.stride, args.scale, **options)
 
 
 def open_frames(

@@ -66,6 +66,8 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
     frames = open_frames(options.data, options.format, options.frames, options.stride, options.scale,
                          **options.dataset_options)
     selection = frames.selection
+    for line in frames.source.report():
+        print(f"{frames.source.name}: {line}", flush=True)
     out = Path(options.out)
     out.mkdir(parents=True, exist_ok=True)
     warm_up_seconds = warm_up(device, config.backend)  # kernel loads, CUDA context: not mapping time
@@ -118,6 +120,7 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
         "frames": {"streamed": len(selection.streamed), "heldout": len(selection.heldout),
                    "range": options.frames, "stride": options.stride, "scale": options.scale},
         "lpips": evaluation.lpips,
+        "source": {"name": frames.source.name, "report": frames.source.report()},
         "config": config.to_dict(),
     }
     (out / "results.json").write_text(json.dumps(results, indent=2))

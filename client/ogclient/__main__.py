@@ -18,6 +18,7 @@ EPILOG = """\
 typical session:
   ogclient --server 127.0.0.1:50051 stream --data ../shared/data/7scenes-redkitchen --frames 0:100 \\
       --scale 0.25 --session-out kitchen.json
+  ogclient stream --bag robot.bag --scale 0.5 --close        # ROS 1/2 bag: topics, TF, see docs/robots.md
   ogclient eval --session kitchen.json --data ../shared/data/7scenes-redkitchen --frames 0:100 --scale 0.25
   ogclient render --session kitchen.json --data ../shared/data/7scenes-redkitchen --scale 0.25 --position 55
   ogclient snapshot --session kitchen.json --out kitchen.safetensors

@@ -71,6 +71,8 @@ def create(ctx: Context, args: argparse.Namespace) -> int:
 
 def stream(ctx: Context, args: argparse.Namespace) -> int:
     frame_set = FrameSet.from_args(args)
+    for line in frame_set.source.report():
+        print(f"{frame_set.source.name}: {line}", flush=True)
     if args.session:
         session = SessionRef.load(args.session)
     else:

@@ -42,6 +42,10 @@ class FrameSource(ABC):
     def intrinsics(self) -> Intrinsics:
         """Colour intrinsics at the native image size."""
 
+    def report(self) -> list[str]:
+        """What the reader chose or assumed that a user should see (a bag's topics and pose source)."""
+        return []
+
     def __getitem__(self, position: int) -> Frame:
         count = len(self)
         if position < 0:
@@ -79,6 +83,11 @@ def read_rgb(path: Path) -> np.ndarray:
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise ValueError(f"cannot read colour image {path}")
+    return opencv_to_rgb(image)
+
+
+def opencv_to_rgb(image: np.ndarray) -> np.ndarray:
+    """An image as OpenCV decodes it (grey, BGR or BGRA; 8 or 16 bit) as float32 RGB in [0, 1]."""
     if image.ndim == 2:
         image = np.repeat(image[:, :, None], 3, axis=2)
     elif image.shape[2] == 4:

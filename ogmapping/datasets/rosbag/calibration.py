@@ -1,0 +1,104 @@
+"""``sensor_msgs/CameraInfo`` to our intrinsics, and the undistortion its distortion model asks for.
+
+K is published with integer pixel centres (OpenCV) and gets +0.5 on cx, cy. An image with zero
+distortion is used as recorded, with K. Non-zero ``plumb_bob`` or ``rational_polynomial``
+distortion is removed with OpenCV (``initUndistortRectifyMap``) onto the rectified camera P[:3, :3]
+(K where P is all zero), the camera ``image_proc`` would give; colour is resampled bilinearly and
+depth by nearest neighbour, so no depth is blended across an edge. Other models with non-zero
+distortion are refused. ``describe`` says which of these happened, for the reader's report.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ogmapping.camera import Intrinsics
+from ogmapping.datasets.base import opencv_intrinsics
+
+UNDISTORTED_MODELS = ("plumb_bob", "rational_polynomial")
+
+
+def _field(message: object, name: str) -> object:
+    """ROS 2 spells CameraInfo's matrices d, k, r, p; ROS 1 spells them D, K, R, P."""
+    return getattr(message, name) if hasattr(message, name) else getattr(message, name.upper())
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """One camera's calibration, as recorded and as the reader hands frames on."""
+
+    width: int
+    height: int
+    k: np.ndarray  # 3x3, integer pixel centres
+    p: np.ndarray  # 3x3 of P, the rectified camera
+    model: str
+    distortion: np.ndarray
+
+    @classmethod
+    def from_message(cls, message: object) -> Calibration:
+        width, height = int(message.width), int(message.height)  # type: ignore[attr-defined]
+        k = np.asarray(_field(message, "k"), dtype=np.float64).reshape(3, 3)
+        p = np.asarray(_field(message, "p"), dtype=np.float64).reshape(3, 4)[:, :3]
+        calibration = cls(width, height, k, p if p[0, 0] > 0 and p[1, 1] > 0 else k,
+                          str(message.distortion_model), np.asarray(_field(message, "d"), dtype=np.float64))  # type: ignore[attr-defined]
+        calibration.check()
+        return calibration
+
+    def check(self) -> None:
+        """ValueError for a calibration no image can be used with."""
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"CameraInfo has no image size ({self.width}x{self.height})")
+        if not (np.isfinite(self.k).all() and self.k[0, 0] > 0 and self.k[1, 1] > 0):
+            raise ValueError(f"CameraInfo K has no positive focal lengths: {self.k.ravel().tolist()}")
+        if self.distorted and self.model not in UNDISTORTED_MODELS:
+            raise ValueError(f"CameraInfo distortion model {self.model!r} with non-zero coefficients "
+                             f"{self.distortion.tolist()} is not supported; expected {' or '.join(UNDISTORTED_MODELS)}")
+
+    @property
+    def distorted(self) -> bool:
+        return bool(np.any(self.distortion != 0.0))
+
+    @property
+    def rectified(self) -> np.ndarray:
+        """The 3x3 camera of the images handed on: P after undistortion, else K."""
+        return self.p if self.distorted else self.k
+
+    def intrinsics(self) -> Intrinsics:
+        m = self.rectified
+        return opencv_intrinsics(m[0, 0], m[1, 1], m[0, 2], m[1, 2], self.width, self.height)
+
+    def same_camera(self, other: Calibration) -> bool:
+        return (self.width, self.height, self.model) == (other.width, other.height, other.model) and (
+            np.array_equal(self.k, other.k) and np.array_equal(self.p, other.p)
+            and np.array_equal(self.distortion, other.distortion))
+
+    def describe(self) -> str:
+        size = f"{self.width}x{self.height}, fx {self.k[0, 0]:.2f} fy {self.k[1, 1]:.2f}"
+        if not self.distorted:
+            return f"{size}, no distortion"
+        return (f"{size}, {self.model} distortion {np.round(self.distortion, 5).tolist()} removed "
+                f"(images undistorted onto P: fx {self.p[0, 0]:.2f} fy {self.p[1, 1]:.2f})")
+
+    def undistortion_maps(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """OpenCV remap tables from rectified pixels to recorded ones, or None without distortion."""
+        if not self.distorted:
+            return None
+        return cv2.initUndistortRectifyMap(self.k, self.distortion, None, self.p, (self.width, self.height),
+                                           cv2.CV_32FC1)
+
+
+def check_size(calibration: Calibration, image: np.ndarray, topic: str) -> None:
+    if image.shape[:2] != (calibration.height, calibration.width):
+        raise ValueError(f"{topic}: image is {image.shape[1]}x{image.shape[0]} but its CameraInfo says "
+                         f"{calibration.width}x{calibration.height}")
+
+
+def undistort(image: np.ndarray, maps: tuple[np.ndarray, np.ndarray] | None, nearest: bool) -> np.ndarray:
+    """The image resampled through ``maps`` (nearest for depth, bilinear for colour); as is without."""
+    if maps is None:
+        return image
+    interpolation = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+    return cv2.remap(image, maps[0], maps[1], interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)

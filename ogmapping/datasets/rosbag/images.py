@@ -1,0 +1,107 @@
+"""``sensor_msgs/Image`` and ``sensor_msgs/CompressedImage`` to colour in [0, 1] and depth in metres.
+
+Raw colour: rgb8, bgr8, rgba8, bgra8, mono8. Raw depth: 16UC1 in millimetres (0 invalid), 32FC1 in
+metres (NaN or 0 invalid), either byte order, rows padded to ``step`` allowed. Compressed colour is
+any JPEG or PNG OpenCV reads (image_transport's "compressed": BGR order inside, as OpenCV wants).
+Compressed depth is image_transport's "compressedDepth": a 12-byte ``ConfigHeader`` (int32 format,
+float32 depthQuantA, depthQuantB) then a PNG, holding millimetres for 16UC1 and, for 32FC1, the
+quantised inverse depth ``q = A / z + B`` (0 invalid), so ``z = A / (q - B)``.
+"""
+
+from __future__ import annotations
+
+import struct
+
+import cv2
+import numpy as np
+
+from ogmapping.datasets.base import decode_depth, opencv_to_rgb
+
+COLOR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8")
+DEPTH_ENCODINGS = ("16UC1", "32FC1")
+MILLIMETRES_PER_METRE = 1000.0
+COMPRESSED_DEPTH_HEADER = struct.Struct("<iff")
+_CHANNELS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "16UC1": 1, "32FC1": 1}
+_DTYPES = {"16UC1": "u2", "32FC1": "f4"}
+
+
+def is_compressed_depth(format: str) -> bool:
+    """image_transport marks compressedDepth payloads in CompressedImage.format."""
+    return "compresseddepth" in format.lower().replace(" ", "")
+
+
+def _pixels(message: object, dtype: np.dtype) -> np.ndarray:
+    """The (H, W, C) array of a raw Image, row padding cut off."""
+    height, width, step = int(message.height), int(message.width), int(message.step)  # type: ignore[attr-defined]
+    encoding = str(message.encoding)  # type: ignore[attr-defined]
+    channels = _CHANNELS[encoding]
+    row_bytes = width * channels * dtype.itemsize
+    data = np.asarray(message.data, dtype=np.uint8)  # type: ignore[attr-defined]
+    if step < row_bytes or data.size < step * height:
+        raise ValueError(f"{encoding} image of {width}x{height} needs {row_bytes} bytes a row and {height} rows; "
+                         f"it has step {step} and {data.size} bytes")
+    rows = data[: step * height].reshape(height, step)[:, :row_bytes]
+    return np.ascontiguousarray(rows).view(dtype).reshape(height, width, channels)
+
+
+def image_color(message: object) -> np.ndarray:
+    """A raw colour Image as float32 (H, W, 3) RGB in [0, 1]."""
+    encoding = str(message.encoding)  # type: ignore[attr-defined]
+    if encoding not in COLOR_ENCODINGS:
+        raise ValueError(f"colour image encoding {encoding!r} is not supported; expected one of "
+                         f"{', '.join(COLOR_ENCODINGS)}")
+    pixels = _pixels(message, np.dtype(np.uint8))
+    if encoding in ("rgb8", "rgba8"):
+        return pixels[:, :, :3].astype(np.float32) * np.float32(1.0 / 255.0)
+    return opencv_to_rgb(pixels[:, :, 0] if encoding == "mono8" else pixels)
+
+
+def image_depth(message: object) -> np.ndarray:
+    """A raw depth Image as float32 (H, W) metres, invalid pixels 0."""
+    encoding = str(message.encoding)  # type: ignore[attr-defined]
+    if encoding not in DEPTH_ENCODINGS:
+        raise ValueError(f"depth image encoding {encoding!r} is not supported; expected 16UC1 (mm) or 32FC1 (m)")
+    order = ">" if message.is_bigendian else "<"  # type: ignore[attr-defined]
+    raw = _pixels(message, np.dtype(order + _DTYPES[encoding]))[:, :, 0]
+    raw = raw.astype(raw.dtype.newbyteorder("="))
+    return decode_depth(raw, MILLIMETRES_PER_METRE if encoding == "16UC1" else 1.0)
+
+
+def _decode_png_or_jpeg(data: np.ndarray, what: str) -> np.ndarray:
+    image = cv2.imdecode(np.asarray(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ValueError(f"cannot decode the {what} (not a JPEG or PNG OpenCV reads)")
+    return image
+
+
+def compressed_color(message: object) -> np.ndarray:
+    """A compressed colour image (JPEG or PNG) as float32 (H, W, 3) RGB in [0, 1]."""
+    format = str(message.format)  # type: ignore[attr-defined]
+    if is_compressed_depth(format):
+        raise ValueError(f"a compressedDepth image ({format!r}) is not colour")
+    return opencv_to_rgb(_decode_png_or_jpeg(message.data, f"compressed colour image ({format!r})"))  # type: ignore[attr-defined]
+
+
+def compressed_depth(message: object) -> np.ndarray:
+    """A compressedDepth image (PNG) as float32 (H, W) metres, invalid pixels 0."""
+    format = str(message.format)  # type: ignore[attr-defined]
+    if not is_compressed_depth(format):
+        raise ValueError(f"compressed depth must be image_transport's compressedDepth; format is {format!r}")
+    encoding = format.split(";")[0].strip()
+    if "rvl" in format.lower():
+        raise ValueError(f"compressedDepth with RVL ({format!r}) is not supported; record with PNG")
+    if encoding not in DEPTH_ENCODINGS:
+        raise ValueError(f"compressedDepth of encoding {encoding!r} is not supported; expected 16UC1 or 32FC1")
+    data = np.asarray(message.data, dtype=np.uint8)  # type: ignore[attr-defined]
+    if data.size <= COMPRESSED_DEPTH_HEADER.size:
+        raise ValueError(f"compressedDepth image of {data.size} bytes holds no PNG after its 12-byte header")
+    _, quant_a, quant_b = COMPRESSED_DEPTH_HEADER.unpack(data[: COMPRESSED_DEPTH_HEADER.size].tobytes())
+    raw = _decode_png_or_jpeg(data[COMPRESSED_DEPTH_HEADER.size :], f"compressedDepth PNG ({format!r})")
+    if raw.ndim != 2 or raw.dtype != np.uint16:
+        raise ValueError(f"compressedDepth PNG must be one 16-bit channel, got {raw.dtype} with shape {raw.shape}")
+    if encoding == "16UC1":
+        return decode_depth(raw, MILLIMETRES_PER_METRE)
+    depth = np.zeros(raw.shape, dtype=np.float32)
+    valid = raw > 0
+    depth[valid] = np.float32(quant_a) / (raw[valid].astype(np.float32) - np.float32(quant_b))
+    return decode_depth(depth, 1.0)

@@ -1,0 +1,110 @@
+"""Which topics of a bag hold colour, depth, camera info and poses: chosen by flag, or by being the only one.
+
+Image topics are told apart by their first message: a raw Image by its encoding (rgb8 ... mono8
+is colour, 16UC1 / 32FC1 depth), a CompressedImage by its format (compressedDepth, or a 16UC1
+PNG, is depth; any other is colour). Other encodings (IR mono16, ...) are neither. A camera's
+CameraInfo is found where image_transport puts it, ``camera_info`` in the image topic's namespace
+or one above (``/cam/color/image_raw/compressed`` -> ``/cam/color/camera_info``), else it is the
+bag's only CameraInfo topic. A bag whose topics do not fit gets a ``BagTopicError`` listing what
+the bag has.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ogmapping.datasets.rosbag.bagfile import BagFile
+from ogmapping.datasets.rosbag.images import COLOR_ENCODINGS, DEPTH_ENCODINGS, is_compressed_depth
+from ogmapping.datasets.rosbag.options import BagOptions
+
+IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
+POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PoseWithCovarianceStamped", "nav_msgs/msg/Odometry")
+FLAGS_HINT = ("choose with --color-topic, --depth-topic, --info-topic, --depth-info-topic, and --pose-topic or "
+              "--fixed-frame")
+
+
+class BagTopicError(ValueError):
+    """The bag's topics do not give colour, depth, camera info and poses (the message lists them)."""
+
+
+def listing(bag: BagFile) -> str:
+    lines = [f"  {entry.name}  {entry.msgtype}  ({entry.count} messages)" for entry in bag.topics.values()]
+    return "\n".join(lines) if lines else "  (no topics)"
+
+
+def topic_error(bag: BagFile, problem: str) -> BagTopicError:
+    return BagTopicError(f"{bag.path}: {problem}; {FLAGS_HINT}. The bag's topics:\n{listing(bag)}")
+
+
+def image_kind(msgtype: str, first: object | None) -> str | None:
+    """'color', 'depth' or None (not an image, empty, or an encoding neither reader takes)."""
+    if first is None:
+        return None
+    if msgtype == IMAGE:
+        encoding = str(first.encoding)  # type: ignore[attr-defined]
+        return "color" if encoding in COLOR_ENCODINGS else "depth" if encoding in DEPTH_ENCODINGS else None
+    if msgtype == COMPRESSED:
+        format = str(first.format)  # type: ignore[attr-defined]
+        return "depth" if is_compressed_depth(format) or format.split(";")[0].strip() == "16UC1" else "color"
+    return None
+
+
+def of_types(bag: BagFile, types: tuple[str, ...]) -> list[str]:
+    return [entry.name for entry in bag.topics.values() if entry.msgtype in types and entry.count > 0]
+
+
+@dataclass(frozen=True)
+class ImageTopics:
+    color: str
+    depth: str
+    color_info: str
+    depth_info: str | None  # None: depth shares the colour camera's calibration
+
+
+def _pick(bag: BagFile, kind: str, flag: str, given: str | None, candidates: list[str]) -> str:
+    if given is not None:
+        if given not in bag.topics:
+            raise topic_error(bag, f"{flag} {given} is not in the bag")
+        if given not in candidates:
+            raise topic_error(bag, f"{flag} {given} ({bag.topics[given].msgtype}) does not hold {kind}")
+        return given
+    if len(candidates) == 1:
+        return candidates[0]
+    if not candidates:
+        raise topic_error(bag, f"no {kind} topic")
+    raise topic_error(bag, f"{len(candidates)} {kind} topics ({', '.join(candidates)}); pick one with {flag}")
+
+
+def sibling_info(image_topic: str, infos: list[str]) -> str | None:
+    """``camera_info`` in the image topic's namespace or the one above it."""
+    parts = image_topic.rstrip("/").split("/")[:-1]
+    for depth in (len(parts), len(parts) - 1):
+        candidate = "/".join(parts[:depth]) + "/camera_info"
+        if depth > 0 and candidate in infos:
+            return candidate
+    return None
+
+
+def choose_images(bag: BagFile, options: BagOptions) -> ImageTopics:
+    kinds = {name: image_kind(bag.topics[name].msgtype, bag.first(name)) for name in of_types(bag, (IMAGE, COMPRESSED))}
+    color = _pick(bag, "colour image", "--color-topic", options.color_topic,
+                  [name for name, kind in kinds.items() if kind == "color"])
+    depth = _pick(bag, "depth image", "--depth-topic", options.depth_topic,
+                  [name for name, kind in kinds.items() if kind == "depth"])
+    infos = of_types(bag, (CAMERA_INFO,))
+    if options.info_topic is not None:
+        color_info = _pick(bag, "camera info", "--info-topic", options.info_topic, infos)
+    else:
+        found = sibling_info(color, infos) or (infos[0] if len(infos) == 1 else None)
+        if found is None:
+            raise topic_error(bag, f"no CameraInfo beside {color} and {len(infos)} elsewhere; "
+                              "pick one with --info-topic")
+        color_info = found
+    if options.depth_info_topic is not None:
+        depth_info: str | None = _pick(bag, "camera info", "--depth-info-topic", options.depth_info_topic, infos)
+    else:
+        depth_info = sibling_info(depth, infos)
+    return ImageTopics(color, depth, color_info, None if depth_info == color_info else depth_info)
