@@ -69,8 +69,11 @@ class BagFile:
 
     def first(self, topic: str) -> object | None:
         """The first message on ``topic``, decoded, or None if it has none."""
+        connections = self._connections(topic)
+        if not connections:
+            return None
         with self._lock:
-            for connection, _, raw in self._reader.messages(connections=self._connections(topic)):
+            for connection, _, raw in self._reader.messages(connections=connections):
                 return self.deserialize(raw, connection.msgtype, topic)
         return None
 
@@ -80,6 +83,8 @@ class BagFile:
         Holds the lock throughout: finish (or close) the iterator before loading frames.
         """
         connections = [c for topic in topics for c in self._connections(topic)]
+        if not connections:  # rosbags reads every topic when given none
+            return
         ranks: dict[tuple[str, int], int] = {}
         with self._lock:
             for connection, bag_time, raw in self._reader.messages(connections=connections):
