@@ -347,3 +347,39 @@ def test_images_beyond_the_poses_are_dropped(tmp_path: Path, frames) -> None:
             bag.write("/pose", stamp(i) + 10**10, bag.pose_stamped(stamp(i) + 10**10, "map", frames[i].c2w))
     with pytest.raises(ValueError, match=r"2 pairs within 0\.02 s, none with a pose from /pose"):
         open_dataset(str(later))
+
+
+@pytest.mark.realdata
+def test_seven_scenes_frames_through_a_ros1_bag(tmp_path: Path, seven_scenes: Path) -> None:
+    """Real 7-Scenes frames with their colour and depth cameras' own CameraInfo (as a Kinect driver publishes them)
+    and TF poses read back as the 7-Scenes reader reads them: same pixels, intrinsics and poses."""
+    from ogmapping.datasets.sevenscenes import MEASURED_COLOR_K, SevenScenes
+
+    reference = SevenScenes(seven_scenes)
+    count = 5
+    depth_k = reference.depth_intrinsics
+    path = tmp_path / "kitchen.bag"
+    with BagRecorder(path, ros2=False) as bag:
+        for i in range(count):
+            frame, t = reference[i], stamp(i)
+            rgb = (frame.rgb * 255.0).round().astype(np.uint8)
+            depth = (frame.depth * 1000.0).round().astype(np.uint16)
+            bag.write("/camera/rgb/image_color", t, bag.image(t, "camera_rgb_optical_frame", rgb, "rgb8"))
+            bag.write("/camera/rgb/camera_info", t, bag.camera_info(t, "camera_rgb_optical_frame", 640, 480,
+                                                                    MEASURED_COLOR_K))
+            bag.write("/camera/depth/image_raw", t + 1_000_000, bag.image(t + 1_000_000, "camera_rgb_optical_frame",
+                                                                          depth, "16UC1"))
+            bag.write("/camera/depth/camera_info", t, bag.camera_info(
+                t, "camera_rgb_optical_frame", 640, 480, (depth_k.fx, depth_k.fy, depth_k.cx - 0.5, depth_k.cy - 0.5)))
+            bag.write("/tf", t, bag.tf(t, [("world", "camera_rgb_optical_frame", frame.c2w)]))
+    source = open_dataset(str(path))
+    assert len(source) == count
+    for i in range(count):
+        read, expected = source[i], reference[i]
+        np.testing.assert_array_equal(read.rgb, expected.rgb)
+        np.testing.assert_array_equal(read.depth, expected.depth)
+        assert read.color_intrinsics == expected.color_intrinsics
+        assert read.depth_intrinsics == expected.depth_intrinsics and read.depth_to_color is None
+        # 7-Scenes rotations are orthonormal to ~1e-4 only; a quaternion carries the nearest rotation.
+        np.testing.assert_allclose(read.c2w[:3, 3], expected.c2w[:3, 3], atol=1e-12)
+        np.testing.assert_allclose(read.c2w[:3, :3], expected.c2w[:3, :3], atol=2e-4)
