@@ -30,6 +30,7 @@ CHECKS = {
         "resolve('sparse', overrides={'keyframes.iterations': '3'})\n"
         f"{NO_TORCH}"
     ),
+    "reading a ROS bag": f"import ogmapping.datasets.rosbag.source, sys; {NO_TORCH}",
     "ogapi": (
         "import ogapi, ogapi.convert, ogapi.images, ogapi.recording, sys; "
         "engine = [m for m in sys.modules if m.startswith('ogmapping')]; assert not engine, engine"

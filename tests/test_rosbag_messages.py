@@ -162,6 +162,19 @@ def test_unsupported_distortion_model_is_refused(recorder: BagRecorder) -> None:
     assert not Calibration.from_message(zero).distorted
 
 
+def test_binned_or_cropped_camera_info_is_refused(recorder: BagRecorder) -> None:
+    info = roundtrip(recorder, recorder.camera_info(STAMP, "cam", 64, 48, (50.0, 50.0, 32.0, 24.0)))
+    info.binning_x = 2
+    with pytest.raises(ValueError, match="binning 2x0 is not supported"):
+        Calibration.from_message(info)
+    info.binning_x = 1
+    info.roi.width, info.roi.height = 64, 48
+    assert Calibration.from_message(info).width == 64  # the whole image as its region: fine
+    info.roi.x_offset, info.roi.width = 8, 32
+    with pytest.raises(ValueError, match=r"region of interest \(8, 0, 32, 48\)"):
+        Calibration.from_message(info)
+
+
 @pytest.mark.parametrize("model, coefficients", [
     ("plumb_bob", (-0.12, 0.03, 0.001, -0.0015, 0.0)),
     ("rational_polynomial", (-0.1, 0.02, 0.001, 0.0005, 0.0, 0.01, -0.005, 0.002)),

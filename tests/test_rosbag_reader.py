@@ -133,7 +133,7 @@ def test_ros1_tf_chain_interpolated_at_the_image_stamps(tmp_path: Path, frames) 
 
 def test_ros2_mcap_compressed_images_and_a_pose_topic(tmp_path: Path, frames) -> None:
     """JPEG colour and compressedDepth PNG, a PoseStamped of the camera, a depth camera of its own, other topics."""
-    path = tmp_path / "robot.mcap"
+    path = tmp_path / "robot"  # ros2 bag record's folder: metadata.yaml and robot.mcap
     with BagRecorder(path, ros2=True) as bag:
         for i in range(N):
             write_frames(bag, frames, i, "jpeg", "compressed16")
@@ -148,6 +148,9 @@ def test_ros2_mcap_compressed_images_and_a_pose_topic(tmp_path: Path, frames) ->
         np.testing.assert_allclose(read.c2w, frames[i].c2w, atol=1e-9)
         assert_images(read, frames[i], "jpeg", "compressed16")
     assert "/camera_pose (geometry_msgs/msg/PoseStamped)" in "\n".join(source.report())
+    alone = path / "robot.mcap"  # the storage file without its metadata.yaml reads the same
+    assert detect_format(alone) == "bag"
+    np.testing.assert_array_equal(open_dataset(str(alone))[N - 1].depth, source[N - 1].depth)
 
 
 def test_ros2_sqlite_odometry_mounted_by_tf_and_depth_from_its_own_camera(tmp_path: Path, frames) -> None:

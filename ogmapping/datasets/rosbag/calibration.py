@@ -45,6 +45,7 @@ class Calibration:
         calibration = cls(width, height, k, p if p[0, 0] > 0 and p[1, 1] > 0 else k,
                           str(message.distortion_model), np.asarray(_field(message, "d"), dtype=np.float64))  # type: ignore[attr-defined]
         calibration.check()
+        _check_full_frame(message, width, height)
         return calibration
 
     def check(self) -> None:
@@ -88,6 +89,18 @@ class Calibration:
             return None
         return cv2.initUndistortRectifyMap(self.k, self.distortion, None, self.p, (self.width, self.height),
                                            cv2.CV_32FC1)
+
+
+def _check_full_frame(message: object, width: int, height: int) -> None:
+    """Binned or cropped images would need K changed; the reader takes only full-resolution, uncropped ones."""
+    binning = (int(message.binning_x), int(message.binning_y))  # type: ignore[attr-defined]
+    roi = message.roi  # type: ignore[attr-defined]
+    window = (int(roi.x_offset), int(roi.y_offset), int(roi.width), int(roi.height))
+    if any(b > 1 for b in binning):
+        raise ValueError(f"CameraInfo binning {binning[0]}x{binning[1]} is not supported; record unbinned images")
+    if window[2:] != (0, 0) and window != (0, 0, width, height):
+        raise ValueError(f"CameraInfo region of interest {window} (x, y, width, height) is not supported; "
+                         "record full images")
 
 
 def check_size(calibration: Calibration, image: np.ndarray, topic: str) -> None:
