@@ -22,8 +22,8 @@ COMPRESSED = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
 POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PoseWithCovarianceStamped", "nav_msgs/msg/Odometry")
-FLAGS_HINT = ("choose with --color-topic, --depth-topic, --info-topic, --depth-info-topic, and --pose-topic or "
-              "--fixed-frame")
+FLAGS_HINT = ("topics and the pose source are chosen with --color-topic, --depth-topic, --info-topic, "
+              "--depth-info-topic, and --pose-topic or --fixed-frame")
 
 
 class BagTopicError(ValueError):
@@ -36,7 +36,7 @@ def listing(bag: BagFile) -> str:
 
 
 def topic_error(bag: BagFile, problem: str) -> BagTopicError:
-    return BagTopicError(f"{bag.path}: {problem}; {FLAGS_HINT}. The bag's topics:\n{listing(bag)}")
+    return BagTopicError(f"{bag.path}: {problem}. The bag's topics:\n{listing(bag)}\n({FLAGS_HINT})")
 
 
 def image_kind(msgtype: str, first: object | None) -> str | None:
