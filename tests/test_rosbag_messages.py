@@ -45,8 +45,10 @@ def test_header_read_from_bytes_matches_the_decoded_message(recorder: BagRecorde
     header = read_header(raw, recorder.ros2)
     assert header.stamp_ns == STAMP
     assert header.frame_id == "cam_optical_frame"  # ROS 1's leading slash dropped
-    with pytest.raises(ValueError, match="too short"):
+    with pytest.raises(ValueError, match="too short for a std_msgs/Header"):
         read_header(bytes(raw)[:6], recorder.ros2)
+    with pytest.raises(ValueError, match="too short for its header's frame_id"):
+        read_header(bytes(raw)[:20], recorder.ros2)
 
 
 def test_big_endian_cdr_header() -> None:
@@ -55,6 +57,9 @@ def test_big_endian_cdr_header() -> None:
     raw = b"\x00\x00\x00\x00" + struct.pack(">iII", 12, 34, 4) + b"cam\0"
     assert read_header(raw, ros2=True).stamp_ns == 12 * 10**9 + 34
     assert read_header(raw, ros2=True).frame_id == "cam"
+    long_name = "a" * 3000  # longer than any prefix a reader might peek at
+    raw = b"\x00\x01\x00\x00" + struct.pack("<iII", 1, 2, len(long_name) + 1) + long_name.encode() + b"\0"
+    assert read_header(raw, ros2=True).frame_id == long_name
 
 
 @pytest.mark.parametrize("encoding", ["rgb8", "bgr8", "rgba8", "bgra8", "mono8"])

@@ -386,3 +386,35 @@ def test_seven_scenes_frames_through_a_ros1_bag(tmp_path: Path, seven_scenes: Pa
         # 7-Scenes rotations are orthonormal to ~1e-4 only; a quaternion carries the nearest rotation.
         np.testing.assert_allclose(read.c2w[:3, 3], expected.c2w[:3, 3], atol=1e-12)
         np.testing.assert_allclose(read.c2w[:3, :3], expected.c2w[:3, :3], atol=2e-4)
+
+
+def test_depth_of_another_size_needs_its_own_camera_info(tmp_path: Path, frames) -> None:
+    """Half-resolution depth with only the colour camera's CameraInfo is refused naming the flag; with its own
+    CameraInfo it is a depth camera of its own, registered onto colour like any dataset's."""
+    from ogmapping.preprocess import register_depth
+
+    for with_info in (False, True):
+        path = tmp_path / f"half_{with_info}.mcap"
+        with BagRecorder(path, ros2=True) as bag:
+            for i in range(2):
+                t = stamp(i)
+                bag.write("/cam/color/image_raw", t, bag.image(t, "cam_optical_frame", rgb8(frames[i]), "rgb8"))
+                bag.write("/cam/color/camera_info", t, bag.camera_info(t, "cam_optical_frame", 48, 36,
+                                                                       published_k(frames[i])))
+                half = depth_mm(frames[i])[::2, ::2]
+                bag.write("/cam/depth/image_raw", t, bag.image(t, "cam_optical_frame", half, "16UC1"))
+                if with_info:
+                    fx, fy, cx, cy = published_k(frames[i])
+                    bag.write("/cam/depth/camera_info", t, bag.camera_info(
+                        t, "cam_optical_frame", 24, 18, (fx / 2, fy / 2, (cx + 0.5) / 2 - 0.5, (cy + 0.5) / 2 - 0.5)))
+                bag.write("/pose", t, bag.pose_stamped(t, "map", frames[i].c2w))
+        source = open_dataset(str(path))
+        if not with_info:
+            with pytest.raises(ValueError, match=r"image is 24x18 but its CameraInfo \(the colour camera's; name the "
+                                                 r"depth camera's with --depth-info-topic\) says 48x36"):
+                source[0]
+            continue
+        frame = source[0]
+        assert frame.depth_intrinsics == frames[0].color_intrinsics.scaled(0.5) and not frame.registered
+        registered = register_depth(frame)
+        np.testing.assert_allclose(registered.depth[::2, ::2], depth_mm(frames[0])[::2, ::2] / 1000.0, atol=1e-6)

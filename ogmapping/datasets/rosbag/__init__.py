@@ -1,7 +1,8 @@
 """ROS 1 ``.bag`` and ROS 2 bags (sqlite3, MCAP) as a frame source, through the pure-Python ``rosbags``.
 
-The modules, one idea each: ``layout`` (is this path a bag), ``headers`` (a message's stamp and
-frame without decoding its image), ``images`` (Image / CompressedImage to colour and metres),
+The modules, one idea each: ``layout`` (is this path a bag), ``options`` (the user's choices, the
+``--bag`` flags), ``bagfile`` (an open bag: topics, messages, one message again), ``headers`` (a
+message's stamp and frame without decoding its image), ``images`` (Image / CompressedImage to colour and metres),
 ``calibration`` (CameraInfo to intrinsics, undistortion), ``transforms`` (TF trees, interpolated
 tracks), ``topics`` (which topics hold what, chosen by flag or because there is exactly one),
 ``poses`` (TF or a pose topic, as camera-to-world at an image stamp), ``pairing`` (colour with depth

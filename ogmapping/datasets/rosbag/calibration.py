@@ -103,9 +103,10 @@ def _check_full_frame(message: object, width: int, height: int) -> None:
                          "record full images")
 
 
-def check_size(calibration: Calibration, image: np.ndarray, topic: str) -> None:
+def check_size(calibration: Calibration, image: np.ndarray, topic: str, whose: str = "") -> None:
+    """ValueError unless the image has the size its CameraInfo (described by ``whose``) gives."""
     if image.shape[:2] != (calibration.height, calibration.width):
-        raise ValueError(f"{topic}: image is {image.shape[1]}x{image.shape[0]} but its CameraInfo says "
+        raise ValueError(f"{topic}: image is {image.shape[1]}x{image.shape[0]} but its CameraInfo{whose} says "
                          f"{calibration.width}x{calibration.height}")
 
 

@@ -26,18 +26,17 @@ def normalise_frame(frame_id: str) -> str:
 
 def read_header(raw: bytes | memoryview, ros2: bool) -> Header:
     """The header at the start of a serialized message; ValueError if the bytes are too short for one."""
-    data = bytes(raw[:1024])
-    try:
-        if ros2:
-            order = "<" if data[1] == 1 else ">"
-            sec, nanosec, length = struct.unpack_from(order + "iII", data, 4)
-            name = data[16 : 16 + length].rstrip(b"\0")
-        else:
-            sec, nanosec, length = struct.unpack_from("<xxxxIII", data, 0)
-            name = data[16 : 16 + length]
-    except (struct.error, IndexError) as error:
-        raise ValueError(f"message too short for a std_msgs/Header ({len(raw)} bytes)") from error
-    return Header(sec * 1_000_000_000 + nanosec, normalise_frame(name.decode("utf-8", errors="replace")))
+    data = bytes(raw[:16])
+    if len(data) < 16:
+        raise ValueError(f"message too short for a std_msgs/Header ({len(raw)} bytes)")
+    if ros2:  # the encapsulation's kind is even for big-endian (CDR_BE, PL_CDR_BE, ...), odd for little
+        sec, nanosec, length = struct.unpack_from("<iII" if data[1] & 1 else ">iII", data, 4)
+    else:
+        sec, nanosec, length = struct.unpack_from("<III", data, 4)
+    name = bytes(raw[16 : 16 + length])
+    if len(name) < length:
+        raise ValueError(f"message too short for its header's frame_id ({len(raw)} bytes, frame_id of {length})")
+    return Header(sec * 1_000_000_000 + nanosec, normalise_frame(name.rstrip(b"\0").decode("utf-8", errors="replace")))
 
 
 def stamp_ns(stamp: object) -> int:

@@ -148,7 +148,9 @@ class RosBag(FrameSource):
         rgb = self._decode(entry.color, depth=False)
         depth = self._decode(entry.depth, depth=True)
         check_size(self.color_calibration, rgb, self.topics.color)
-        check_size(self.depth_calibration, depth, self.topics.depth)
+        check_size(self.depth_calibration, depth, self.topics.depth,
+                   "" if self.topics.depth_info else " (the colour camera's; name the depth camera's with "
+                   "--depth-info-topic)")
         depth_to_color = None
         if entry.depth.frame_id and entry.depth.frame_id != self.camera_frame:
             depth_to_color = self.tree.lookup(self.camera_frame, entry.depth.frame_id, entry.depth.stamp_ns,
