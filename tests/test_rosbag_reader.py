@@ -418,3 +418,17 @@ def test_depth_of_another_size_needs_its_own_camera_info(tmp_path: Path, frames)
         assert frame.depth_intrinsics == frames[0].color_intrinsics.scaled(0.5) and not frame.registered
         registered = register_depth(frame)
         np.testing.assert_allclose(registered.depth[::2, ::2], depth_mm(frames[0])[::2, ::2] / 1000.0, atol=1e-6)
+
+
+def test_images_without_a_frame_take_camera_frame(tmp_path: Path, frames) -> None:
+    path = tmp_path / "anonymous.bag"
+    with BagRecorder(path, ros2=False) as bag:
+        for i in range(2):
+            write_frames(bag, frames, i, "rgb8", "16UC1", color_frame="")
+            bag.write("/tf", stamp(i), bag.tf(stamp(i), [("world", "head_camera", frames[i].c2w)]))
+    with pytest.raises(BagTopicError, match=r"have no header\.frame_id; pass --camera-frame"):
+        open_dataset(str(path))
+    source = open_dataset(str(path), "bag", camera_frame="head_camera")
+    np.testing.assert_allclose(source[1].c2w, frames[1].c2w, atol=1e-9)
+    assert source[1].depth_to_color is None
+    assert "camera frame 'head_camera' is not named *_optical_frame" in "\n".join(source.report())

@@ -119,10 +119,11 @@ def choose_pose_source(bag: BagFile, options: BagOptions, camera: str, tree: Tra
         return _tf_source(bag, tree, camera, normalise_frame(options.fixed_frame), tolerance_ns)
     tf_moves = camera in tree.frames and tree.moves(tree.root(camera), camera)
     sources = ([f"TF ({tree.root(camera)} -> {camera})"] if tf_moves else []) + pose_topics
-    if len(sources) != 1:
-        found = ", ".join(sources) if sources else "none (no pose topic, and no moving TF chain to the camera frame " \
-            f"{camera!r})"
-        raise topic_error(bag, f"need exactly one pose source, found {found}")
+    if not sources:
+        raise topic_error(bag, f"need exactly one pose source, found none (no pose topic, and no moving TF chain "
+                          f"to the camera frame {camera!r})")
+    if len(sources) > 1:
+        raise topic_error(bag, f"need exactly one pose source, found {', '.join(sources)}")
     if tf_moves:
         return _tf_source(bag, tree, camera, tree.root(camera), tolerance_ns)
     return _topic_source(bag, tree, camera, pose_topics[0], options, tolerance_ns)

@@ -4,9 +4,9 @@ Opening a bag chooses its topics (``topics``), reads its calibration, TF and pos
 every image's header to pair colour with depth (``pairing``) and gives each pair the camera's pose
 at the colour stamp (``poses``); pairs without a pose are dropped. Frames are decoded on demand:
 the images of frame N are found again by their place in the bag (``bagfile``). A frame's colour
-camera is the optical frame of the colour images (``--camera-frame`` overrides); depth from
-another optical frame gets ``depth_to_color`` from TF and is registered onto colour later
-(``preprocess.register_depth``).
+camera's pose is that of the colour images' optical frame (``--camera-frame`` overrides it); depth
+from another optical frame than the colour images' gets ``depth_to_color`` from TF and is registered
+onto colour later (``preprocess.register_depth``).
 """
 
 from __future__ import annotations
@@ -56,12 +56,12 @@ class RosBag(FrameSource):
         self._depth_k = self.depth_calibration.intrinsics()
 
         colors, depths = self._index()
-        camera = normalise_frame(self.options.camera_frame or "") or colors[0].frame_id
+        self.color_frame, self.depth_frame = colors[0].frame_id, depths[0].frame_id
+        camera = normalise_frame(self.options.camera_frame or "") or self.color_frame
         if not camera:
             raise topic_error(self.bag, f"the images on {self.topics.color} have no header.frame_id; "
                               "pass --camera-frame")
         self.camera_frame = camera
-        self.depth_frame = depths[0].frame_id
         self.tree = read_tf(self.bag)
         self.pose_source = choose_pose_source(self.bag, self.options, camera, self.tree)
         self._check_frames()
@@ -102,12 +102,12 @@ class RosBag(FrameSource):
         if not self.camera_frame.endswith(OPTICAL_SUFFIXES):
             self._notes.append(f"camera frame {self.camera_frame!r} is not named *_optical_frame: its axes are taken "
                                "as an optical frame's (x right, y down, z forward), as REP 103 asks of image frames")
-        if self.depth_frame and self.depth_frame != self.camera_frame:
-            if self.tree.connected(self.camera_frame, self.depth_frame):
-                self._notes.append(f"depth is in {self.depth_frame!r}: registered onto {self.camera_frame!r} "
+        if self.color_frame and self.depth_frame and self.depth_frame != self.color_frame:
+            if self.tree.connected(self.color_frame, self.depth_frame):
+                self._notes.append(f"depth is in {self.depth_frame!r}: registered onto {self.color_frame!r} "
                                    "through TF")
             else:
-                self._notes.append(f"depth is in {self.depth_frame!r}, colour in {self.camera_frame!r}, and TF does "
+                self._notes.append(f"depth is in {self.depth_frame!r}, colour in {self.color_frame!r}, and TF does "
                                    "not connect them: taken as one optical centre")
 
     def __len__(self) -> int:
@@ -152,8 +152,8 @@ class RosBag(FrameSource):
                    "" if self.topics.depth_info else " (the colour camera's; name the depth camera's with "
                    "--depth-info-topic)")
         depth_to_color = None
-        if entry.depth.frame_id and entry.depth.frame_id != self.camera_frame:
-            depth_to_color = self.tree.lookup(self.camera_frame, entry.depth.frame_id, entry.depth.stamp_ns,
+        if entry.color.frame_id and entry.depth.frame_id and entry.depth.frame_id != entry.color.frame_id:
+            depth_to_color = self.tree.lookup(entry.color.frame_id, entry.depth.frame_id, entry.depth.stamp_ns,
                                               round(self.options.pose_tolerance * 1e9))
         return Frame(
             index=position,
