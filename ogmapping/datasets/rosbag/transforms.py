@@ -11,7 +11,6 @@ one frame in the other.
 from __future__ import annotations
 
 from collections import defaultdict
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -45,17 +44,15 @@ def invert(transform: np.ndarray) -> np.ndarray:
     return inverse
 
 
-@dataclass
 class Track:
-    """Poses of ``child`` in ``parent`` over time (stamps in nanoseconds)."""
+    """Poses of ``child`` in ``parent`` over time (stamps in nanoseconds), sorted once when first asked."""
 
-    parent: str
-    child: str
-    static: bool = False
-    _samples: list[tuple[int, tuple[float, ...], tuple[float, ...]]] = field(default_factory=list)
-    _stamps: np.ndarray | None = None
-    _translations: np.ndarray | None = None
-    _rotations: np.ndarray | None = None
+    def __init__(self, parent: str, child: str, static: bool = False) -> None:
+        self.parent, self.child, self.static = parent, child, static
+        self._samples: list[tuple[int, tuple[float, ...], tuple[float, ...]]] = []
+        self._stamps: np.ndarray | None = None
+        self._translations: np.ndarray | None = None
+        self._rotations: np.ndarray | None = None
 
     def add(self, stamp_ns: int, translation: tuple[float, ...], quaternion: tuple[float, ...]) -> None:
         if self.static:  # a later static transform replaces an earlier one, as in tf2
