@@ -228,6 +228,43 @@ def test_cli_against_the_server(server: ServerHandle, mapped: Mapped, tmp_path: 
     assert ogclient_main([*base, "list"]) == 0 and mapped.session.session_id in capsys.readouterr().out
 
 
+def write_ros_bag(path: Path, count: int) -> None:
+    """The synthetic room as a ROS 2 bag (MCAP): raw rgb8 and 16UC1, camera_info, Odometry of the camera."""
+    from rosbag_writer import BagRecorder
+
+    frames = scene(f"0:{count}")
+    with BagRecorder(path, ros2=True) as bag:
+        for i in range(count):
+            frame, t = frames.load(i), 1_700_000_000 * 10**9 + i * 33_333_333
+            k = frame.color_intrinsics
+            rgb = (frame.rgb * 255).round().astype(np.uint8)
+            depth = (frame.depth * 1000).round().astype(np.uint16)
+            bag.write("/camera/color/image_raw", t, bag.image(t, "camera_color_optical_frame", rgb, "rgb8"))
+            bag.write("/camera/depth/image_rect_raw", t, bag.image(t, "camera_color_optical_frame", depth, "16UC1"))
+            bag.write("/camera/color/camera_info", t, bag.camera_info(
+                t, "camera_color_optical_frame", k.width, k.height, (k.fx, k.fy, k.cx - 0.5, k.cy - 0.5)))
+            bag.write("/odom", t, bag.odometry(t, "odom", "camera_color_optical_frame", frame.c2w))
+
+
+def test_stream_a_ros_bag(server: ServerHandle, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """``ogclient stream --bag``: the reader's choices reported first, then the frames mapped like a dataset's."""
+    pytest.importorskip("rosbags")  # the robots extra (make venv installs it; the container image does not)
+    bag = tmp_path / "robot"
+    write_ros_bag(bag, 6)
+    overrides = [flag for key, value in FROZEN.items() for flag in ("--set", f"{key}={value}")]
+    session_file = tmp_path / "session.json"
+    code = ogclient_main(["--server", server.address, "stream", "--bag", str(bag), "--preset", "sparse-fast",
+                          *overrides, "--pair-tolerance", "0.01", "--session-out", str(session_file), "--quiet"])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert f"bag:{bag}: poses: /odom (nav_msgs/msg/Odometry), camera_color_optical_frame in odom" in out
+    assert "6 frames: 0 colour images without depth within 0.01 s" in out
+    session = SessionRef.load(session_file)
+    stats = server.stub.GetStats(pb.GetStatsRequest(session_id=session.session_id), metadata=session.metadata())
+    assert stats.frames == 5 and stats.frames_rejected == 0  # position 5 is held out, as for any dataset
+    server.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id), metadata=session.metadata())
+
+
 def test_bad_frames_get_error_acks_and_change_nothing(server: ServerHandle, spare: SessionRef,
                                                       good_frame: pb.Frame) -> None:
     before = stats(server, spare)
