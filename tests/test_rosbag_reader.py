@@ -432,3 +432,20 @@ def test_images_without_a_frame_take_camera_frame(tmp_path: Path, frames) -> Non
     np.testing.assert_allclose(source[1].c2w, frames[1].c2w, atol=1e-9)
     assert source[1].depth_to_color is None
     assert "camera frame 'head_camera' is not named *_optical_frame" in "\n".join(source.report())
+
+
+def test_images_without_stamps_take_the_bag_time(tmp_path: Path, frames) -> None:
+    """Some drivers leave header.stamp at zero: the recorder's receive time is then the only clock."""
+    path = tmp_path / "unstamped.mcap"
+    with BagRecorder(path, ros2=True) as bag:
+        for i in range(3):
+            t = stamp(i)
+            bag.write("/cam/image", t, bag.image(0, "cam_optical_frame", rgb8(frames[i]), "rgb8"))
+            bag.write("/cam/depth", t + 2_000_000, bag.image(0, "cam_optical_frame", depth_mm(frames[i]), "16UC1"))
+            bag.write("/cam/camera_info", t, bag.camera_info(t, "cam_optical_frame", 48, 36, published_k(frames[i])))
+            bag.write("/pose", t, bag.pose_stamped(t, "map", frames[i].c2w))
+    source = open_dataset(str(path))
+    assert [f.timestamp for f in source] == pytest.approx([stamp(i) * 1e-9 for i in range(3)], abs=1e-6)
+    np.testing.assert_allclose(source[2].c2w, frames[2].c2w, atol=1e-9)
+    assert_images(source[2], frames[2], "rgb8", "16UC1")
+    assert "/cam/image has no header stamps: the bag's receive times stand in" in "\n".join(source.report())

@@ -45,8 +45,8 @@ class RosBag(FrameSource):
         self.options = BagOptions(**options)  # type: ignore[arg-type]
         self.bag = BagFile(path)
         self.name = f"bag:{self.bag.path}"
-        self.topics = choose_images(self.bag, self.options)
         self._notes: list[str] = []
+        self.topics = choose_images(self.bag, self.options)
         self.color_calibration = self._calibration(self.topics.color_info)
         depth_info = self.topics.depth_info
         self.depth_calibration = self._calibration(depth_info) if depth_info else self.color_calibration
@@ -92,9 +92,12 @@ class RosBag(FrameSource):
             header = read_header(raw, self.bag.ros2)
             found[ref.topic].append(StampedImage(ref, header.stamp_ns, header.frame_id))
         for topic, stamped in found.items():
-            stamped.sort(key=lambda image: image.stamp_ns)
             if not stamped:
                 raise topic_error(self.bag, f"{topic} has no messages")
+            if all(image.stamp_ns == 0 for image in stamped):  # a driver that never sets header.stamp
+                self._notes.append(f"{topic} has no header stamps: the bag's receive times stand in for them")
+                stamped[:] = [StampedImage(i.ref, i.ref.bag_time_ns, i.frame_id) for i in stamped]
+            stamped.sort(key=lambda image: image.stamp_ns)
         return found[self.topics.color], found[self.topics.depth]
 
     def _check_frames(self) -> None:
