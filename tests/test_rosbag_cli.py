@@ -14,6 +14,7 @@ from rosbag_writer import BagRecorder
 from test_rosbag_reader import N, stamp, write_frames
 
 from ogmapping import cli
+from ogmapping.datasets import open_dataset
 from ogmapping.datasets.synthetic import SyntheticSource
 from ogmapping.evaluation import FrameSet
 from ogmapping.options import dataset_source
@@ -69,7 +70,15 @@ def test_ogmap_run_passes_the_bag_to_the_runner(bag: Path, monkeypatch: pytest.M
     assert options.dataset_options == {"fixed_frame": "map", "pose_topic": "/pose"}
 
 
-@pytest.mark.parametrize("command", [["run"], ["stream"], ["eval", "--session", "s.json"]])
+def test_render_takes_a_frame_of_a_bag(bag: Path) -> None:
+    args = client_parser().parse_args(["render", "--session", "s.json", "--bag", str(bag), "--position", "2",
+                                       "--pose-topic", "/pose"])
+    data, format, options = dataset_source(args)
+    assert (data, format, options) == (str(bag), "bag", {"pose_topic": "/pose"})
+    assert open_dataset(data, format, **options)[2].timestamp == pytest.approx(stamp(2) * 1e-9, abs=1e-6)
+
+
+@pytest.mark.parametrize("command", [["run"], ["stream"], ["eval", "--session", "s.json"], ["render"]])
 def test_help_lists_the_bag_flags(command: list[str], capsys: pytest.CaptureFixture) -> None:
     parser = cli.parser() if command == ["run"] else client_parser()
     with pytest.raises(SystemExit):

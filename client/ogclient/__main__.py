@@ -12,7 +12,7 @@ import grpc
 from ogclient import commands
 from ogclient.connection import DEFAULT_SERVER, ClientError, Transport, connect, describe
 from ogmapping.datasets import FORMATS
-from ogmapping.options import add_config_arguments, add_dataset_arguments
+from ogmapping.options import add_bag_arguments, add_config_arguments, add_dataset_arguments
 
 EPILOG = """\
 typical session:
@@ -105,11 +105,13 @@ def parser() -> argparse.ArgumentParser:
 
     render = sub.add_parser(
         "render", help="render a pose to PNGs",
-        description="Render the map from a dataset frame's pose (--data, --position) or from a pose file "
+        description="Render the map from a dataset frame's pose (--data or --bag, --position) or from a pose file "
         "and intrinsics; writes color.png, depth.png (16-bit mm) and preview.png into --out.",
     )
     add_session(render)
-    render.add_argument("--data", help="dataset folder (or 'synthetic') to take pose and intrinsics from")
+    source = render.add_mutually_exclusive_group()
+    source.add_argument("--data", help="dataset folder (or 'synthetic') to take pose and intrinsics from")
+    source.add_argument("--bag", metavar="PATH", help="a ROS bag to take them from (see docs/robots.md)")
     render.add_argument("--format", default="auto", choices=FORMATS, help="dataset layout (default: detect)")
     render.add_argument("--scale", type=float, default=1.0, help="image scale (default 1)")
     render.add_argument("--position", type=int, help="frame position in the dataset")
@@ -117,6 +119,7 @@ def parser() -> argparse.ArgumentParser:
     render.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (with --pose)")
     render.add_argument("--size", help="WIDTHxHEIGHT (with --pose)")
     render.add_argument("--out", default="renders", help="output folder (default renders/)")
+    add_bag_arguments(render)
     render.set_defaults(handler=commands.render)
 
     snapshot = sub.add_parser("snapshot", help="save the map (safetensors)", description="Download the map.")

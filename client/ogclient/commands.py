@@ -23,7 +23,7 @@ from ogclient.streaming import stream_frames
 from ogmapping.camera import validate_pose
 from ogmapping.config import load_file, parse_override_args, resolve
 from ogmapping.evaluation import FrameSet, open_frames
-from ogmapping.options import parse_intrinsics
+from ogmapping.options import dataset_source, parse_intrinsics
 
 COLOR_CHOICES = {"png": pb.COLOR_PNG, "jpeg": pb.COLOR_JPEG, "raw": pb.COLOR_RAW_RGB8}
 DEPTH_CHOICES = {"png16": pb.DEPTH_PNG16, "raw": pb.DEPTH_RAW_F32}
@@ -115,15 +115,17 @@ def repair_recording(args: argparse.Namespace) -> int:
 def render(ctx: Context, args: argparse.Namespace) -> int:
     session = SessionRef.load(args.session)
     if args.position is not None:
-        if not args.data:
-            raise ClientError("--position needs --data")
-        frame = open_frames(args.data, args.format, scale=args.scale).load(args.position)
+        if not args.data and not args.bag:
+            raise ClientError("--position needs --data or --bag")
+        data, format, options = dataset_source(args)
+        frame = open_frames(data, format, scale=args.scale, **options).load(args.position)
         pose, camera = frame.c2w, frame.color_intrinsics
     elif args.pose and args.intrinsics and args.size:
         pose = validate_pose(np.loadtxt(args.pose).reshape(4, 4), "--pose")
         camera = parse_intrinsics(args.intrinsics, args.size)
     else:
-        raise ClientError("give either --data DIR --position N, or --pose FILE --intrinsics fx,fy,cx,cy --size WxH")
+        raise ClientError("give either --data DIR (or --bag PATH) --position N, or --pose FILE --intrinsics "
+                          "fx,fy,cx,cy --size WxH")
     request = pb.RenderRequest(session_id=session.session_id, c2w=matrix_to_list(pose),
                                intrinsics=intrinsics_to_proto(camera),
                                color_encoding=pb.COLOR_PNG, depth_encoding=pb.DEPTH_PNG16)
