@@ -126,6 +126,29 @@ def test_compressed_depth_16uc1_png(recorder: BagRecorder) -> None:
     np.testing.assert_allclose(images.compressed_depth(roundtrip(recorder, message)), DEPTH_MM / 1000.0, atol=1e-6)
 
 
+def test_compressed_plugin_16uc1_png(recorder: BagRecorder) -> None:
+    """image_transport's plain "compressed" plugin on 16UC1: a 16-bit PNG without compressedDepth's header."""
+    message = recorder.compressed(STAMP, "cam", encode_png(DEPTH_MM), "16UC1; png compressed ")
+    np.testing.assert_allclose(images.compressed_depth(roundtrip(recorder, message)), DEPTH_MM / 1000.0, atol=1e-6)
+
+
+def test_image_topics_are_told_apart_by_their_first_message(recorder: BagRecorder) -> None:
+    from ogmapping.datasets.rosbag.topics import COMPRESSED, IMAGE, image_kind
+
+    kinds = {
+        "rgb8": image_kind(IMAGE, recorder.image(STAMP, "cam", RGB, "rgb8")),
+        "mono8": image_kind(IMAGE, recorder.image(STAMP, "cam", RGB[:, :, 0], "mono8")),
+        "16UC1": image_kind(IMAGE, recorder.image(STAMP, "cam", DEPTH_MM, "16UC1")),
+        "mono16 (IR)": image_kind(IMAGE, recorder.image(STAMP, "cam", DEPTH_MM, "mono16")),
+        "jpeg": image_kind(COMPRESSED, recorder.compressed(STAMP, "cam", b"", "rgb8; jpeg compressed bgr8")),
+        "compressedDepth": image_kind(COMPRESSED, recorder.compressed(STAMP, "cam", b"", "32FC1; compressedDepth")),
+        "16UC1 png": image_kind(COMPRESSED, recorder.compressed(STAMP, "cam", b"", "16UC1; png compressed ")),
+        "empty topic": image_kind(IMAGE, None),
+    }
+    assert kinds == {"rgb8": "color", "mono8": "color", "16UC1": "depth", "mono16 (IR)": None, "jpeg": "color",
+                     "compressedDepth": "depth", "16UC1 png": "depth", "empty topic": None}
+
+
 def test_compressed_depth_32fc1_inverse_depth(recorder: BagRecorder) -> None:
     metres = (DEPTH_MM / 1000.0).astype(np.float32)
     metres[0, 0] = np.nan

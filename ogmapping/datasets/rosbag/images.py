@@ -5,7 +5,8 @@ metres (NaN or 0 invalid), either byte order, rows padded to ``step`` allowed. C
 any JPEG or PNG OpenCV reads (image_transport's "compressed": BGR order inside, as OpenCV wants).
 Compressed depth is image_transport's "compressedDepth": a 12-byte ``ConfigHeader`` (int32 format,
 float32 depthQuantA, depthQuantB) then a PNG, holding millimetres for 16UC1 and, for 32FC1, the
-quantised inverse depth ``q = A / z + B`` (0 invalid), so ``z = A / (q - B)``.
+quantised inverse depth ``q = A / z + B`` (0 invalid), so ``z = A / (q - B)``; or the "compressed"
+plugin's plain 16-bit PNG of 16UC1 millimetres (format "16UC1; png compressed").
 """
 
 from __future__ import annotations
@@ -74,6 +75,12 @@ def _decode_png_or_jpeg(data: np.ndarray, what: str) -> np.ndarray:
     return image
 
 
+def _sixteen_bit(raw: np.ndarray) -> np.ndarray:
+    if raw.ndim != 2 or raw.dtype != np.uint16:
+        raise ValueError(f"a depth PNG must be one 16-bit channel, got {raw.dtype} with shape {raw.shape}")
+    return raw
+
+
 def compressed_color(message: object) -> np.ndarray:
     """A compressed colour image (JPEG or PNG) as float32 (H, W, 3) RGB in [0, 1]."""
     format = str(message.format)  # type: ignore[attr-defined]
@@ -82,23 +89,29 @@ def compressed_color(message: object) -> np.ndarray:
     return opencv_to_rgb(_decode_png_or_jpeg(message.data, f"compressed colour image ({format!r})"))  # type: ignore[attr-defined]
 
 
+def is_plain_png_depth(format: str) -> bool:
+    """image_transport's "compressed" plugin given 16UC1 depth writes a plain 16-bit PNG ("16UC1; png ...")."""
+    return not is_compressed_depth(format) and format.split(";")[0].strip() == "16UC1"
+
+
 def compressed_depth(message: object) -> np.ndarray:
-    """A compressedDepth image (PNG) as float32 (H, W) metres, invalid pixels 0."""
+    """A compressedDepth image, or a plain 16UC1 PNG, as float32 (H, W) metres, invalid pixels 0."""
     format = str(message.format)  # type: ignore[attr-defined]
+    data = np.asarray(message.data, dtype=np.uint8)  # type: ignore[attr-defined]
+    if is_plain_png_depth(format):
+        return decode_depth(_sixteen_bit(_decode_png_or_jpeg(data, f"16UC1 PNG ({format!r})")), MILLIMETRES_PER_METRE)
     if not is_compressed_depth(format):
-        raise ValueError(f"compressed depth must be image_transport's compressedDepth; format is {format!r}")
+        raise ValueError(f"compressed depth must be image_transport's compressedDepth or a 16UC1 PNG; "
+                         f"format is {format!r}")
     encoding = format.split(";")[0].strip()
     if "rvl" in format.lower():
         raise ValueError(f"compressedDepth with RVL ({format!r}) is not supported; record with PNG")
     if encoding not in DEPTH_ENCODINGS:
         raise ValueError(f"compressedDepth of encoding {encoding!r} is not supported; expected 16UC1 or 32FC1")
-    data = np.asarray(message.data, dtype=np.uint8)  # type: ignore[attr-defined]
     if data.size <= COMPRESSED_DEPTH_HEADER.size:
         raise ValueError(f"compressedDepth image of {data.size} bytes holds no PNG after its 12-byte header")
     _, quant_a, quant_b = COMPRESSED_DEPTH_HEADER.unpack(data[: COMPRESSED_DEPTH_HEADER.size].tobytes())
-    raw = _decode_png_or_jpeg(data[COMPRESSED_DEPTH_HEADER.size :], f"compressedDepth PNG ({format!r})")
-    if raw.ndim != 2 or raw.dtype != np.uint16:
-        raise ValueError(f"compressedDepth PNG must be one 16-bit channel, got {raw.dtype} with shape {raw.shape}")
+    raw = _sixteen_bit(_decode_png_or_jpeg(data[COMPRESSED_DEPTH_HEADER.size :], f"compressedDepth PNG ({format!r})"))
     if encoding == "16UC1":
         return decode_depth(raw, MILLIMETRES_PER_METRE)
     depth = np.zeros(raw.shape, dtype=np.float32)

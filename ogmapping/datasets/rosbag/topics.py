@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ogmapping.datasets.rosbag.bagfile import BagFile
-from ogmapping.datasets.rosbag.images import COLOR_ENCODINGS, DEPTH_ENCODINGS, is_compressed_depth
+from ogmapping.datasets.rosbag.images import COLOR_ENCODINGS, DEPTH_ENCODINGS, is_compressed_depth, is_plain_png_depth
 from ogmapping.datasets.rosbag.options import BagOptions
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -48,7 +48,7 @@ def image_kind(msgtype: str, first: object | None) -> str | None:
         return "color" if encoding in COLOR_ENCODINGS else "depth" if encoding in DEPTH_ENCODINGS else None
     if msgtype == COMPRESSED:
         format = str(first.format)  # type: ignore[attr-defined]
-        return "depth" if is_compressed_depth(format) or format.split(";")[0].strip() == "16UC1" else "color"
+        return "depth" if is_compressed_depth(format) or is_plain_png_depth(format) else "color"
     return None
 
 
