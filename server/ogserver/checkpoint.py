@@ -1,7 +1,9 @@
 """Session checkpoints: a session's map and what resuming it after a crash needs, in one file.
 
 ``<session>.checkpoint.safetensors`` lies next to the session's recording. It is a snapshot
-(``ogmapping.snapshot``: the map's tensors, its config) whose safetensors metadata also holds, as
+(``ogmapping.snapshot``: the map's tensors, its config) in float32 and with the map's training state
+(``ogmapping.training``: keyframes, Adam's moments, random states), so the resumed session maps the
+frames after it as the uninterrupted one would have. Its safetensors metadata also holds, as
 JSON, the session's identity (id, owner, the recorded ``SessionConfig`` with label and resolved
 config, a salted hash of its token, never the token) and the position of the map in the recording:
 the sequence of the last frame it holds (the n-th recorded frame has sequence n) and that frame's

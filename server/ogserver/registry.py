@@ -151,7 +151,8 @@ class Registry:
         recorder = Recorder(self.record_dir / f"{session_id}.mcap", config)
         checkpoints = Checkpoints(recorder.path, identity, self.settings.checkpoint_interval)
         try:
-            checkpoints.write(mapper.state(), Position())  # without it a crash would lose who the session is
+            # without it a crash would lose who the session is
+            checkpoints.write(mapper.state(training_state=True), Position())
         except OSError as error:
             recorder.close()
             recorder.path.unlink(missing_ok=True)
@@ -194,7 +195,7 @@ class Registry:
                                   f"{recording.name}")
         with self._reserve(saved.identity.owner):
             try:
-                mapper = Mapper.from_state(saved.state, device=self.device)
+                mapper = Mapper.from_state(saved.state, device=self.device, training_state=True)
             except ValueError as error:
                 raise CheckpointError(f"its map cannot be rebuilt: {error}") from None
             recorder = Recorder.resume(recording)

@@ -209,7 +209,7 @@ class Session:
                 or self._closed.is_set()):
             return
         try:
-            self.checkpoints.write(self.mapper.state(), position)
+            self.checkpoints.write(self.mapper.state(training_state=True), position)
         except OSError as error:
             log.error("session %s: cannot write its checkpoint at sequence %d: %s", self.id, position.sequence,
                       error.strerror or error)
