@@ -361,7 +361,7 @@ class Mapper:
             tensors["trajectory.camera_positions"] = torch.tensor([self.camera_positions], dtype=torch.int64)
             tensors = {name: value.detach().clone() for name, value in tensors.items()}
             if training_state:
-                tensors.update(training.capture(self))
+                tensors.update(training.capture(self._optimisation()))
             return MapState(self.config, tensors, self.frames, self.iterations)
 
     @classmethod
@@ -373,12 +373,16 @@ class Mapper:
         try:
             mapper._load(state)
             if training_state:
-                training.restore(mapper, state.tensors)
+                mapper.last_gaussians = training.restore(mapper._optimisation(), state.tensors) or 0
         except (KeyError, RuntimeError, ValueError) as error:
             raise ValueError(f"map state does not match its config: {error}") from error
         mapper.frames = state.frames
         mapper.iterations = state.iterations
         return mapper
+
+    def _optimisation(self) -> training.Optimisation:
+        return training.Optimisation(self.anchors, self.optimizer, self.hash_optimizer, self.generator, self.keyframes,
+                                     self.device, self.last_gaussians)
 
     def _load(self, state: MapState) -> None:
         self.octree.load_state_dict(state.section("octree"))

@@ -10,26 +10,38 @@ size: colour as uint8 and depth as float16, as they are kept in memory (``keyfra
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 import torch
 
+from ogmapping.anchors import AnchorMap
 from ogmapping.camera import Intrinsics
-from ogmapping.keyframes import Keyframe
-
-if TYPE_CHECKING:
-    from ogmapping.mapper import Mapper
+from ogmapping.keyframes import Keyframe, KeyframeSet
+from ogmapping.lazy_adam import LazyAdam
 
 PREFIX = "training."
 STATISTICS = ("positions", "grad_sum", "grad_count", "max_opacity")
+
+
+@dataclass
+class Optimisation:
+    """The parts of a mapper its optimisation state lives in (the mapper hands over its own)."""
+
+    anchors: AnchorMap
+    optimizer: torch.optim.Optimizer
+    hash_optimizer: LazyAdam | None
+    generator: torch.Generator
+    keyframes: KeyframeSet
+    device: torch.device
+    last_gaussians: int
 
 
 def _scalar(value: float | int, dtype: torch.dtype) -> torch.Tensor:
     return torch.tensor([value], dtype=dtype)
 
 
-def capture(mapper: Mapper) -> dict[str, torch.Tensor]:
-    """The training state of ``mapper`` (hold its lock), keyed ``training.*``, as copies on the CPU."""
+def capture(mapper: Optimisation) -> dict[str, torch.Tensor]:
+    """The training state in a mapper's parts (hold its lock), keyed ``training.*``, as copies on the CPU."""
     tensors: dict[str, torch.Tensor] = {f"anchors.{name}": getattr(mapper.anchors, name) for name in STATISTICS}
     for group in mapper.optimizer.param_groups:
         for position, param in enumerate(group["params"]):
@@ -69,13 +81,13 @@ def _shaped(tensors: dict[str, torch.Tensor], name: str, like: torch.Tensor) -> 
     return value.to(like.device, like.dtype)
 
 
-def restore(mapper: Mapper, tensors: dict[str, torch.Tensor]) -> None:
-    """Put a captured training state into ``mapper``, which already holds the map it was captured
-    with; a state without any (a snapshot) leaves the fresh one. KeyError or ValueError when it
-    does not fit the map."""
+def restore(mapper: Optimisation, tensors: dict[str, torch.Tensor]) -> int | None:
+    """Put a captured training state into a mapper's parts, which already hold the map it was
+    captured with, and return its ``last_gaussians``; a state without any (a snapshot) leaves the
+    fresh one (None). KeyError or ValueError when it does not fit the map."""
     section = {name[len(PREFIX):]: value for name, value in tensors.items() if name.startswith(PREFIX)}
     if not section:
-        return
+        return None
     anchors = mapper.anchors
     for name in STATISTICS:
         setattr(anchors, name, _shaped(section, f"anchors.{name}", getattr(anchors, name)))
@@ -97,11 +109,11 @@ def restore(mapper: Mapper, tensors: dict[str, torch.Tensor]) -> None:
         adam.exp_avg = _shaped(section, "hash_adam.exp_avg", adam.exp_avg)
         adam.exp_avg_sq = _shaped(section, "hash_adam.exp_avg_sq", adam.exp_avg_sq)
     mapper.generator.set_state(section["generator"])
-    mapper.last_gaussians = int(section["last_gaussians"][0])
     _restore_keyframes(mapper, section)
+    return int(section["last_gaussians"][0])
 
 
-def _restore_keyframes(mapper: Mapper, section: dict[str, torch.Tensor]) -> None:
+def _restore_keyframes(mapper: Optimisation, section: dict[str, torch.Tensor]) -> None:
     keyframes = mapper.keyframes
     pinned = mapper.device.type == "cuda"
     restored = []

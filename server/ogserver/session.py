@@ -78,9 +78,8 @@ class Session:
         self.checkpoints = checkpoints
         self._backlog = list(backlog or ())
         start = start or Position()
-        # Sequences go on from where the map (start) and the recording (backlog) stand; frames of this
-        # server run are counted from 0 (received, mapped).
-        self._sequence_base = start.sequence + len(self._backlog)
+        # Sequences go on from where the map (start) stands; this server run counts the backlog as received.
+        self._sequence_base = start.sequence
         self._last_index = self._backlog[-1].message.index if self._backlog else start.index
         self._recorded = self._mapped_position = start
         self._started = time.monotonic()
@@ -92,10 +91,10 @@ class Session:
         # Each frame's optimisation stops after frame_seconds (0: no limit), or at once when the session closes.
         self._time_budget = Budget(seconds=frame_seconds or math.inf)
         self._stream_sink: queue.SimpleQueue[StreamEvent] | None = None
-        self._received = self._rejected = self._mapped = 0
-        self._pending = len(self._backlog)
+        self._rejected = self._mapped = 0
+        self._received = self._pending = len(self._backlog)
         self._anchors = mapper.stats().anchors  # a restored map starts with its anchors
-        self._first_received: float | None = None
+        self._first_received: float | None = self._started if self._backlog else None
         self._last_mapped: float | None = None
         self._worker = threading.Thread(target=self._run, name=f"session-{self.id[:8]}", daemon=True)
         self._worker.start()

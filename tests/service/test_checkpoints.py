@@ -139,7 +139,7 @@ def test_a_session_left_open_is_resumed_with_its_id_token_and_frames(tmp_path: P
     wait_mapped(second, opened.session.id, opened.token, 3)  # frame 3, recorded after the checkpoint
     session = second.get(opened.session.id, opened.token)
     counters = session.counters()
-    assert (counters.last_sequence, counters.last_index, counters.mapped) == (3, 2, 1)
+    assert (counters.last_sequence, counters.last_index, counters.mapped, counters.received) == (3, 2, 1, 1)
     assert session.config.label == "kitchen" and second.sessions("alice") == [session]
     more = stream(Opened(session, opened.token), range(3, 5))
     assert [ack.sequence for ack in more] == [4, 5] and all(ack.accepted for ack in more)
