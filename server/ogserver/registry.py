@@ -200,7 +200,10 @@ class Registry:
                 raise CheckpointError(f"its map cannot be rebuilt: {error}") from None
             recorder = Recorder.resume(recording)
             checkpoints = Checkpoints(recording, saved.identity, self.settings.checkpoint_interval)
-            session = Session(saved.identity.config, saved.identity.token, mapper, recorder, self.settings.limits,
+            config = pb.SessionConfig()
+            config.CopyFrom(saved.identity.config)
+            config.device = str(mapper.device)  # this server's, which may not be the crashed one's
+            session = Session(config, saved.identity.token, mapper, recorder, self.settings.limits,
                               self.settings.frame_seconds, checkpoints, saved.position, backlog)
             self._register(session, saved.identity.owner)
         log.info("session %s resumed for %s from its checkpoint at frame %d, %d recorded frames after it to map "

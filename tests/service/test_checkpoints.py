@@ -32,10 +32,12 @@ from .scene import FROZEN, PRESET, TINY, create_request, scene
 TOKEN = "t" * 43
 
 
-def mapped(frames: int = 2) -> Mapper:
+@pytest.fixture(scope="module")
+def mapper() -> Mapper:
+    """Two frames mapped (a keyframe, Adam moments): only read by the tests."""
     mapper = Mapper(resolve(PRESET, overrides=TINY))
     source = scene("0:4")
-    for position in range(frames):
+    for position in range(2):
         mapper.process(source.load(position))
     return mapper
 
@@ -44,8 +46,7 @@ def identity() -> Identity:
     return Identity("alice", auth.TokenHash.of(TOKEN), pb.SessionConfig(session_id="a" * 32, label="kitchen"))
 
 
-def test_a_checkpoint_holds_the_exact_map_and_who_the_session_is(tmp_path: Path) -> None:
-    mapper = mapped()
+def test_a_checkpoint_holds_the_exact_map_and_who_the_session_is(tmp_path: Path, mapper: Mapper) -> None:
     path = tmp_path / f"{'a' * 32}{checkpoint.SUFFIX}"
     state = mapper.state(training_state=True)
     checkpoint.write_atomically(path, checkpoint.encode(identity(), Position(2, 7), state))
@@ -67,20 +68,20 @@ def test_a_checkpoint_holds_the_exact_map_and_who_the_session_is(tmp_path: Path)
     (lambda data: data[:7], "not a checkpoint: snapshot is truncated"),
     (lambda data: data.replace(b"ogserver-checkpoint", b"ogserver-checkpoinx"), "is not 'ogserver-checkpoint'"),
 ])
-def test_a_damaged_checkpoint_is_refused(tmp_path: Path, damage, reason: str) -> None:
-    data = checkpoint.encode(identity(), Position(2, 7), mapped(1).state())
+def test_a_damaged_checkpoint_is_refused(mapper: Mapper, damage, reason: str) -> None:
+    data = checkpoint.encode(identity(), Position(2, 7), mapper.state(training_state=True))
     with pytest.raises(CheckpointError, match=reason):
         checkpoint.decode(damage(data))
 
 
-def test_a_plain_snapshot_is_not_a_checkpoint() -> None:
+def test_a_plain_snapshot_is_not_a_checkpoint(mapper: Mapper) -> None:
     with pytest.raises(CheckpointError, match="without the checkpoint's metadata"):
-        checkpoint.decode(mapped(1).snapshot())
+        checkpoint.decode(mapper.snapshot())
 
 
-def test_a_failed_write_leaves_the_previous_checkpoint(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_failed_write_leaves_the_previous_checkpoint(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                       mapper: Mapper) -> None:
     path = tmp_path / f"{'a' * 32}{checkpoint.SUFFIX}"
-    mapper = mapped(1)
     checkpoint.write_atomically(path, checkpoint.encode(identity(), Position(1, 0), mapper.state()))
     before = path.read_bytes()
 
@@ -89,7 +90,7 @@ def test_a_failed_write_leaves_the_previous_checkpoint(tmp_path: Path, monkeypat
 
     monkeypatch.setattr(os, "fsync", full_disk)
     with pytest.raises(OSError):
-        checkpoint.write_atomically(path, checkpoint.encode(identity(), Position(2, 1), mapped(2).state()))
+        checkpoint.write_atomically(path, checkpoint.encode(identity(), Position(2, 1), mapper.state()))
     assert path.read_bytes() == before and list(tmp_path.iterdir()) == [path]
     assert checkpoint.read(path).position == Position(1, 0)
 
