@@ -301,7 +301,9 @@ class Registry:
             self._retiring.pop(session.id, None)
             self._tenancy.pop(session.id, None)
             self._closed_totals += FrameTotals.of(session.counters())
-        log.info("session %s closed after %d frames", session.id, stats.frames)
+        checkpoints = session.checkpoints
+        log.info("session %s closed after %d frames (%d checkpoints written, %.2f s in all)", session.id, stats.frames,
+                 checkpoints.written if checkpoints else 0, checkpoints.seconds if checkpoints else 0.0)
         return Closed(stats, session.recorder.path, snapshot, stopped)
 
     def close_all(self, timeout: float) -> list[Closed]:
