@@ -172,3 +172,24 @@ def test_sessions_that_cannot_be_resumed_are_skipped_and_left_as_they_are(tmp_pa
     for session_id, data in recordings.items():
         assert (tmp_path / f"{session_id}.mcap").read_bytes() == data
     wait_mapped(second, good.session.id, good.token, 1)
+
+
+def test_a_recording_cut_inside_a_frame_resumes_from_the_frames_before_the_cut(tmp_path: Path) -> None:
+    first = Registry(settings(tmp_path, interval=2), "cpu")
+    opened = first.create(create_request(FROZEN), ANONYMOUS)
+    path = opened.session.recorder.path
+    stream(opened, range(2))
+    two_frames = path.stat().st_size
+    stream(opened, range(2, 3))
+    crash(opened)
+    data = path.read_bytes()
+    path.write_bytes(data[: (two_frames + len(data)) // 2])  # the power went while frame 3 was being written
+
+    second = Registry(settings(tmp_path, interval=2), "cpu")
+    assert resume_all(second).sessions == [opened.session.id]
+    session = second.get(opened.session.id, opened.token)
+    assert (session.counters().last_sequence, session.counters().last_index) == (2, 1)
+    assert [frame.index for _, frame in recording.load(path).frames] == [0, 1]
+    assert [ack.sequence for ack in stream(Opened(session, opened.token), range(2, 4))] == [3, 4]
+    second.close(session)
+    assert [frame.index for _, frame in recording.load(path).frames] == [0, 1, 2, 3]
