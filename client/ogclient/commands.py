@@ -206,7 +206,8 @@ def list_sessions(ctx: Context, args: argparse.Namespace) -> int:
     if not response.sessions:
         print("no sessions")
     for info in response.sessions:
-        print(f"{info.session_id}  preset={info.preset or 'restored'} frames={info.frames} anchors={info.anchors} "
+        print(f"{info.session_id}  preset={info.preset or 'restored'} frames={info.frames} "
+              f"last_sequence={info.last_sequence} last_index={info.last_index} anchors={info.anchors} "
               f"queue={info.queue_depth} streaming={info.streaming} device={info.device} label={info.label!r}")
     return 0
 
