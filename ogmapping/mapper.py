@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ogmapping import allocation, refine, snapshot
+from ogmapping import allocation, refine, snapshot, training
 from ogmapping.anchors import AnchorMap
 from ogmapping.budget import Budget, Stop
 from ogmapping.camera import Intrinsics
@@ -337,8 +337,10 @@ class Mapper:
 
     # ------------------------------------------------------------------ state
 
-    def state(self) -> MapState:
-        """The map as plain tensors and counters (see ``ogmapping.state``), detached copies."""
+    def state(self, training_state: bool = False) -> MapState:
+        """The map as plain tensors and counters (see ``ogmapping.state``), detached copies; with
+        ``training_state`` also what its optimisation carries (``ogmapping.training``), so a mapper
+        rebuilt from it maps on exactly as this one would."""
         with self.lock:
             anchors = self.anchors
             tensors: dict[str, torch.Tensor] = {
@@ -358,20 +360,29 @@ class Mapper:
             tensors["trajectory.camera_position_sum"] = self.camera_position_sum
             tensors["trajectory.camera_positions"] = torch.tensor([self.camera_positions], dtype=torch.int64)
             tensors = {name: value.detach().clone() for name, value in tensors.items()}
+            if training_state:
+                tensors.update(training.capture(self._optimisation()))
             return MapState(self.config, tensors, self.frames, self.iterations)
 
     @classmethod
-    def from_state(cls, state: MapState, device: str | torch.device = "cpu") -> Mapper:
-        """A mapper holding ``state``'s map; mapping can continue from it. ValueError when the
-        tensors do not fit the config (states may come from outside, in snapshots)."""
+    def from_state(cls, state: MapState, device: str | torch.device = "cpu", training_state: bool = False) -> Mapper:
+        """A mapper holding ``state``'s map; mapping can continue from it, with ``training_state``
+        from the optimisation state it holds (a server's own checkpoint: never a snapshot from
+        outside). ValueError when the tensors do not fit the config (states may come from outside)."""
         mapper = cls(state.config, device)
         try:
             mapper._load(state)
+            if training_state:
+                mapper.last_gaussians = training.restore(mapper._optimisation(), state.tensors) or 0
         except (KeyError, RuntimeError, ValueError) as error:
             raise ValueError(f"map state does not match its config: {error}") from error
         mapper.frames = state.frames
         mapper.iterations = state.iterations
         return mapper
+
+    def _optimisation(self) -> training.Optimisation:
+        return training.Optimisation(self.anchors, self.optimizer, self.hash_optimizer, self.generator, self.keyframes,
+                                     self.device, self.last_gaussians)
 
     def _load(self, state: MapState) -> None:
         self.octree.load_state_dict(state.section("octree"))

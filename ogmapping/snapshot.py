@@ -3,7 +3,8 @@
 Anchor centres are not stored: they follow exactly from each anchor's Morton code and level. The
 learnable per-anchor tensors and the hash table are stored in float16 (their values are small and
 a float16 round trip changes renders by far less than a display level); decoder weights stay
-float32. What is not in a ``MapState`` (keyframes, optimiser moments) is not in a snapshot.
+float32. A server's checkpoints, from which a session goes on mapping, keep them in float32
+(``half=False``). What is not in a ``MapState`` (keyframes, optimiser moments) is not in a snapshot.
 """
 
 from __future__ import annotations
@@ -22,10 +23,10 @@ VERSION = "1"
 HALF = ("anchors.log_scales", "anchors.offsets", "anchors.features", "encoding.table")
 
 
-def encode(state: MapState) -> bytes:
-    """The snapshot bytes of ``state``."""
+def encode(state: MapState, half: bool = True) -> bytes:
+    """The snapshot bytes of ``state``; ``half``: the ``HALF`` tensors in float16."""
     tensors = {
-        name: (value.to(torch.float16) if name in HALF else value).detach().cpu().contiguous()
+        name: (value.to(torch.float16) if half and name in HALF else value).detach().cpu().contiguous()
         for name, value in state.tensors.items()
     }
     metadata = {

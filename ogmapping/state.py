@@ -22,7 +22,9 @@ class MapState:
     per-anchor tensors, the hash table (dense maps), the decoder weights, the octree's occupied
     cells and the sum of the mapped frames' camera centres (where an export bakes colour). Keyframe
     images and optimiser moments are not part of it: a map rebuilt from it renders the same
-    images, and mapping continues with a fresh keyframe set and fresh Adam moments."""
+    images, and mapping continues with a fresh keyframe set and fresh Adam moments. Unless it was
+    taken with ``training_state`` (a server's checkpoint): then ``training.*`` tensors hold them
+    (``ogmapping.training``) and a mapper rebuilt with them maps on exactly as the original."""
 
     config: MapperConfig
     tensors: dict[str, torch.Tensor]

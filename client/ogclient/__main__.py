@@ -77,6 +77,10 @@ def parser() -> argparse.ArgumentParser:
                         help="how depth travels (default png16)")
     stream.add_argument("--depth-scale", type=float, default=1000.0, help="PNG16 units per metre (default 1000 = mm)")
     stream.add_argument("--jpeg-quality", type=int, default=95, help="for --color-encoding jpeg (default 95)")
+    stream.add_argument("--resume", action="store_true",
+                        help="with --session: go on where the session stands (after a dropped connection or a "
+                             "server crash): ask it for the last frame it has taken and stream only the frames "
+                             "after it")
     stream.add_argument("--close", action="store_true", help="close the session when done")
     stream.add_argument("--quiet", action="store_true", help="no progress bar")
     stream.set_defaults(handler=commands.stream)

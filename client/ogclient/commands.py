@@ -69,8 +69,24 @@ def create(ctx: Context, args: argparse.Namespace) -> int:
     return 0
 
 
+def resumed_positions(ctx: Context, session: SessionRef, positions: list[int]) -> list[int]:
+    """The positions after the last frame the session has taken (GetStats' last_sequence and its
+    Frame.index, which ogclient sets to the position): what a stream that goes on sends, so no frame
+    is mapped twice. A session that has taken none gets them all."""
+    stats = ctx.stub.GetStats(pb.GetStatsRequest(session_id=session.session_id), metadata=session.metadata())
+    if not stats.last_sequence:
+        print("resuming: the session has taken no frame yet; streaming all of them", flush=True)
+        return positions
+    remaining = [position for position in positions if position > stats.last_index]
+    print(f"resuming: the session has taken {stats.last_sequence} frames, the last at position {stats.last_index}; "
+          f"streaming the {len(remaining)} selected after it", flush=True)
+    return remaining
+
+
 def stream(ctx: Context, args: argparse.Namespace) -> int:
     frame_set = FrameSet.from_args(args)
+    if args.resume and not args.session:
+        raise ClientError("--resume goes on with an existing session: name its credentials with --session FILE")
     for line in frame_set.source.report():
         print(f"{frame_set.source.name}: {line}", flush=True)
     if args.session:
@@ -80,7 +96,9 @@ def stream(ctx: Context, args: argparse.Namespace) -> int:
         session = announce(ctx.stub.CreateSession(request), args, ctx.server)
     encoding = FrameEncoding(color=COLOR_CHOICES[args.color_encoding], depth=DEPTH_CHOICES[args.depth_encoding],
                              depth_scale=args.depth_scale, jpeg_quality=args.jpeg_quality)
-    positions = frame_set.selection.streamed
+    positions = list(frame_set.selection.streamed)
+    if args.resume:
+        positions = resumed_positions(ctx, session, positions)
     messages = (frame_to_proto(frame_set.load(position), encoding) for position in positions)
     result = stream_frames(ctx.stub, session, messages, total=len(positions), progress=not args.quiet)
     print(result.summary())
@@ -192,7 +210,8 @@ def list_sessions(ctx: Context, args: argparse.Namespace) -> int:
     if not response.sessions:
         print("no sessions")
     for info in response.sessions:
-        print(f"{info.session_id}  preset={info.preset or 'restored'} frames={info.frames} anchors={info.anchors} "
+        print(f"{info.session_id}  preset={info.preset or 'restored'} frames={info.frames} "
+              f"last_sequence={info.last_sequence} last_index={info.last_index} anchors={info.anchors} "
               f"queue={info.queue_depth} streaming={info.streaming} device={info.device} label={info.label!r}")
     return 0
 

@@ -122,6 +122,25 @@ def copy_records(source: str | Path, writer: Writer) -> Copied:
     return Copied(messages, topics)
 
 
+FOOTER = struct.Struct("<BQQQI")  # opcode, record length (20), summary start, summary offset start, summary crc
+MAGIC = b"\x89MCAP0\r\n"
+
+
+def closed_cleanly(path: str | Path) -> bool:
+    """Whether the recording ends as a clean close ends it: a Footer that points at a summary. A
+    file cut by a crash, or ended by the server's provisional end (no summary), has not; the
+    session it records was still open when the server stopped."""
+    with open(path, "rb") as stream:
+        stream.seek(0, 2)
+        size = stream.tell()
+        if size < FOOTER.size + len(MAGIC):
+            return False
+        stream.seek(size - FOOTER.size - len(MAGIC))
+        tail = stream.read()
+    opcode, length, summary_start, _, _ = FOOTER.unpack(tail[: FOOTER.size])
+    return tail[FOOTER.size :] == MAGIC and opcode == 0x02 and length == 20 and summary_start > 0
+
+
 def repair(source: str | Path, target: str | Path) -> int:
     """Write ``target`` with every message ``source`` holds and the summary and index a clean close
     appends, so any MCAP reader opens it (``target`` is removed if that fails); the message count."""

@@ -21,7 +21,8 @@ under "limits:", TLS, callers, timeouts and metrics under "access:", the bounds 
 --grace seconds, then every session's recording is closed (and with --final-snapshots its map is
 written as RECORD_DIR/<session>.safetensors). Nothing waits without a bound: what is still running
 --stop-timeout seconds later is left behind, the recordings are closed regardless and the process
-exits. See docs/service.md."""
+exits. After a crash or kill -9, the next server on the same record dir resumes the sessions left
+open (same ids and tokens) from their checkpoints and recordings. See docs/service.md."""
 
 
 def parser() -> argparse.ArgumentParser:
@@ -45,6 +46,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--frame-seconds", dest="frame_seconds", type=float,
                    help="wall-clock budget of one frame's optimisation; it then stops early and its ack says "
                         "so (60; 0 = no limit)")
+    crashes = p.add_argument_group("crashes: checkpoints and resume (docs/service.md, 'Checkpoints and resume')")
+    crashes.add_argument("--checkpoint-interval", dest="checkpoint_interval", type=int, metavar="FRAMES",
+                         help="write a checkpoint of each session's map every FRAMES recorded frames (50; 0 = only "
+                              "the one each session writes when it opens, so a resume maps its whole recording again)")
+    crashes.add_argument("--resume", dest="resume", action=argparse.BooleanOptionalAction, default=None,
+                         help="at start, resume the sessions a crashed server left open in the record dir, with "
+                              "their ids and tokens (default on)")
     limits = p.add_argument_group("limits (exceeding one gives RESOURCE_EXHAUSTED)")
     limits.add_argument("--max-sessions", dest="max_sessions", type=int, help="open sessions at once (4)")
     limits.add_argument("--queue-depth", dest="queue_depth", type=int,

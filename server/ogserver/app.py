@@ -23,6 +23,7 @@ from ogserver.calls import HEADROOM, CallGate
 from ogserver.expiry import Expiry
 from ogserver.metrics import Endpoint, Metrics
 from ogserver.registry import Closed, Registry
+from ogserver.resume import resume_all
 from ogserver.service import MappingService
 from ogserver.settings import Settings
 
@@ -77,6 +78,8 @@ def build(settings: Settings) -> Server:
     if settings.warm_up:
         log.info("warming up on %s: %.1f s", device, warm_up(device))
     registry = Registry(settings, device)
+    if settings.resume:  # before serving: a client never finds its session missing while it comes back
+        resume_all(registry)
     metrics = Metrics(registry)
     server = grpc.server(
         futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="grpc"), options=options,

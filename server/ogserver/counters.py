@@ -14,6 +14,11 @@ class SessionCounters:
     anchors: int  # the map's anchors after the last mapped frame
     processing_fps: float  # mapped frames over the time from the first received to the last mapped
     uptime_seconds: float
+    # Over the whole session, across resumes: the last frame accepted (mapped or queued to be, in
+    # order; a resumed stream sends the frames after it), its Frame.index, and the last one mapped.
+    last_sequence: int = 0
+    last_index: int = 0
+    mapped_sequence: int = 0
 
 
 @dataclass(frozen=True)

@@ -75,6 +75,7 @@ def stats(config: pb.SessionConfig, engine: MapStats, counters: SessionCounters)
         keyframes=engine.keyframes, anchors=engine.anchors, anchors_per_level=engine.anchors_per_level,
         gaussians=engine.gaussians, iterations=engine.iterations, timings=engine.timings,
         engine_json=json.dumps(engine.to_dict()), config_json=config.config_json,
+        last_sequence=counters.last_sequence, last_index=counters.last_index, mapped_sequence=counters.mapped_sequence,
     )
 
 
@@ -86,6 +87,7 @@ def session_info(
         session_id=config.session_id, preset=config.preset, label=config.label, device=config.device,
         created_unix=config.created_unix, frames=counters.mapped, anchors=counters.anchors,
         queue_depth=counters.pending, streaming=streaming, recording=recording.name,
+        last_sequence=counters.last_sequence, last_index=counters.last_index,
     )
 
 

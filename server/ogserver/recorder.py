@@ -5,6 +5,8 @@ followed by a flush that writes the MCAP chunk in progress and a provisional end
 a crash loses at most the acks after the last frame, and leaves a file any MCAP reader opens; a clean
 close appends the summary and index. The first write that fails (a full disk) stops the recording
 for good: the file is cut back to the last complete frame, and closing rewrites it with a summary.
+A session resumed after a crash goes on with its recording (``Recorder.resume``): the cut file is
+copied into a new one, which replaces it, and later frames are appended there.
 """
 
 from __future__ import annotations
@@ -118,6 +120,10 @@ class RecordingFile:
     def close(self) -> None:
         self._file.close()
 
+    def sync(self) -> None:
+        """To the disk, not only to the OS (a flush survives the process, this a power cut too)."""
+        os.fsync(self._file.fileno())
+
     def _commit(self, end: bytes) -> None:
         data = bytes(self._pending) + end
         self._pending.clear()
@@ -204,17 +210,13 @@ class Recorder:
     after the first, ``failure`` holds it and frames are refused with it."""
 
     def __init__(self, path: Path, config: pb.SessionConfig) -> None:
-        self.path = path
-        self.failure: StorageError | None = None
-        self._lock = threading.Lock()
-        self._closed = False
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            self._file, writer = _open_mcap(path)
+            file, writer = _open_mcap(path)
         except OSError as error:
             log.error("recording %s: cannot create it: %s", path, error)
             raise storage_error(error, "a new session's recording") from None
-        self._mcap = _Channels(writer)
+        self._attach(path, file, _Channels(writer))
         try:
             writer.start(profile=PROFILE, library="ogserver")
             self._mcap.add(layout.TOPIC_SESSION, config, time.time_ns())
@@ -224,6 +226,42 @@ class Recorder:
             path.unlink(missing_ok=True)  # no empty file for a session that never opened
             log.error("recording %s: cannot start it: %s", path, error)
             raise storage_error(error, "a new session's recording") from None
+
+    def _attach(self, path: Path, file: RecordingFile, mcap: _Channels) -> None:
+        self.path = path
+        self.failure: StorageError | None = None
+        self._lock = threading.Lock()
+        self._closed = False
+        self._file = file
+        self._mcap = mcap
+
+    @classmethod
+    def resume(cls, path: Path) -> Recorder:
+        """Go on with a recording a crash cut: what it holds (``layout.read_messages`` reads up to the
+        cut) is copied into a new file, ended and synced, which then replaces it, so the session keeps
+        one recording and a crash during this leaves the old file as it was. Needs as much free space
+        as the recording takes. StorageError if it cannot be written, RecordingError if it cannot be read."""
+        partial = path.with_name(path.name + ".resumed")
+        try:
+            file, writer = _open_mcap(partial)
+            try:
+                copied = layout.copy_records(path, writer)
+                writer.flush()
+                file.sync()
+            except BaseException:
+                file.close()
+                raise
+            os.replace(partial, path)
+        except OSError as error:
+            partial.unlink(missing_ok=True)
+            log.error("recording %s: cannot go on with it: %s", path, error)
+            raise storage_error(error, "the resumed session's recording") from None
+        except BaseException:
+            partial.unlink(missing_ok=True)
+            raise
+        recorder = cls.__new__(cls)
+        recorder._attach(path, file, _Channels(writer, copied.channels))
+        return recorder
 
     def _fail(self, error: Exception) -> StorageError:
         """Stop recording for good: the file holds every frame up to the last one written whole."""

@@ -2,7 +2,9 @@
 
 Each session has an owner (the caller identity that created it, see ``callers.py``) and the time it
 was last used; both live here, beside the session, so the per-caller quota, ListSessions and idle
-expiry need nothing from the session itself.
+expiry need nothing from the session itself. Every session writes a checkpoint when it opens (its
+identity, the map it starts from) and drops it when it closes cleanly; ``resume`` brings back a
+session whose server died, from its checkpoint and its recording (``checkpoint.py``, ``resume.py``).
 """
 
 from __future__ import annotations
@@ -19,15 +21,18 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import grpc
+from google.protobuf.message import DecodeError
+from ogapi import recording as layout
 from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.config import PRESETS, resolve
 from ogmapping.mapper import Mapper
-from ogserver import __version__, auth, messages, validation
+from ogserver import __version__, auth, checkpoint, messages, validation
+from ogserver.checkpoint import CheckpointError, Checkpoints, Identity, Position
 from ogserver.counters import FrameTotals
 from ogserver.errors import ServiceError, invalid
 from ogserver.recorder import Recorder
-from ogserver.session import Session
+from ogserver.session import Recorded, Session
 from ogserver.settings import Settings
 from ogserver.storage import StorageError, storage_error
 
@@ -50,6 +55,14 @@ class Upload:
     data: bytes
     label: str
     sha256: str
+
+
+@dataclass(frozen=True)
+class Opened:
+    """A new session and its token: the only time the server has the token, not just its hash."""
+
+    session: Session
+    token: str
 
 
 @dataclass
@@ -100,7 +113,7 @@ class Registry:
         if len(label) > limit:
             raise invalid("label", f"longer than the server's limit of {limit} characters ({len(label)})")
 
-    def create(self, request: pb.CreateSessionRequest, owner: str) -> Session:
+    def create(self, request: pb.CreateSessionRequest, owner: str) -> Opened:
         self.check_label(request.label)
         preset = request.preset or DEFAULT_PRESET
         if preset not in PRESETS:
@@ -114,7 +127,7 @@ class Registry:
             mapper = Mapper(config, device=self.device)
             return self._open(mapper, preset, overrides, request.label, "", owner)
 
-    def restore(self, owner: str, receive: Callable[[], Upload]) -> Session:
+    def restore(self, owner: str, receive: Callable[[], Upload]) -> Opened:
         """Reserve the session's place before ``receive`` reads the snapshot: a full server refuses at once."""
         with self._reserve(owner):
             upload = receive()
@@ -126,20 +139,75 @@ class Registry:
 
     def _open(
         self, mapper: Mapper, preset: str, overrides: dict[str, str], label: str, restored: str, owner: str
-    ) -> Session:
+    ) -> Opened:
         session_id = uuid.uuid4().hex
         config = pb.SessionConfig(
             session_id=session_id, preset=preset, overrides=overrides,
             config_json=json.dumps(mapper.config.to_dict()), device=str(mapper.device), label=label,
             created_unix=time.time(), server_version=__version__, restored_from_sha256=restored,
         )
+        token = auth.new_token()
+        identity = Identity(owner, auth.TokenHash.of(token), config)
         recorder = Recorder(self.record_dir / f"{session_id}.mcap", config)
-        session = Session(config, auth.new_token(), mapper, recorder, self.settings.limits, self.settings.frame_seconds)
-        with self._lock:
-            self._sessions[session_id] = session
-            self._tenancy[session_id] = Tenancy(owner, time.monotonic())
+        checkpoints = Checkpoints(recorder.path, identity, self.settings.checkpoint_interval)
+        try:
+            # without it a crash would lose who the session is
+            checkpoints.write(mapper.state(training_state=True), Position())
+        except OSError as error:
+            recorder.close()
+            recorder.path.unlink(missing_ok=True)
+            log.error("session %s: cannot write its first checkpoint: %s", session_id, error)
+            raise storage_error(error, "a new session's checkpoint") from None
+        session = Session(config, identity.token, mapper, recorder, self.settings.limits, self.settings.frame_seconds,
+                          checkpoints)
+        self._register(session, owner)
         log.info("session %s opened for %s (preset %r, device %s)", session_id, owner, preset or "restored",
                  mapper.device)
+        return Opened(session, token)
+
+    def _register(self, session: Session, owner: str) -> None:
+        with self._lock:
+            self._sessions[session.id] = session
+            self._tenancy[session.id] = Tenancy(owner, time.monotonic())
+
+    def resume(self, recording: Path) -> Session:
+        """The session ``recording`` belongs to, back as it was when its server died: same id, owner
+        and token (checked against the stored hash), its map from its last checkpoint, the recorded
+        frames after that as a backlog its worker maps first, the recording going on. CheckpointError,
+        RecordingError, ServiceError or StorageError say why it cannot be resumed; the files are then
+        left as they were, except a recording that was already copied and replaced (it holds the same)."""
+        saved = checkpoint.read(checkpoint.path_for(recording), self.settings.config_bounds)
+        session_id = saved.identity.session_id
+        if session_id != recording.stem:
+            raise CheckpointError(f"it belongs to session {session_id}, not to {recording.name}")
+        with self._lock:
+            if session_id in self._sessions or session_id in self._retiring:
+                raise ServiceError(grpc.StatusCode.ALREADY_EXISTS, f"session {session_id} is already open")
+        backlog, frames = [], 0
+        for frames, message in enumerate(layout.read_messages(recording, {layout.TOPIC_FRAMES}), 1):
+            if frames > saved.position.sequence:
+                try:
+                    backlog.append(Recorded(frames, pb.Frame.FromString(message.data)))
+                except DecodeError:
+                    raise layout.RecordingError(f"{recording.name}: recorded frame {frames} is damaged") from None
+        if frames < saved.position.sequence:
+            raise CheckpointError(f"it is at frame {saved.position.sequence}, beyond the {frames} frames of "
+                                  f"{recording.name}")
+        with self._reserve(saved.identity.owner):
+            try:
+                mapper = Mapper.from_state(saved.state, device=self.device, training_state=True)
+            except ValueError as error:
+                raise CheckpointError(f"its map cannot be rebuilt: {error}") from None
+            recorder = Recorder.resume(recording)
+            checkpoints = Checkpoints(recording, saved.identity, self.settings.checkpoint_interval)
+            config = pb.SessionConfig()
+            config.CopyFrom(saved.identity.config)
+            config.device = str(mapper.device)  # this server's, which may not be the crashed one's
+            session = Session(config, saved.identity.token, mapper, recorder, self.settings.limits,
+                              self.settings.frame_seconds, checkpoints, saved.position, backlog)
+            self._register(session, saved.identity.owner)
+        log.info("session %s resumed for %s from its checkpoint at frame %d, %d recorded frames after it to map "
+                 "again", session_id, saved.identity.owner, saved.position.sequence, len(backlog))
         return session
 
     def get(self, session_id: str, token: str, field: str = "session_id") -> Session:
@@ -227,11 +295,15 @@ class Registry:
                 log.error("session %s: cannot write its final snapshot %s: %s", session.id, snapshot, error)
                 raise storage_error(error, "the session's final snapshot") from None
         session.recorder.close(stats)
+        if session.checkpoints is not None:  # a closed session writes no more of them
+            session.checkpoints.remove()
         with self._lock:
             self._retiring.pop(session.id, None)
             self._tenancy.pop(session.id, None)
             self._closed_totals += FrameTotals.of(session.counters())
-        log.info("session %s closed after %d frames", session.id, stats.frames)
+        checkpoints = session.checkpoints
+        log.info("session %s closed after %d frames (%d checkpoints written, %.2f s in all)", session.id, stats.frames,
+                 checkpoints.written if checkpoints else 0, checkpoints.seconds if checkpoints else 0.0)
         return Closed(stats, session.recorder.path, snapshot, stopped)
 
     def close_all(self, timeout: float) -> list[Closed]:

@@ -19,7 +19,7 @@ from ogserver.errors import ServiceError, exhausted, invalid
 from ogserver.failures import FailedAuthentications, peer_address
 from ogserver.metrics import Metrics
 from ogserver.pacing import Paced, Timeout
-from ogserver.registry import Registry, Upload
+from ogserver.registry import Opened, Registry, Upload
 from ogserver.session import Session
 
 log = logging.getLogger(__name__)
@@ -45,8 +45,8 @@ def metadata(context: grpc.ServicerContext, key: str) -> str:
     return ""
 
 
-def credentials(session: Session) -> pb.SessionCredentials:
-    return messages.credentials(session.config, session.token, session.recorder.path)
+def credentials(opened: Opened) -> pb.SessionCredentials:
+    return messages.credentials(opened.session.config, opened.token, opened.session.recorder.path)
 
 
 def info(session: Session) -> pb.SessionInfo:

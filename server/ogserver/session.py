@@ -4,8 +4,12 @@ Frames are mapped strictly in arrival order by the session's own thread, so sess
 parallel while renders, stats and snapshots (other threads) are served by the mapper between
 optimisation iterations. The worker records each frame as it takes it up, before mapping it, so
 the recording holds exactly the frames the session mapped (or tried to): frames still queued when
-the session closes are dropped unrecorded, and a replay maps what the original did. The session
-answers in engine results and its own counters; the messages module turns them into ogapi messages.
+the session closes are dropped unrecorded, and a replay maps what the original did. Every
+``checkpoints.interval`` recorded frames the worker, once the frame's ack is sent, writes a
+checkpoint of the map (``checkpoint.py``). A session resumed after a crash starts from its last
+checkpoint with a backlog: the recorded frames after it, which the worker maps (they are already
+recorded) before any new frame. The session answers in engine results and its own counters; the
+messages module turns them into ogapi messages.
 """
 
 from __future__ import annotations
@@ -27,15 +31,16 @@ from ogmapping.budget import Budget
 from ogmapping.frame import Frame
 from ogmapping.mapper import Mapper, Rendered
 from ogmapping.stats import MapStats
-from ogserver import messages
+from ogserver import messages, validation
+from ogserver.auth import TokenHash
 from ogserver.budget import ByteBudget, frame_bytes
+from ogserver.checkpoint import Checkpoints, Position
 from ogserver.counters import SessionCounters
 from ogserver.errors import ServiceError
 from ogserver.events import Acked, SessionClosed, StreamEvent
 from ogserver.recorder import FrameRecord, Recorder, frame_record
 from ogserver.settings import Limits
 from ogserver.storage import StorageError
-from ogserver.validation import RenderSpec
 
 log = logging.getLogger(__name__)
 
@@ -50,10 +55,19 @@ class Job:
     size: int  # bytes it holds of the session's max_queued_bytes
 
 
+@dataclass(frozen=True)
+class Recorded:
+    """A frame the recording already holds, mapped again by a resumed session."""
+
+    sequence: int
+    message: pb.Frame
+
+
 class Session:
     def __init__(
-        self, config: pb.SessionConfig, token: str, mapper: Mapper, recorder: Recorder, limits: Limits,
-        frame_seconds: float = 0.0,
+        self, config: pb.SessionConfig, token: TokenHash, mapper: Mapper, recorder: Recorder, limits: Limits,
+        frame_seconds: float = 0.0, checkpoints: Checkpoints | None = None, start: Position | None = None,
+        backlog: list[Recorded] | None = None,
     ) -> None:
         self.id = config.session_id
         self.mapper = mapper
@@ -61,6 +75,13 @@ class Session:
         self.recorder = recorder
         self.limits = limits
         self.token = token
+        self.checkpoints = checkpoints
+        self._backlog = list(backlog or ())
+        start = start or Position()
+        # Sequences go on from where the map (start) stands; this server run counts the backlog as received.
+        self._sequence_base = start.sequence
+        self._last_index = self._backlog[-1].message.index if self._backlog else start.index
+        self._recorded = self._mapped_position = start
         self._started = time.monotonic()
         self._slots = threading.Semaphore(limits.queue_depth)
         self._queued_bytes = ByteBudget(limits.max_queued_bytes)
@@ -70,9 +91,10 @@ class Session:
         # Each frame's optimisation stops after frame_seconds (0: no limit), or at once when the session closes.
         self._time_budget = Budget(seconds=frame_seconds or math.inf)
         self._stream_sink: queue.SimpleQueue[StreamEvent] | None = None
-        self._received = self._rejected = self._mapped = self._pending = 0
+        self._rejected = self._mapped = 0
+        self._received = self._pending = len(self._backlog)
         self._anchors = mapper.stats().anchors  # a restored map starts with its anchors
-        self._first_received: float | None = None
+        self._first_received: float | None = self._started if self._backlog else None
         self._last_mapped: float | None = None
         self._worker = threading.Thread(target=self._run, name=f"session-{self.id[:8]}", daemon=True)
         self._worker.start()
@@ -137,12 +159,14 @@ class Session:
                 return False
             self._received += 1
             self._pending += 1
+            self._last_index = frame.index
             if self._first_received is None:
                 self._first_received = received
-            self._jobs.put(Job(frame, record, self._received, received, sink, size))
+            self._jobs.put(Job(frame, record, self._sequence_base + self._received, received, sink, size))
         return True
 
     def _run(self) -> None:
+        self._map_backlog()
         while (job := self._jobs.get()) is not None:
             try:
                 ack = self._record_and_map(job)
@@ -153,6 +177,41 @@ class Session:
                 self._slots.release()
             if job.sink is not None:
                 job.sink.put(Acked(ack))
+            self._checkpoint_if_due()
+
+    def _map_backlog(self) -> None:
+        """A resumed session's recorded frames after its checkpoint, mapped again (not recorded again)."""
+        while self._backlog and not self._closed.is_set():
+            item = self._backlog.pop(0)
+            try:
+                frame = validation.frame(item.message, self.limits.max_image_pixels, self.mapper.config.octree)
+                self._map(frame, item.sequence, time.monotonic())
+            except ServiceError as refusal:  # a server restarted with lower limits than the frame was taken under
+                log.error("session %s: recorded frame %d (sequence %d) is refused on resume: %s", self.id,
+                          item.message.index, item.sequence, refusal.message)
+            with self._lock:
+                self._pending -= 1
+                self._recorded = self._mapped_position = Position(item.sequence, item.message.index)
+            self._checkpoint_if_due()
+        if self._backlog:
+            log.warning("session %s: closed before its %d remaining recorded frames were mapped again", self.id,
+                        len(self._backlog))
+            with self._lock:
+                self._pending -= len(self._backlog)
+            self._backlog.clear()
+
+    def _checkpoint_if_due(self) -> None:
+        """After a frame is recorded, mapped and acknowledged: a checkpoint when one is due. A failed
+        write is logged and the previous checkpoint stands (a resume replays more frames)."""
+        position = self._recorded
+        if (self.checkpoints is None or not self.checkpoints.due(position.sequence) or self.recorder.failure
+                or self._closed.is_set()):
+            return
+        try:
+            self.checkpoints.write(self.mapper.state(training_state=True), position)
+        except OSError as error:
+            log.error("session %s: cannot write its checkpoint at sequence %d: %s", self.id, position.sequence,
+                      error.strerror or error)
 
     def _record_and_map(self, job: Job) -> pb.FrameAck:
         """A frame is mapped only once the recording holds it; one it cannot hold gets an error ack."""
@@ -160,29 +219,30 @@ class Session:
             self.recorder.write_frame(job.record)
         except ServiceError as refusal:
             return messages.error_ack(job.frame.index, refusal)
-        ack = self._map(job)
+        self._recorded = Position(job.sequence, job.frame.index)
+        ack = self._map(job.frame, job.sequence, job.received)
+        with self._lock:
+            self._mapped_position = self._recorded
         with suppress(StorageError):  # logged by the recorder; the frame is mapped and recorded, its ack is not
             self.recorder.write_ack(ack)
         return ack
 
-    def _map(self, job: Job) -> pb.FrameAck:
+    def _map(self, frame: Frame, sequence: int, received: float) -> pb.FrameAck:
         try:
-            result = self.mapper.process(job.frame, self._time_budget)
+            result = self.mapper.process(frame, self._time_budget)
         except Exception as error:  # the session survives a failing frame; the client sees why
-            log.exception("session %s: mapping frame %d failed", self.id, job.frame.index)
-            return messages.error_ack(
-                job.frame.index, ServiceError(grpc.StatusCode.INTERNAL, f"mapping failed: {error}")
-            )
+            log.exception("session %s: mapping frame %d failed", self.id, frame.index)
+            return messages.error_ack(frame.index, ServiceError(grpc.StatusCode.INTERNAL, f"mapping failed: {error}"))
         with self._lock:
             self._mapped += 1
             self._anchors = result.anchors
             self._last_mapped = time.monotonic()
             waiting = self._pending - 1
-        return messages.frame_ack(result, job.sequence, time.monotonic() - job.received, max(waiting, 0))
+        return messages.frame_ack(result, sequence, time.monotonic() - received, max(waiting, 0))
 
     # ------------------------------------------------------------------ queries
 
-    def render(self, spec: RenderSpec) -> Rendered:
+    def render(self, spec: validation.RenderSpec) -> Rendered:
         return self.mapper.render(spec.c2w, spec.intrinsics)
 
     def map_stats(self) -> MapStats:
@@ -198,6 +258,8 @@ class Session:
                 received=self._received, rejected=self._rejected, mapped=self._mapped, pending=self._pending,
                 anchors=self._anchors, processing_fps=self._mapped / elapsed if elapsed > 0 else 0.0,
                 uptime_seconds=time.monotonic() - self._started,
+                last_sequence=self._sequence_base + self._received, last_index=self._last_index,
+                mapped_sequence=self._mapped_position.sequence,
             )
 
     def snapshot(self) -> bytes:

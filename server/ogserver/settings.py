@@ -109,6 +109,10 @@ class Settings:
     # --- input: what one session's config and one frame may cost
     config_bounds: ConfigBounds = field(default_factory=ConfigBounds)  # on CreateSession's and snapshots' configs
     frame_seconds: float = 60.0  # a frame's optimisation stops after this long, or at once on close; 0 = no limit
+    # --- crashes: a checkpoint of each session's map every this many recorded frames (0: only the one
+    # written when it opens); at start, resume the sessions a crashed server left open
+    checkpoint_interval: int = 50
+    resume: bool = True
 
     def validate(self) -> None:
         if not self.address or ":" not in self.address:
@@ -122,6 +126,8 @@ class Settings:
         self.config_bounds.validate()
         if not (math.isfinite(self.frame_seconds) and self.frame_seconds >= 0):
             raise ValueError(f"frame_seconds must be >= 0 and finite (got {self.frame_seconds})")
+        if self.checkpoint_interval < 0:
+            raise ValueError(f"checkpoint_interval must be an integer >= 0 (got {self.checkpoint_interval})")
 
     def threads(self) -> int:
         return self.torch_threads or max(1, min(os.cpu_count() or 1, 8))

@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.connection import SessionRef, connect
 from ogclient.messages import frame_to_proto
+from ogserver.validation import MAX_TIMESTAMP_SECONDS
 from safetensors.torch import load as load_tensors
 from safetensors.torch import save as save_tensors
 
@@ -44,6 +45,10 @@ Mutation = Callable[[pb.Frame], None]
 # Numbers that sit on the edges of what fields, the engine and the codecs take.
 EDGE_FLOATS = st.sampled_from([0.0, -0.0, 1e-300, -1.0, 1e300, math.inf, -math.inf, math.nan, 7000.0, 0.5, 1e6])
 FLOATS = EDGE_FLOATS | st.floats(allow_nan=True, allow_infinity=True) | st.floats(-500, 500)
+TIMESTAMP_EDGES = st.sampled_from([
+    MAX_TIMESTAMP_SECONDS, math.nextafter(MAX_TIMESTAMP_SECONDS, 0.0), math.nextafter(MAX_TIMESTAMP_SECONDS, math.inf),
+    -5e-324, 5e-324, -1e-9, 1.8e308, -1.8e308, 2.0**63 / 1e9,
+]) | st.floats(-2 * MAX_TIMESTAMP_SECONDS, 2 * MAX_TIMESTAMP_SECONDS)
 SIZES = st.sampled_from([0, 1, 59, 60, 61, 80, 65500, 70000, 100000, 2**32 - 1]) | st.integers(0, 300)
 BYTES = st.binary(max_size=512) | st.sampled_from([b"\x89PNG\r\n\x1a\n", b"\xff\xd8", GOOD.color.data[:40]])
 
@@ -86,9 +91,9 @@ MUTATIONS = st.one_of(
     st.tuples(st.sampled_from(["color.encoding", "depth.encoding"]), st.integers(0, 9)).map(lambda p: set_value(*p)),
     st.tuples(st.sampled_from(["color.data", "depth.data"]), BYTES).map(lambda pair: set_value(*pair)),
     FLOATS.map(lambda scale: set_value("depth.depth_scale", scale)),
-    # Timestamps the recorder can write today; issue 15's defect 3 (large ones wedge the stream) is the
-    # recording side's part, and this range widens to FLOATS with its fix.
-    st.floats(0, 1e9).map(lambda seconds: set_value("timestamp", seconds)),
+    # The whole double range the proto allows (huge, negative, subnormal, nan, inf) and the edges of
+    # what a recording's unsigned 64-bit nanoseconds hold: refused with an error ack, never a wedged stream.
+    (FLOATS | TIMESTAMP_EDGES).map(lambda seconds: set_value("timestamp", seconds)),
     st.integers(0, 2**64 - 1).map(lambda index: set_value("index", index)),
 )
 

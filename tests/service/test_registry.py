@@ -13,8 +13,7 @@ from ogclient.messages import frame_to_proto
 from ogserver.app import build
 from ogserver.callers import ANONYMOUS
 from ogserver.errors import ServiceError
-from ogserver.registry import Registry
-from ogserver.session import Session
+from ogserver.registry import Opened, Registry
 from ogserver.settings import Settings
 from ogserver.validation import frame as validate_frame
 
@@ -28,15 +27,16 @@ def registry(tmp_path: Path) -> Registry:
     return Registry(Settings(record_dir=str(tmp_path), final_snapshots=True), "cpu")
 
 
-def map_frames(registry: Registry, count: int) -> Session:
-    session = registry.create(create_request(FROZEN), ANONYMOUS)
+def map_frames(registry: Registry, count: int) -> Opened:
+    opened = registry.create(create_request(FROZEN), ANONYMOUS)
+    session = opened.session
     sink: queue.SimpleQueue = queue.SimpleQueue()
     frames = scene("0:4")
     for position in range(count):
         message = frame_to_proto(frames.load(position))
         assert session.submit(validate_frame(message, 1 << 20, OctreeConfig()), message, sink)
     assert all(sink.get(timeout=60).ack.accepted for _ in range(count))
-    return session
+    return opened
 
 
 def test_create_on_a_full_disk_is_refused_and_leaves_no_file(tmp_path: Path, full_disk: FullDisk) -> None:
@@ -47,17 +47,18 @@ def test_create_on_a_full_disk_is_refused_and_leaves_no_file(tmp_path: Path, ful
     assert refusal.value.code == grpc.StatusCode.RESOURCE_EXHAUSTED and str(tmp_path) not in refusal.value.message
     assert list(tmp_path.iterdir()) == [] and sessions.sessions() == []
     full_disk.free = None
-    sessions.close(sessions.create(create_request(FROZEN), ANONYMOUS))  # the refused one took no slot
+    sessions.close(sessions.create(create_request(FROZEN), ANONYMOUS).session)  # the refused one took no slot
 
 
 def test_close_on_a_full_disk_keeps_the_session_until_it_can_finish(tmp_path: Path, full_disk: FullDisk) -> None:
     sessions = registry(tmp_path)
-    session = map_frames(sessions, 2)
+    opened = map_frames(sessions, 2)
+    session = opened.session
     full_disk.free = 0
     with pytest.raises(ServiceError) as refusal:
         sessions.close(session)
     assert refusal.value.code == grpc.StatusCode.RESOURCE_EXHAUSTED and "still open" in refusal.value.message
-    assert sessions.get(session.id, session.token) is session and session.snapshot()  # its map is still there
+    assert sessions.get(session.id, opened.token) is session and session.snapshot()  # its map is still there
     full_disk.free = None
     closed = sessions.close(session)
     assert closed.stats.frames == 2 and closed.snapshot is not None and closed.snapshot.exists()
@@ -65,7 +66,7 @@ def test_close_on_a_full_disk_keeps_the_session_until_it_can_finish(tmp_path: Pa
         summary = make_reader(stream).get_summary()
     assert summary is not None and summary.statistics.message_count > 0
     with pytest.raises(ServiceError) as gone:
-        sessions.get(session.id, session.token)
+        sessions.get(session.id, opened.token)
     assert gone.value.code == grpc.StatusCode.NOT_FOUND
 
 

@@ -11,6 +11,7 @@ import pytest
 from ogapi import recording
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.messages import frame_to_proto
+from ogserver.auth import TokenHash
 from ogserver.errors import ServiceError
 from ogserver.events import Acked, SessionClosed
 from ogserver.recorder import Recorder
@@ -28,7 +29,7 @@ from .scene import FROZEN, PRESET, TINY, scene
 def make_session(tmp_path: Path, limits: Limits, overrides: dict[str, str] = FROZEN) -> Session:
     config = pb.SessionConfig(session_id="1" * 32, preset=PRESET)
     recorder = Recorder(tmp_path / "session.mcap", config)
-    return Session(config, "token", Mapper(resolve(PRESET, overrides=overrides)), recorder, limits)
+    return Session(config, TokenHash.of("token"), Mapper(resolve(PRESET, overrides=overrides)), recorder, limits)
 
 
 def submit(session: Session, position: int, sink: queue.SimpleQueue) -> None:

@@ -40,6 +40,9 @@ def test_the_test_server_config_loads() -> None:
         ("config_bounds:\n  max_iterations: 0\n", "config_bounds.max_iterations must be a positive int"),
         ("config_bounds:\n  max_iteration: 10\n", "unknown server setting 'config_bounds.max_iteration'"),
         ("frame_seconds: -1\n", "frame_seconds must be >= 0"),
+        ("checkpoint_interval: -1\n", "checkpoint_interval must be an integer >= 0"),
+        ("checkpoint_interval: 2.5\n", "checkpoint_interval must be int"),
+        ("resume: 1\n", "resume must be bool"),
     ],
 )
 def test_bad_settings_are_refused(tmp_path: Path, text: str, message: str) -> None:

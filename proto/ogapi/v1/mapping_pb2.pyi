@@ -227,7 +227,7 @@ class GetStatsRequest(_message.Message):
     def __init__(self, session_id: _Optional[str] = ...) -> None: ...
 
 class Stats(_message.Message):
-    __slots__ = ("session_id", "preset", "device", "frames", "keyframes", "anchors", "anchors_per_level", "gaussians", "iterations", "timings", "frames_received", "frames_rejected", "queue_depth", "processing_fps", "uptime_seconds", "engine_json", "config_json")
+    __slots__ = ("session_id", "preset", "device", "frames", "keyframes", "anchors", "anchors_per_level", "gaussians", "iterations", "timings", "frames_received", "frames_rejected", "queue_depth", "processing_fps", "uptime_seconds", "engine_json", "config_json", "last_sequence", "last_index", "mapped_sequence")
     class TimingsEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -252,6 +252,9 @@ class Stats(_message.Message):
     UPTIME_SECONDS_FIELD_NUMBER: _ClassVar[int]
     ENGINE_JSON_FIELD_NUMBER: _ClassVar[int]
     CONFIG_JSON_FIELD_NUMBER: _ClassVar[int]
+    LAST_SEQUENCE_FIELD_NUMBER: _ClassVar[int]
+    LAST_INDEX_FIELD_NUMBER: _ClassVar[int]
+    MAPPED_SEQUENCE_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     preset: str
     device: str
@@ -269,7 +272,10 @@ class Stats(_message.Message):
     uptime_seconds: float
     engine_json: str
     config_json: str
-    def __init__(self, session_id: _Optional[str] = ..., preset: _Optional[str] = ..., device: _Optional[str] = ..., frames: _Optional[int] = ..., keyframes: _Optional[int] = ..., anchors: _Optional[int] = ..., anchors_per_level: _Optional[_Iterable[int]] = ..., gaussians: _Optional[int] = ..., iterations: _Optional[int] = ..., timings: _Optional[_Mapping[str, float]] = ..., frames_received: _Optional[int] = ..., frames_rejected: _Optional[int] = ..., queue_depth: _Optional[int] = ..., processing_fps: _Optional[float] = ..., uptime_seconds: _Optional[float] = ..., engine_json: _Optional[str] = ..., config_json: _Optional[str] = ...) -> None: ...
+    last_sequence: int
+    last_index: int
+    mapped_sequence: int
+    def __init__(self, session_id: _Optional[str] = ..., preset: _Optional[str] = ..., device: _Optional[str] = ..., frames: _Optional[int] = ..., keyframes: _Optional[int] = ..., anchors: _Optional[int] = ..., anchors_per_level: _Optional[_Iterable[int]] = ..., gaussians: _Optional[int] = ..., iterations: _Optional[int] = ..., timings: _Optional[_Mapping[str, float]] = ..., frames_received: _Optional[int] = ..., frames_rejected: _Optional[int] = ..., queue_depth: _Optional[int] = ..., processing_fps: _Optional[float] = ..., uptime_seconds: _Optional[float] = ..., engine_json: _Optional[str] = ..., config_json: _Optional[str] = ..., last_sequence: _Optional[int] = ..., last_index: _Optional[int] = ..., mapped_sequence: _Optional[int] = ...) -> None: ...
 
 class GetSnapshotRequest(_message.Message):
     __slots__ = ("session_id",)
@@ -302,7 +308,7 @@ class ListSessionsRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class SessionInfo(_message.Message):
-    __slots__ = ("session_id", "preset", "label", "device", "created_unix", "frames", "anchors", "queue_depth", "streaming", "recording")
+    __slots__ = ("session_id", "preset", "label", "device", "created_unix", "frames", "anchors", "queue_depth", "streaming", "recording", "last_sequence", "last_index")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     PRESET_FIELD_NUMBER: _ClassVar[int]
     LABEL_FIELD_NUMBER: _ClassVar[int]
@@ -313,6 +319,8 @@ class SessionInfo(_message.Message):
     QUEUE_DEPTH_FIELD_NUMBER: _ClassVar[int]
     STREAMING_FIELD_NUMBER: _ClassVar[int]
     RECORDING_FIELD_NUMBER: _ClassVar[int]
+    LAST_SEQUENCE_FIELD_NUMBER: _ClassVar[int]
+    LAST_INDEX_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     preset: str
     label: str
@@ -323,7 +331,9 @@ class SessionInfo(_message.Message):
     queue_depth: int
     streaming: bool
     recording: str
-    def __init__(self, session_id: _Optional[str] = ..., preset: _Optional[str] = ..., label: _Optional[str] = ..., device: _Optional[str] = ..., created_unix: _Optional[float] = ..., frames: _Optional[int] = ..., anchors: _Optional[int] = ..., queue_depth: _Optional[int] = ..., streaming: _Optional[bool] = ..., recording: _Optional[str] = ...) -> None: ...
+    last_sequence: int
+    last_index: int
+    def __init__(self, session_id: _Optional[str] = ..., preset: _Optional[str] = ..., label: _Optional[str] = ..., device: _Optional[str] = ..., created_unix: _Optional[float] = ..., frames: _Optional[int] = ..., anchors: _Optional[int] = ..., queue_depth: _Optional[int] = ..., streaming: _Optional[bool] = ..., recording: _Optional[str] = ..., last_sequence: _Optional[int] = ..., last_index: _Optional[int] = ...) -> None: ...
 
 class ListSessionsResponse(_message.Message):
     __slots__ = ("sessions",)

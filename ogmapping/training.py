@@ -1,0 +1,137 @@
+"""What a mapper's optimisation carries besides the map, as plain tensors: the keyframes, Adam's
+moments, the refinement statistics, the anchors' exact centres and the random states.
+
+A snapshot leaves these out (a map rebuilt from it renders the same, and maps on with fresh
+keyframes and moments); a checkpoint keeps them (``Mapper.state(training=True)``), so a session
+resumed from one maps the frames after it as the uninterrupted session did. Keyframes dominate the
+size: colour as uint8 and depth as float16, as they are kept in memory (``keyframes.Keyframe``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ogmapping.anchors import AnchorMap
+from ogmapping.camera import Intrinsics
+from ogmapping.keyframes import Keyframe, KeyframeSet
+from ogmapping.lazy_adam import LazyAdam
+
+PREFIX = "training."
+STATISTICS = ("positions", "grad_sum", "grad_count", "max_opacity")
+
+
+@dataclass
+class Optimisation:
+    """The parts of a mapper its optimisation state lives in (the mapper hands over its own)."""
+
+    anchors: AnchorMap
+    optimizer: torch.optim.Optimizer
+    hash_optimizer: LazyAdam | None
+    generator: torch.Generator
+    keyframes: KeyframeSet
+    device: torch.device
+    last_gaussians: int
+
+
+def _scalar(value: float | int, dtype: torch.dtype) -> torch.Tensor:
+    return torch.tensor([value], dtype=dtype)
+
+
+def capture(mapper: Optimisation) -> dict[str, torch.Tensor]:
+    """The training state in a mapper's parts (hold its lock), keyed ``training.*``, as copies on the CPU."""
+    tensors: dict[str, torch.Tensor] = {f"anchors.{name}": getattr(mapper.anchors, name) for name in STATISTICS}
+    for group in mapper.optimizer.param_groups:
+        for position, param in enumerate(group["params"]):
+            for key, value in mapper.optimizer.state.get(param, {}).items():
+                tensors[f"adam.{group['name']}.{position}.{key}"] = torch.as_tensor(value)
+    if mapper.hash_optimizer is not None:
+        tensors["hash_adam.step_count"] = _scalar(mapper.hash_optimizer.step_count, torch.int64)
+        tensors["hash_adam.exp_avg"] = mapper.hash_optimizer.exp_avg
+        tensors["hash_adam.exp_avg_sq"] = mapper.hash_optimizer.exp_avg_sq
+    tensors["generator"] = mapper.generator.get_state()
+    tensors["last_gaussians"] = _scalar(mapper.last_gaussians, torch.int64)
+    keyframes = mapper.keyframes
+    version, internal, gauss = keyframes.random.getstate()
+    tensors["keyframes.random"] = torch.tensor([version, *internal], dtype=torch.int64)
+    tensors["keyframes.random_gauss"] = _scalar(math.nan if gauss is None else gauss, torch.float64)
+    for name in ("local", "global_", "fixed"):
+        tensors[f"keyframes.{name}"] = torch.tensor(getattr(keyframes, name), dtype=torch.int64)
+    tensors["keyframes.count"] = _scalar(len(keyframes), torch.int64)
+    for position, keyframe in enumerate(keyframes.keyframes):
+        camera = keyframe.intrinsics
+        tensors.update({
+            f"keyframes.{position}.index": _scalar(keyframe.index, torch.int64),
+            f"keyframes.{position}.rgb": keyframe.rgb,
+            f"keyframes.{position}.depth": keyframe.depth,
+            f"keyframes.{position}.intrinsics": torch.tensor(
+                [camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height], dtype=torch.float64),
+            f"keyframes.{position}.c2w": keyframe.c2w,
+            f"keyframes.{position}.codes": keyframe.codes,
+        })
+    return {PREFIX + name: value.detach().cpu().clone() for name, value in tensors.items()}
+
+
+def _shaped(tensors: dict[str, torch.Tensor], name: str, like: torch.Tensor) -> torch.Tensor:
+    value = tensors[name]
+    if value.shape != like.shape:
+        raise ValueError(f"{PREFIX}{name}: shape {tuple(value.shape)}, expected {tuple(like.shape)}")
+    return value.to(like.device, like.dtype)
+
+
+def restore(mapper: Optimisation, tensors: dict[str, torch.Tensor]) -> int | None:
+    """Put a captured training state into a mapper's parts, which already hold the map it was
+    captured with, and return its ``last_gaussians``; a state without any (a snapshot) leaves the
+    fresh one (None). KeyError or ValueError when it does not fit the map."""
+    section = {name[len(PREFIX):]: value for name, value in tensors.items() if name.startswith(PREFIX)}
+    if not section:
+        return None
+    anchors = mapper.anchors
+    for name in STATISTICS:
+        setattr(anchors, name, _shaped(section, f"anchors.{name}", getattr(anchors, name)))
+    optimizer = mapper.optimizer
+    for group in optimizer.param_groups:
+        for position, param in enumerate(group["params"]):
+            prefix = f"adam.{group['name']}.{position}."
+            state = {name[len(prefix):]: value for name, value in section.items() if name.startswith(prefix)}
+            optimizer.state.pop(param, None)
+            if state:
+                optimizer.state[param] = {
+                    "step": state["step"],
+                    "exp_avg": _shaped(state, "exp_avg", param.detach()),
+                    "exp_avg_sq": _shaped(state, "exp_avg_sq", param.detach()),
+                }
+    if mapper.hash_optimizer is not None:
+        adam = mapper.hash_optimizer
+        adam.step_count = int(section["hash_adam.step_count"][0])
+        adam.exp_avg = _shaped(section, "hash_adam.exp_avg", adam.exp_avg)
+        adam.exp_avg_sq = _shaped(section, "hash_adam.exp_avg_sq", adam.exp_avg_sq)
+    mapper.generator.set_state(section["generator"])
+    _restore_keyframes(mapper, section)
+    return int(section["last_gaussians"][0])
+
+
+def _restore_keyframes(mapper: Optimisation, section: dict[str, torch.Tensor]) -> None:
+    keyframes = mapper.keyframes
+    pinned = mapper.device.type == "cuda"
+    restored = []
+    for position in range(int(section["keyframes.count"][0])):
+        prefix = f"keyframes.{position}."
+        fx, fy, cx, cy, width, height = section[prefix + "intrinsics"].tolist()
+        rgb, depth = section[prefix + "rgb"], section[prefix + "depth"]
+        restored.append(Keyframe(
+            int(section[prefix + "index"][0]), rgb.pin_memory() if pinned else rgb,
+            depth.pin_memory() if pinned else depth, Intrinsics(fx, fy, cx, cy, int(width), int(height)),
+            section[prefix + "c2w"].to(mapper.device), section[prefix + "codes"].to(mapper.device), pinned,
+        ))
+    keyframes.keyframes = restored
+    for name in ("local", "global_", "fixed"):
+        indices = section[f"keyframes.{name}"].tolist()
+        if any(not 0 <= index < len(restored) for index in indices):
+            raise ValueError(f"{PREFIX}keyframes.{name}: an index beyond the {len(restored)} keyframes")
+        setattr(keyframes, name, indices)
+    version, *internal = section["keyframes.random"].tolist()
+    gauss = float(section["keyframes.random_gauss"][0])
+    keyframes.random.setstate((version, tuple(internal), None if math.isnan(gauss) else gauss))

@@ -1,0 +1,193 @@
+"""Session checkpoints: a session's map and what resuming it after a crash needs, in one file.
+
+``<session>.checkpoint.safetensors`` lies next to the session's recording. It is a snapshot
+(``ogmapping.snapshot``: the map's tensors, its config) in float32 and with the map's training state
+(``ogmapping.training``: keyframes, Adam's moments, random states), so the resumed session maps the
+frames after it as the uninterrupted one would have. Its safetensors metadata also holds, as
+JSON, the session's identity (id, owner, the recorded ``SessionConfig`` with label and resolved
+config, a salted hash of its token, never the token) and the position of the map in the recording:
+the sequence of the last frame it holds (the n-th recorded frame has sequence n) and that frame's
+``index``. A sha256 of the tensor bytes, in the same metadata, lets a resume refuse a damaged file.
+A checkpoint replaces the previous one atomically (temporary file, fsync, rename, fsync of the
+directory): the file under its name is always a whole checkpoint, the old one or the new one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from google.protobuf import json_format
+from ogapi.v1 import mapping_pb2 as pb
+
+from ogmapping import snapshot
+from ogmapping.config import ConfigBounds
+from ogmapping.state import MapState
+from ogserver.auth import TokenHash
+
+log = logging.getLogger(__name__)
+FORMAT = "ogserver-checkpoint"
+VERSION = 1
+SUFFIX = ".checkpoint.safetensors"
+KEY = "checkpoint"  # the safetensors metadata entry with the JSON below
+PAYLOAD_KEY = "payload_sha256"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be trusted: damaged, cut, of another format or session."""
+
+
+def path_for(recording: Path) -> Path:
+    """``<session>.checkpoint.safetensors`` beside ``<session>.mcap``."""
+    return recording.with_name(recording.stem + SUFFIX)
+
+
+@dataclass(frozen=True)
+class Identity:
+    """Who the session is: what a resumed session must keep."""
+
+    owner: str
+    token: TokenHash
+    config: pb.SessionConfig  # as the recording's first message: id, label, preset, resolved config
+
+    @property
+    def session_id(self) -> str:
+        return self.config.session_id
+
+
+@dataclass(frozen=True)
+class Position:
+    """Where the map stands in the session's frames: it holds the recorded frames 1..``sequence``."""
+
+    sequence: int = 0
+    index: int = 0  # Frame.index of frame ``sequence`` (0 before any)
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    identity: Identity
+    position: Position
+    state: MapState
+
+
+def encode(identity: Identity, position: Position, state: MapState) -> bytes:
+    """The checkpoint file's bytes: the snapshot of ``state`` with the identity, position and payload digest."""
+    entry = {
+        "format": FORMAT, "version": VERSION, "written_unix": time.time(),
+        "session_id": identity.session_id, "owner": identity.owner,
+        "token_salt": identity.token.salt, "token_sha256": identity.token.sha256,
+        "session_config": json_format.MessageToDict(identity.config),
+        "sequence": position.sequence, "index": position.index,
+    }
+    # float32 throughout: the session maps on from it, so it must hold the map as it was, not rounded
+    return _with_metadata(snapshot.encode(state, half=False), {KEY: json.dumps(entry)})
+
+
+def _split(data: bytes) -> tuple[dict, bytes]:
+    """A safetensors file's header (parsed) and its tensor bytes; the caller has checked the header length."""
+    length = int.from_bytes(data[:8], "little")
+    return json.loads(data[8 : 8 + length]), data[8 + length :]
+
+
+def _with_metadata(data: bytes, extra: dict[str, str]) -> bytes:
+    """``data`` (safetensors) with ``extra`` and the payload's sha256 added to its metadata. Tensor
+    offsets count from the payload's start, so only the header changes (padded to 8 bytes, as
+    safetensors writes it)."""
+    header, payload = _split(data)
+    header["__metadata__"] = {**header.get("__metadata__", {}), **extra,
+                              PAYLOAD_KEY: hashlib.sha256(payload).hexdigest()}
+    text = json.dumps(header, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 8)
+    return len(text).to_bytes(8, "little") + text + payload
+
+
+def decode(data: bytes, bounds: ConfigBounds | None = None) -> Checkpoint:
+    """The checkpoint in ``data``; ``CheckpointError`` naming what is wrong with anything else."""
+    try:
+        metadata = snapshot.read_metadata(data)
+    except ValueError as error:
+        raise CheckpointError(f"not a checkpoint: {error}") from None
+    if PAYLOAD_KEY not in metadata or KEY not in metadata:
+        raise CheckpointError("not a checkpoint: a snapshot without the checkpoint's metadata")
+    if hashlib.sha256(_split(data)[1]).hexdigest() != metadata[PAYLOAD_KEY]:
+        raise CheckpointError("damaged: the tensor bytes do not match their sha256")
+    try:
+        entry = json.loads(metadata[KEY])
+        if entry.get("format") != FORMAT or entry.get("version") != VERSION:
+            raise CheckpointError(f"format {entry.get('format')!r} version {entry.get('version')!r} is not "
+                                  f"{FORMAT!r} version {VERSION}")
+        config = json_format.ParseDict(entry["session_config"], pb.SessionConfig())
+        identity = Identity(str(entry["owner"]), TokenHash(str(entry["token_salt"]), str(entry["token_sha256"])),
+                            config)
+        position = Position(int(entry["sequence"]), int(entry["index"]))
+    except CheckpointError:
+        raise
+    except (KeyError, TypeError, ValueError, json_format.ParseError) as error:
+        raise CheckpointError(f"malformed metadata: {type(error).__name__}: {error}") from None
+    if identity.session_id != entry["session_id"] or position.sequence < 0:
+        raise CheckpointError("malformed metadata: inconsistent session id or sequence")
+    try:
+        state = snapshot.decode(data, bounds)
+    except ValueError as error:
+        raise CheckpointError(f"its map: {error}") from None
+    return Checkpoint(identity, position, state)
+
+
+def read(path: Path, bounds: ConfigBounds | None = None) -> Checkpoint:
+    try:
+        data = path.read_bytes()
+    except OSError as error:
+        raise CheckpointError(f"cannot read {path.name}: {error.strerror or error}") from None
+    return decode(data, bounds)
+
+
+def write_atomically(path: Path, data: bytes) -> None:
+    """``path`` holds ``data`` or, if this fails or the process dies, what it held before."""
+    temporary = path.with_name(path.name + ".tmp")
+    try:
+        with open(temporary, "wb") as file:
+            file.write(data)
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(temporary, path)
+    except OSError:
+        temporary.unlink(missing_ok=True)
+        raise
+    directory = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(directory)  # the rename itself survives a power cut
+    finally:
+        os.close(directory)
+
+
+class Checkpoints:
+    """One session's checkpoints: where they go, what each carries besides the map, when one is due."""
+
+    def __init__(self, recording: Path, identity: Identity, interval: int) -> None:
+        self.path = path_for(recording)
+        self.identity = identity
+        self.interval = interval  # frames; 0: only the one written when the session opens
+        self.written = 0
+        self.seconds = 0.0  # spent writing them, encoding included
+
+    def due(self, sequence: int) -> bool:
+        return self.interval > 0 and sequence > 0 and sequence % self.interval == 0
+
+    def write(self, state: MapState, position: Position) -> None:
+        """Raises OSError if it could not be written; the previous checkpoint then still stands."""
+        start = time.perf_counter()
+        write_atomically(self.path, encode(self.identity, position, state))
+        elapsed = time.perf_counter() - start
+        self.written += 1
+        self.seconds += elapsed
+        log.debug("session %s: checkpoint at sequence %d in %.3f s", self.identity.session_id, position.sequence,
+                  elapsed)
+
+    def remove(self) -> None:
+        """The session closed cleanly: nothing to resume."""
+        self.path.unlink(missing_ok=True)

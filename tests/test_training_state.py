@@ -1,0 +1,39 @@
+"""A mapper rebuilt from its state with the training state (a server's checkpoint) maps on bit for
+bit as the original; from a plain snapshot's state it starts afresh, and ignores a training state."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ogmapping import snapshot
+from ogmapping.config import resolve
+from ogmapping.evaluation import open_frames
+from ogmapping.mapper import Mapper
+
+TINY = {"keyframes.first_iterations": "6", "keyframes.iterations": "2"}
+SMALL_HASH = {"model.hash_log2_size": "12"}  # the default 2^19-row table costs a minute here, to no purpose
+
+
+@pytest.mark.parametrize("preset", ["sparse-fast", "dense"])  # anchor features / hash grid and its lazy Adam
+def test_a_mapper_rebuilt_with_its_training_state_maps_on_exactly(preset: str) -> None:
+    frames = open_frames("synthetic", "synthetic", "0:6", 1, 0.25, n_frames=40)
+    loaded = [frames.load(position) for position in range(6)]
+    config = resolve(preset, overrides={**TINY, **(SMALL_HASH if preset == "dense" else {})})
+    original = Mapper(config)
+    for frame in loaded[:3]:
+        original.process(frame)
+    data = snapshot.encode(original.state(training_state=True), half=False)
+    resumed = Mapper.from_state(snapshot.decode(data), training_state=True)
+    fresh_start = Mapper.from_state(snapshot.decode(data))  # the map only: fresh keyframes and moments
+    assert len(resumed.keyframes) == len(original.keyframes) and len(fresh_start.keyframes) == 0
+    for frame in loaded[3:]:
+        expected = original.process(frame)
+        got = resumed.process(frame)
+        assert (got.keyframe, got.anchors, got.iterations, got.loss) == \
+            (expected.keyframe, expected.anchors, expected.iterations, expected.loss)
+        fresh_start.process(frame)
+    pose, camera = loaded[2].c2w, loaded[2].color_intrinsics
+    reference = original.render(pose, camera)
+    assert np.array_equal(resumed.render(pose, camera).color, reference.color)
+    assert not np.array_equal(fresh_start.render(pose, camera).color, reference.color)
