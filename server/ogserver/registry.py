@@ -112,7 +112,7 @@ class Registry:
             raise invalid("overrides", error) from None
         with self._reserve(owner):
             mapper = Mapper(config, device=self.device)
-            return self._open(mapper, preset, overrides, request.label, "", owner)
+            return self._open(mapper, preset, overrides, request.label, "", owner, request.realtime)
 
     def restore(self, owner: str, receive: Callable[[], Upload]) -> Session:
         """Reserve the session's place before ``receive`` reads the snapshot: a full server refuses at once."""
@@ -125,21 +125,22 @@ class Registry:
             return self._open(mapper, "", {}, upload.label, upload.sha256, owner)
 
     def _open(
-        self, mapper: Mapper, preset: str, overrides: dict[str, str], label: str, restored: str, owner: str
+        self, mapper: Mapper, preset: str, overrides: dict[str, str], label: str, restored: str, owner: str,
+        realtime: bool = False,
     ) -> Session:
         session_id = uuid.uuid4().hex
         config = pb.SessionConfig(
             session_id=session_id, preset=preset, overrides=overrides,
             config_json=json.dumps(mapper.config.to_dict()), device=str(mapper.device), label=label,
-            created_unix=time.time(), server_version=__version__, restored_from_sha256=restored,
+            created_unix=time.time(), server_version=__version__, restored_from_sha256=restored, realtime=realtime,
         )
         recorder = Recorder(self.record_dir / f"{session_id}.mcap", config)
         session = Session(config, auth.new_token(), mapper, recorder, self.settings.limits, self.settings.frame_seconds)
         with self._lock:
             self._sessions[session_id] = session
             self._tenancy[session_id] = Tenancy(owner, time.monotonic())
-        log.info("session %s opened for %s (preset %r, device %s)", session_id, owner, preset or "restored",
-                 mapper.device)
+        log.info("session %s opened for %s (preset %r, device %s%s)", session_id, owner, preset or "restored",
+                 mapper.device, ", realtime" if realtime else "")
         return session
 
     def get(self, session_id: str, token: str, field: str = "session_id") -> Session:
