@@ -1,0 +1,69 @@
+"""Realtime sessions: a 30 FPS sender against a slower map keeps its rate, every frame is acknowledged,
+and the frames passed over are in the recording, where a replay maps them."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+
+from ogapi import recording
+from ogapi.v1 import mapping_pb2 as pb
+from ogclient import replay
+from ogclient.connection import SessionRef
+from ogclient.streaming import paced, stream_frames
+
+from .inprocess import serving, settings
+from .scene import create_request, messages, scene
+
+FPS = 30.0
+# Every frame optimises 8 iterations: far slower than 30 FPS on a CPU, so frames must be skipped.
+SLOW = {"keyframes.first_iterations": "8", "keyframes.iterations": "8", "keyframes.frame_iterations": "8"}
+
+
+def sensor(frames: list[pb.Frame], count: int, sent: list[float]) -> Iterator[pb.Frame]:
+    """``count`` frames cycling through ``frames`` (each its own index), at 30 FPS; ``sent`` gets the
+    time each one was taken by gRPC."""
+    cycle = (frames[number % len(frames)] for number in range(count))
+    for number, frame in enumerate(paced(cycle, FPS)):
+        sent.append(time.monotonic())
+        message = pb.Frame()
+        message.CopyFrom(frame)
+        message.index = number
+        yield message
+
+
+def test_a_realtime_stream_keeps_its_rate_and_records_skipped_frames(tmp_path) -> None:
+    count = 45
+    frames = messages(scene("0:20"))
+    sent: list[float] = []
+    with serving(settings(tmp_path)) as running:
+        request = create_request(SLOW)
+        request.realtime = True
+        credentials = running.stub.CreateSession(request)
+        session = SessionRef.from_credentials(credentials)
+        result = stream_frames(running.stub, session, sensor(frames, count, sent), progress=False)
+        stats = running.stub.GetStats(pb.GetStatsRequest(session_id=session.session_id), metadata=session.metadata())
+        running.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id), metadata=session.metadata())
+
+    # The sender kept its own rate: the server never held a frame back.
+    span = sent[-1] - sent[0]
+    assert span < (count - 1) / FPS + 0.5, f"{count} frames took {span:.2f} s to send at {FPS:g} FPS"
+    # Every frame was acknowledged, most of them as skipped, the rest mapped.
+    assert sorted(ack.index for ack in result.acks) == list(range(count))
+    assert not result.rejected
+    assert result.skipped and result.mapped and len(result.skipped) + len(result.mapped) == count
+    assert all(ack.accepted and ack.iterations == 0 and not ack.keyframe for ack in result.skipped)
+    assert sorted(ack.sequence for ack in result.acks) == list(range(1, count + 1))
+    # Latency stays bounded: a frame waits at most for the one being mapped (plus its own mapping).
+    slowest = max(ack.process_seconds for ack in result.mapped)
+    assert max(ack.latency_seconds for ack in result.acks) < 2 * slowest + 1.0
+    assert stats.frames_skipped == len(result.skipped) and stats.frames == len(result.mapped)
+    assert stats.frames_received == count
+
+    # The recording holds every frame in arrival order, with the same acks; a replay maps them all.
+    recorded = recording.load(credentials.recording)
+    assert recorded.config.realtime
+    assert [frame.index for _, frame in recorded.frames] == list(range(count))
+    assert {ack.index for ack in recorded.acks if ack.skipped} == {ack.index for ack in result.skipped}
+    assert not replay.session_request(recorded.config).realtime
+
