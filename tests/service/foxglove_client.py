@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from google.protobuf.message import Message
 from websockets.asyncio.client import ClientConnection, connect
+from websockets.exceptions import ConnectionClosed
 
 SUBPROTOCOL = "foxglove.sdk.v1"
 MESSAGE_DATA = 1
@@ -64,14 +65,14 @@ async def _read(ws: ClientConnection, received: Received, subscribed: dict[int, 
 
 async def watch(url: str, prefix: str, topics: list[str], wanted: set[str], seconds: float) -> Received:
     """Subscribe to ``prefix + topic`` for each topic once advertised; return once every ``wanted``
-    topic has a message, or after ``seconds``."""
+    topic has a message (none wanted: until the server ends the connection), or after ``seconds``."""
     received, subscribed = Received(), {}
     deadline = time.monotonic() + seconds
     async with connect(url, subprotocols=[SUBPROTOCOL], max_size=None) as ws:
-        while time.monotonic() < deadline and not wanted <= set(received.messages):
+        while time.monotonic() < deadline and not (wanted and wanted <= set(received.messages)):
             try:
                 await asyncio.wait_for(_read(ws, received, subscribed), max(deadline - time.monotonic(), 0.01))
-            except TimeoutError:
+            except (TimeoutError, ConnectionClosed):
                 break
             fresh = [received.channels[prefix + topic] for topic in topics
                      if prefix + topic in received.channels
