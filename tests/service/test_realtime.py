@@ -9,6 +9,7 @@ from collections.abc import Iterator
 from ogapi import recording
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient import replay
+from ogclient.__main__ import main as ogclient_main
 from ogclient.connection import SessionRef
 from ogclient.streaming import paced, stream_frames
 
@@ -18,6 +19,7 @@ from .scene import create_request, messages, scene
 FPS = 30.0
 # Every frame optimises 8 iterations: far slower than 30 FPS on a CPU, so frames must be skipped.
 SLOW = {"keyframes.first_iterations": "8", "keyframes.iterations": "8", "keyframes.frame_iterations": "8"}
+SETS = [item for key, value in SLOW.items() for item in ("--set", f"{key}={value}")]
 
 
 def sensor(frames: list[pb.Frame], count: int, sent: list[float]) -> Iterator[pb.Frame]:
@@ -67,3 +69,19 @@ def test_a_realtime_stream_keeps_its_rate_and_records_skipped_frames(tmp_path) -
     assert {ack.index for ack in recorded.acks if ack.skipped} == {ack.index for ack in result.skipped}
     assert not replay.session_request(recorded.config).realtime
 
+
+
+def test_ogclient_streams_a_realtime_session_at_a_rate(tmp_path, capsys) -> None:
+    session_file = tmp_path / "session.json"
+    with serving(settings(tmp_path)) as running:
+        base = ["--server", running.address, "stream", "--data", "synthetic", "--format", "synthetic",
+                "--frames", "0:10", "--scale", "0.25", "--preset", "sparse-fast", "--quiet"]
+        assert ogclient_main([*base, *SETS, "--realtime", "--fps", "30", "--session-out", str(session_file)]) == 0
+        summary = capsys.readouterr().out
+        session = SessionRef.load(session_file)
+        stats = running.stub.GetStats(pb.GetStatsRequest(session_id=session.session_id), metadata=session.metadata())
+        assert f"{stats.frames} frames mapped" in summary and f"{stats.frames_skipped} skipped" in summary
+        assert stats.frames + stats.frames_skipped == stats.frames_received == 9
+        # Realtime is chosen at creation: an existing session cannot be switched.
+        assert ogclient_main([*base, "--realtime", "--session", str(session_file)]) == 2
+        assert "--realtime is chosen when the session is created" in capsys.readouterr().err
