@@ -7,7 +7,8 @@ Views: the same frames, streamed as fast as the server takes them, through three
 ``--view-seconds 0`` (no views at all), the default (keyframes' render and point cloud into the
 recording, at most one a second), and ``--foxglove-port 0`` with a Foxglove client subscribed to
 every topic of the session (renders, transforms, input images and point clouds, one look a second).
-Reported: the session's processing FPS (``GetStats``) and what the Foxglove client received.
+Reported: the session's processing FPS (``GetStats``), the live view thread's busy time (its log
+line at shutdown) and what the Foxglove client received.
 
 Realtime: the frames sent at ``--fps`` (pre-encoded, on a fixed schedule) into a realtime session,
 then into a default (lossless) one: the rate the client kept, frames mapped and skipped, and the ack
@@ -48,6 +49,8 @@ class ViewRow:
     frames: int
     processing_fps: float
     keyframes: int
+    view_seconds: float  # the live view thread's time making and publishing views (from the server's log)
+    looks: int
     received: dict[str, int]  # Foxglove messages by topic (without the session prefix)
 
 
@@ -97,7 +100,9 @@ def views_run(name: str, frames: list[pb.Frame], request: pb.CreateSessionReques
                 server.stop()
                 watcher.join(30)
                 received = {topic[len(prefix):]: len(items) for topic, items in result[0].messages.items()}
-    return ViewRow(name, int(final.frames), final.processing_fps, int(final.keyframes), received)
+    busy = re.search(r"live view: (\d+) session looks, ([0-9.]+) s", server.log_path.read_text())
+    looks, seconds = (int(busy[1]), float(busy[2])) if busy else (0, 0.0)
+    return ViewRow(name, int(final.frames), final.processing_fps, int(final.keyframes), seconds, looks, received)
 
 
 def stream_run(mode: str, frames: list[pb.Frame], request: pb.CreateSessionRequest, fps: float,

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from dataclasses import dataclass, field
 
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
@@ -69,6 +70,8 @@ class LiveView:
         self.settings = settings
         self.foxglove = foxglove
         self._advertised: set[str] = set()
+        self.busy_seconds = 0.0  # spent publishing and recording views (rendering and decoding, mostly)
+        self.looks = 0  # sessions looked at with something new
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="live-view", daemon=True)
 
@@ -80,6 +83,7 @@ class LiveView:
         self._stop.set()
         if self._thread.ident is not None:
             self._thread.join()
+            log.info("live view: %d session looks, %.1f s making and publishing views", self.looks, self.busy_seconds)
         if self.foxglove is not None:
             self.foxglove.stop()
 
@@ -96,6 +100,7 @@ class LiveView:
             if pending is None:
                 continue
             looks = Looks(session, self.settings.view_points)
+            start = time.perf_counter()
             try:
                 if self.foxglove is not None:
                     self._publish(session.id, pending, looks, self.foxglove)
@@ -103,6 +108,8 @@ class LiveView:
                     self._record(session, pending.keyframe, looks)
             except Exception:  # one session's view must not stop the others'
                 log.exception("session %s: the live view failed", session.id)
+            self.busy_seconds += time.perf_counter() - start
+            self.looks += 1
 
     def _advertise(self, open_ids: set[str]) -> None:
         """Offer every open session's topics to Foxglove clients, and withdraw those of closed ones."""
