@@ -135,7 +135,9 @@ def main() -> int:
     parser.add_argument("--preset", default="sparse")
     parser.add_argument("--fps", type=float, default=30.0)
     parser.add_argument("--repeat", type=int, default=1, help="run the three view servers this many times")
-    parser.add_argument("--skip-views", action="store_true", help="only the realtime part")
+    parser.add_argument("--skip-views", action="store_true", help="only the streams at --fps")
+    parser.add_argument("--modes", nargs="+", choices=("realtime", "lossless"), default=["realtime", "lossless"],
+                        help="the sessions the --fps stream goes into (default both)")
     parser.add_argument("--json", help="also write the figures here")
     args = parser.parse_args()
     frame_set = open_frames(args.data, "auto", args.frames, 1, args.scale)
@@ -150,7 +152,7 @@ def main() -> int:
             row = views_run(name, frames, request, record_dir / str(number), *flags)
             out["views"].append(asdict(row))
             print(row, flush=True)
-        for mode in ("realtime", "lossless"):
+        for mode in args.modes:
             streamed = pb.CreateSessionRequest(preset=args.preset, realtime=mode == "realtime")
             row = stream_run(mode, frames, streamed, args.fps, record_dir)
             out["realtime"].append(asdict(row))
