@@ -4,9 +4,10 @@ Every ``view_seconds`` it takes what each session mapped since the last look (``
 publishes, to the Foxglove clients subscribed (``--foxglove-port``): the camera poses, the input
 image, the map rendered from the latest pose and the map as a point cloud; and, when a keyframe was
 among those frames, writes the render and point cloud of the newest keyframe into the session's
-recording. Rendering and decoding hold the mapper's lock like a Render call, between optimisation
-iterations; nothing is rendered or decoded that no client watches and no recording wants, and the
-rate bounds the rest (``bench/RESULTS.md`` measures what it costs the mapping).
+recording (once more when the session closes, so its recording ends with the final map). Rendering
+and decoding hold the mapper's lock like a Render call, between optimisation iterations; nothing is
+rendered or decoded that no client watches and no recording wants, and the rate bounds the rest
+(``bench/RESULTS.md`` measures what it costs the mapping).
 """
 
 from __future__ import annotations
@@ -74,6 +75,8 @@ class LiveView:
         self.looks = 0  # sessions looked at with something new
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="live-view", daemon=True)
+        if settings.record_views:
+            registry.before_close(self.last_look)
 
     def start(self) -> LiveView:
         self._thread.start()
@@ -110,6 +113,16 @@ class LiveView:
                 log.exception("session %s: the live view failed", session.id)
             self.busy_seconds += time.perf_counter() - start
             self.looks += 1
+
+    def last_look(self, session: Session) -> None:
+        """A closing session's recording ends with its final map: the newest keyframe not yet recorded."""
+        pending = session.latest.take()
+        if pending is None or pending.keyframe is None:
+            return
+        try:
+            self._record(session, pending.keyframe, Looks(session, self.settings.view_points))
+        except Exception:  # the session closes regardless
+            log.exception("session %s: its last view could not be recorded", session.id)
 
     def _advertise(self, open_ids: set[str]) -> None:
         """Offer every open session's topics to Foxglove clients, and withdraw those of closed ones."""

@@ -72,6 +72,11 @@ class Registry:
         self._reserved: Counter[str] = Counter()
         self._lock = threading.Lock()
         self._closing = False
+        self._before_close: list[Callable[[Session], None]] = []
+
+    def before_close(self, callback: Callable[[Session], None]) -> None:
+        """Call ``callback`` with each session once its worker has stopped, before its recording is closed."""
+        self._before_close.append(callback)
 
     @contextmanager
     def _reserve(self, owner: str) -> Iterator[None]:
@@ -217,6 +222,8 @@ class Registry:
 
     def _finish(self, session: Session, timeout: float) -> Closed:
         stopped = session.close(timeout)
+        for callback in self._before_close:
+            callback(session)
         stats = messages.stats(session.config, session.map_stats(), session.counters())
         snapshot = None
         if self.settings.final_snapshots:
