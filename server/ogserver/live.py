@@ -50,13 +50,13 @@ class Looks:
 
     session: Session
     max_points: int
-    renders: dict[int, bytes] = field(default_factory=dict)  # by sensor ns
+    renders: dict[int, bytes] = field(default_factory=dict)  # by id() of the frame, alive for the look
     points: ColoredPoints | None = None
 
     def render(self, frame: MappedFrame) -> bytes:
-        if frame.sensor_ns not in self.renders:
-            self.renders[frame.sensor_ns] = render_jpeg(self.session.mapper, frame)
-        return self.renders[frame.sensor_ns]
+        if id(frame) not in self.renders:
+            self.renders[id(frame)] = render_jpeg(self.session.mapper, frame)
+        return self.renders[id(frame)]
 
     def map(self) -> ColoredPoints:
         if self.points is None:
