@@ -99,6 +99,10 @@ def replay(ctx: Context, args: argparse.Namespace) -> int:
         raise ClientError(f"{args.recording} holds no frames")
     if recorded.config is not None and recorded.config.restored_from_sha256:
         print("note: the recorded session started from a restored snapshot; the replay starts from an empty map")
+    if recorded.config is not None and recorded.config.realtime:
+        skipped = sum(ack.skipped for ack in recorded.acks)
+        print(f"note: the recorded session was realtime and skipped {skipped} of its frames; the replay is lossless "
+              "and maps every recorded frame")
     credentials = ctx.stub.CreateSession(replaying.session_request(recorded.config, args.label))
     session = announce(credentials, args, ctx.server)
     result = stream_frames(ctx.stub, session, replaying.frames(recorded, args.realtime),

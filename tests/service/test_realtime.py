@@ -85,3 +85,11 @@ def test_ogclient_streams_a_realtime_session_at_a_rate(tmp_path, capsys) -> None
         # Realtime is chosen at creation: an existing session cannot be switched.
         assert ogclient_main([*base, "--realtime", "--session", str(session_file)]) == 2
         assert "--realtime is chosen when the session is created" in capsys.readouterr().err
+        # The replay of the recording maps every frame, the skipped ones too.
+        running.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id), metadata=session.metadata())
+        recorded = running.record_dir / f"{session.session_id}.mcap"
+        assert ogclient_main(["--server", running.address, "replay", str(recorded), "--quiet",
+                              "--session-out", str(tmp_path / "replayed.json")]) == 0
+        out = capsys.readouterr().out
+        assert f"realtime and skipped {stats.frames_skipped} of its frames" in out
+        assert "9 frames mapped (" in out and " 0 skipped" in out
