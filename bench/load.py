@@ -77,7 +77,7 @@ def run(count: int, frames: list[pb.Frame], request: pb.CreateSessionRequest, re
                 thread.join()
             seconds = time.perf_counter() - began
             rss_peak = rss_mb(server.process.pid, "VmHWM")
-    latencies = np.array([ack.latency_seconds for result in results for ack in result.accepted])
+    latencies = np.array([ack.latency_seconds for result in results for ack in result.mapped])
     mapped = len(latencies)
     p50, p95, p99 = np.percentile(latencies, [50, 95, 99]) if mapped else (0.0, 0.0, 0.0)
     refused = sum(len(result.rejected) for result in results)

@@ -1,4 +1,5 @@
-"""Export the decoded Gaussians as a standard 3DGS ``.ply`` (binary little-endian).
+"""Export the decoded Gaussians as a standard 3DGS ``.ply`` (binary little-endian), or as a
+bounded coloured point cloud for live previews.
 
 A .ply holds one colour per Gaussian, but this map's colours and opacities depend on the viewpoint
 through the decoders, so an export fixes them as seen from one point. By default that point is
@@ -66,3 +67,24 @@ def export_ply(mapper: Mapper, path: str | Path, camera_center: np.ndarray) -> i
         handle.write(header.encode("ascii"))
         handle.write(table.tobytes())
     return count
+
+
+@dataclass(frozen=True)
+class ColoredPoints:
+    """Gaussian centres with their colour and opacity as seen from one point: a preview of the map."""
+
+    positions: np.ndarray  # (N, 3) float32, world
+    rgba: np.ndarray  # (N, 4) uint8: colour, and opacity as alpha
+
+
+def point_cloud(mapper: Mapper, camera_center: np.ndarray, max_points: int) -> ColoredPoints:
+    """At most ``max_points`` of the map's Gaussians, from anchors spread evenly over the map (each
+    anchor decodes ``n_offsets`` Gaussians), coloured as seen from ``camera_center``."""
+    per_anchor = max(mapper.config.model.n_offsets, 1)
+    gaussians = mapper.decode_at(camera_center, max_anchors=max(max_points // per_anchor, 1))
+    keep = slice(0, max_points)
+    rgba = torch.cat([gaussians.colors[keep].clamp(0, 1), gaussians.opacities[keep, None].clamp(0, 1)], dim=1)
+    return ColoredPoints(
+        positions=gaussians.means[keep].cpu().numpy().astype(np.float32),
+        rgba=(rgba * 255).round().to(torch.uint8).cpu().numpy(),
+    )

@@ -312,12 +312,15 @@ class Mapper:
                 timings=dict(self.timings),
             )
 
-    def decode_at(self, camera_center: np.ndarray) -> GaussianSet:
+    def decode_at(self, camera_center: np.ndarray, max_anchors: int = 0) -> GaussianSet:
         """Every anchor's Gaussians as seen from ``camera_center`` (colours and opacities depend on
-        the viewpoint through the decoders); no frustum culling, no gradients."""
+        the viewpoint through the decoders); no frustum culling, no gradients. ``max_anchors`` > 0
+        decodes only that many, evenly spread over the map, so a preview costs a bounded time."""
         center = torch.as_tensor(np.asarray(camera_center), dtype=torch.float32, device=self.device)
         with self.lock, torch.no_grad(), torch_threads(self.profile.threads):
-            rows = torch.arange(len(self.anchors), device=self.device)
+            count = len(self.anchors)
+            stride = -(-count // max_anchors) if max_anchors and count > max_anchors else 1
+            rows = torch.arange(0, count, stride, device=self.device)
             return generate(self.anchors, self._features, self.decoders, center, rows, compiled=self.profile.compiled)
 
     def camera_centroid(self) -> np.ndarray | None:

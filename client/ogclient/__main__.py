@@ -38,6 +38,12 @@ def add_session_out(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--label", default="", help="free text shown by `ogclient list`")
 
 
+def add_realtime(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--realtime", action="store_true",
+                        help="a realtime session: frames that arrive while the mapper is busy are skipped (recorded "
+                             "and acknowledged as skipped, never mapped) instead of holding the sender back")
+
+
 def add_session(parser: argparse.ArgumentParser, required: bool = True) -> None:
     parser.add_argument("--session", required=required, metavar="FILE",
                         help="credentials file written by create/stream/replay/restore")
@@ -58,6 +64,7 @@ def parser() -> argparse.ArgumentParser:
 
     create = sub.add_parser("create", help="open an empty session", description="Open an empty mapping session.")
     add_config_arguments(create)
+    add_realtime(create)
     add_session_out(create)
     create.set_defaults(handler=commands.create)
 
@@ -69,6 +76,9 @@ def parser() -> argparse.ArgumentParser:
     )
     add_dataset_arguments(stream)
     add_config_arguments(stream)
+    add_realtime(stream)
+    stream.add_argument("--fps", type=float, default=0.0,
+                        help="send at this rate, like a sensor (default 0: as fast as the server takes them)")
     add_session(stream, required=False)
     add_session_out(stream)
     stream.add_argument("--color-encoding", choices=sorted(commands.COLOR_CHOICES), default="png",

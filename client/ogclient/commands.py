@@ -19,7 +19,7 @@ from ogclient import replay as replaying
 from ogclient.connection import ClientError, SessionRef
 from ogclient.evaluation import evaluate, snapshot_bytes
 from ogclient.messages import frame_to_proto, intrinsics_to_proto
-from ogclient.streaming import stream_frames
+from ogclient.streaming import paced, stream_frames
 from ogmapping.camera import validate_pose
 from ogmapping.config import load_file, parse_override_args, resolve
 from ogmapping.evaluation import FrameSet, open_frames
@@ -63,9 +63,13 @@ def close_if_asked(ctx: Context, session: SessionRef, args: argparse.Namespace) 
         print(f"closed; recording {response.recording}")
 
 
+def create_request(args: argparse.Namespace) -> pb.CreateSessionRequest:
+    return pb.CreateSessionRequest(preset=args.preset, overrides=overrides_from_args(args), label=args.label,
+                                   realtime=args.realtime)
+
+
 def create(ctx: Context, args: argparse.Namespace) -> int:
-    request = pb.CreateSessionRequest(preset=args.preset, overrides=overrides_from_args(args), label=args.label)
-    announce(ctx.stub.CreateSession(request), args, ctx.server)
+    announce(ctx.stub.CreateSession(create_request(args)), args, ctx.server)
     return 0
 
 
@@ -87,19 +91,22 @@ def stream(ctx: Context, args: argparse.Namespace) -> int:
     frame_set = FrameSet.from_args(args)
     if args.resume and not args.session:
         raise ClientError("--resume goes on with an existing session: name its credentials with --session FILE")
+    if args.fps < 0:
+        raise ClientError(f"--fps must be >= 0 (got {args.fps:g})")
     for line in frame_set.source.report():
         print(f"{frame_set.source.name}: {line}", flush=True)
     if args.session:
+        if args.realtime:
+            raise ClientError("--realtime is chosen when the session is created; drop --session or --realtime")
         session = SessionRef.load(args.session)
     else:
-        request = pb.CreateSessionRequest(preset=args.preset, overrides=overrides_from_args(args), label=args.label)
-        session = announce(ctx.stub.CreateSession(request), args, ctx.server)
+        session = announce(ctx.stub.CreateSession(create_request(args)), args, ctx.server)
     encoding = FrameEncoding(color=COLOR_CHOICES[args.color_encoding], depth=DEPTH_CHOICES[args.depth_encoding],
                              depth_scale=args.depth_scale, jpeg_quality=args.jpeg_quality)
     positions = list(frame_set.selection.streamed)
     if args.resume:
         positions = resumed_positions(ctx, session, positions)
-    messages = (frame_to_proto(frame_set.load(position), encoding) for position in positions)
+    messages = paced((frame_to_proto(frame_set.load(position), encoding) for position in positions), args.fps)
     result = stream_frames(ctx.stub, session, messages, total=len(positions), progress=not args.quiet)
     print(result.summary())
     close_if_asked(ctx, session, args)
@@ -112,6 +119,10 @@ def replay(ctx: Context, args: argparse.Namespace) -> int:
         raise ClientError(f"{args.recording} holds no frames")
     if recorded.config is not None and recorded.config.restored_from_sha256:
         print("note: the recorded session started from a restored snapshot; the replay starts from an empty map")
+    if recorded.config is not None and recorded.config.realtime:
+        skipped = sum(ack.skipped for ack in recorded.acks)
+        print(f"note: the recorded session was realtime and skipped {skipped} of its frames; the replay is lossless "
+              "and maps every recorded frame")
     credentials = ctx.stub.CreateSession(replaying.session_request(recorded.config, args.label))
     session = announce(credentials, args, ctx.server)
     result = stream_frames(ctx.stub, session, replaying.frames(recorded, args.realtime),

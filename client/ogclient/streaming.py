@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 
 from ogapi.v1 import mapping_pb2 as pb
@@ -19,22 +19,40 @@ class StreamResult:
     seconds: float = 0.0
 
     @property
-    def accepted(self) -> list[pb.FrameAck]:
-        return [ack for ack in self.acks if ack.accepted]
+    def mapped(self) -> list[pb.FrameAck]:
+        """Mapped (or failed while mapping): accepted and not skipped."""
+        return [ack for ack in self.acks if ack.accepted and not ack.skipped]
+
+    @property
+    def skipped(self) -> list[pb.FrameAck]:
+        """Realtime sessions: recorded, but passed over for a newer frame."""
+        return [ack for ack in self.acks if ack.skipped]
 
     @property
     def rejected(self) -> list[pb.FrameAck]:
         return [ack for ack in self.acks if not ack.accepted]
 
     def summary(self) -> str:
-        accepted = self.accepted
+        accepted = self.mapped
         last = accepted[-1] if accepted else pb.FrameAck()
         fps = len(accepted) / self.seconds if self.seconds > 0 else 0.0
         keyframes = sum(ack.keyframe for ack in accepted)
         return (
-            f"{len(accepted)} frames mapped ({keyframes} keyframes), {len(self.rejected)} rejected, "
+            f"{len(accepted)} frames mapped ({keyframes} keyframes), {len(self.skipped)} skipped, "
+            f"{len(self.rejected)} rejected, "
             f"{self.seconds:.1f} s ({fps:.2f} frames/s); map: {last.anchors} anchors, {last.gaussians} Gaussians"
         )
+
+
+def paced(messages: Iterable[pb.Frame], fps: float) -> Iterator[pb.Frame]:
+    """``messages`` at ``fps`` frames a second, on a fixed schedule (a late frame does not delay the
+    next ones); 0: unpaced."""
+    start = time.monotonic()
+    for number, message in enumerate(messages):
+        delay = start + number / fps - time.monotonic() if fps else 0.0
+        if delay > 0:
+            time.sleep(delay)
+        yield message
 
 
 def stream_frames(
@@ -51,13 +69,13 @@ def stream_frames(
         for ack in responses:
             result.acks.append(ack)
             bar.update(1)
-            if ack.accepted:
+            if ack.accepted and not ack.skipped:
                 keyframes += ack.keyframe
                 bar.set_postfix(
                     anchors=ack.anchors, gaussians=ack.gaussians, keyframes=keyframes,
                     latency=f"{ack.latency_seconds:.2f}s", queue=ack.queue_depth,
                 )
-            else:
+            elif not ack.accepted:
                 bar.write(f"frame {ack.index} rejected: {ack.error.code_name}: {ack.error.message}")
     except KeyboardInterrupt:
         responses.cancel()

@@ -25,12 +25,14 @@ from ogapi.v1 import mapping_pb2 as pb
 
 TOPIC_SESSION = "/ogmap/session"  # ogapi.v1.SessionConfig, first message
 TOPIC_FRAMES = "/ogmap/frames"  # ogapi.v1.Frame, every frame the session mapped (or tried to), as received
-TOPIC_ACKS = "/ogmap/acks"  # ogapi.v1.FrameAck, one per recorded frame once it is mapped
+TOPIC_ACKS = "/ogmap/acks"  # ogapi.v1.FrameAck, one per recorded frame once it is mapped (or skipped)
 TOPIC_STATS = "/ogmap/stats"  # ogapi.v1.Stats, at close
 TOPIC_COLOR = "/camera/color"  # foxglove.CompressedImage
 TOPIC_DEPTH = "/camera/depth"  # foxglove.CompressedImage, 16-bit PNG
 TOPIC_CALIBRATION = "/camera/calibration"  # foxglove.CameraCalibration
 TOPIC_TRANSFORM = "/tf"  # foxglove.FrameTransform, world -> camera
+TOPIC_RENDER = "/ogmap/render"  # foxglove.CompressedImage, the map rendered from a keyframe's pose (JPEG)
+TOPIC_MAP = "/ogmap/map"  # foxglove.PointCloud, the map's Gaussians (centres, RGBA) as of that keyframe
 WORLD_FRAME = "world"
 CAMERA_FRAME = "camera"
 

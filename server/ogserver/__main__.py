@@ -57,6 +57,8 @@ def parser() -> argparse.ArgumentParser:
     limits.add_argument("--max-sessions", dest="max_sessions", type=int, help="open sessions at once (4)")
     limits.add_argument("--queue-depth", dest="queue_depth", type=int,
                         help="frames read ahead per session before backpressure (8)")
+    limits.add_argument("--realtime-queue-depth", dest="realtime_queue_depth", type=int,
+                        help="realtime sessions: newest frames kept waiting; older ones are skipped (1)")
     limits.add_argument("--max-image-pixels", dest="max_image_pixels", type=int,
                         help="pixels per frame image or render (12582912)")
     limits.add_argument("--max-message-bytes", dest="max_message_bytes", type=int,
@@ -84,6 +86,18 @@ def parser() -> argparse.ArgumentParser:
                         help="close sessions unused this long (3600; 0 = never)")
     access.add_argument("--stream-idle-seconds", dest="stream_idle_seconds", type=float,
                         help="end frame streams whose client sends nothing this long (300; 0 = never)")
+    live = p.add_argument_group("live view: each session's render, trajectory and map (docs/foxglove.md)")
+    live.add_argument("--foxglove-port", dest="foxglove_port", type=int,
+                      help="serve the live view to Foxglove over WebSocket on this port (0 = any free port; "
+                           "default off; needs the foxglove-sdk package, the 'live' extra)")
+    live.add_argument("--foxglove-host", dest="foxglove_host",
+                      help="address the Foxglove server binds (127.0.0.1; it has no authentication)")
+    live.add_argument("--view-seconds", dest="view_seconds", type=float,
+                      help="at most one render and point cloud per session this often (1; 0 = no views)")
+    live.add_argument("--view-points", dest="view_points", type=int,
+                      help="points in the map's point cloud at most (50000)")
+    live.add_argument("--no-record-views", dest="record_views", action="store_false", default=None,
+                      help="keep keyframes' render and point cloud out of the recordings")
     p.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING (default INFO)")
     return p
 

@@ -21,6 +21,8 @@ from ogserver import reflection, storage, transport, wire
 from ogserver.callers import Callers
 from ogserver.calls import HEADROOM, CallGate
 from ogserver.expiry import Expiry
+from ogserver.foxglove_ws import FoxgloveServer
+from ogserver.live import LiveView
 from ogserver.metrics import Endpoint, Metrics
 from ogserver.registry import Closed, Registry
 from ogserver.resume import resume_all
@@ -44,6 +46,7 @@ class Server:
     port: int
     expiry: Expiry
     metrics: Endpoint | None  # the /metrics HTTP server, when metrics_address is set
+    live: LiveView | None  # renders and point clouds for Foxglove and the recordings, unless views are off
 
     def stop(self, grace: float, timeout: float) -> Stopped:
         """Report NOT_SERVING, let calls in flight finish (up to ``grace``), wait up to ``timeout`` more
@@ -53,6 +56,8 @@ class Server:
         grpc_stopped = self.grpc_server.stop(grace).wait(grace + timeout)
         if not grpc_stopped:
             log.warning("gRPC calls were still running %.1f s after the grace; closing the sessions anyway", timeout)
+        if self.live is not None:
+            self.live.stop()
         closed = self.registry.close_all(timeout)
         if self.metrics is not None:
             self.metrics.stop()
@@ -98,10 +103,26 @@ def build(settings: Settings) -> Server:
     if port == 0:
         raise ValueError(f"could not bind {settings.address}")
     endpoint = Endpoint.start(access.metrics_address, metrics) if access.metrics_address else None
+    live = _live_view(settings, registry)
     server.start()
     log.info("device %s, %d torch threads, record dir %s", device, torch.get_num_threads(), settings.record_dir)
     _announce_access(settings, callers, credentials is not None, endpoint)
-    return Server(server, registry, health_servicer, port, Expiry(registry).start(), endpoint)
+    return Server(server, registry, health_servicer, port, Expiry(registry).start(), endpoint,
+                  live.start() if live is not None else None)
+
+
+def _live_view(settings: Settings, registry: Registry) -> LiveView | None:
+    """The live view's thread, with a Foxglove server when one is asked for; None when nothing would use it."""
+    live = settings.live
+    if not live.view_seconds or not (live.foxglove or live.record_views):
+        return None
+    foxglove = FoxgloveServer(live.foxglove_host, live.foxglove_port) if live.foxglove else None
+    if foxglove is not None:
+        local = live.foxglove_host in ("127.0.0.1", "localhost", "::1")
+        log.log(logging.INFO if local else logging.WARNING,
+                "Foxglove live view on ws://%s:%d (no authentication: anyone who reaches it sees every session's "
+                "images and map)", live.foxglove_host, foxglove.port)
+    return LiveView(registry, live, foxglove)
 
 
 def _announce_access(settings: Settings, callers: Callers, tls: bool, metrics: Endpoint | None) -> None:

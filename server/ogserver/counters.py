@@ -11,6 +11,7 @@ class SessionCounters:
     rejected: int  # frames refused before the queue (validation, anchor limit)
     mapped: int
     pending: int  # queued or being mapped
+    skipped: int  # realtime sessions: recorded and acknowledged, but passed over for a newer frame
     anchors: int  # the map's anchors after the last mapped frame
     processing_fps: float  # mapped frames over the time from the first received to the last mapped
     uptime_seconds: float
@@ -28,7 +29,7 @@ class FrameTotals:
     received: int = 0
     rejected: int = 0
     mapped: int = 0
-    unmapped: int = 0  # received but never mapped: the mapper failed on it, or the session closed first
+    unmapped: int = 0  # received but never mapped: skipped (realtime), the mapper failed on it, or the session closed
 
     @classmethod
     def of(cls, counters: SessionCounters) -> FrameTotals:

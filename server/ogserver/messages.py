@@ -53,6 +53,14 @@ def frame_ack(result: FrameResult, sequence: int, latency_seconds: float, queue_
     return ack
 
 
+def skipped_ack(
+    index: int, sequence: int, anchors: int, gaussians: int, latency_seconds: float, queue_depth: int
+) -> pb.FrameAck:
+    """A realtime session's frame, recorded but passed over for a newer one: the map as it was."""
+    return pb.FrameAck(index=index, accepted=True, skipped=True, sequence=sequence, anchors=anchors,
+                       gaussians=gaussians, latency_seconds=latency_seconds, queue_depth=queue_depth)
+
+
 def render_response(spec: RenderSpec, rendered: Rendered) -> pb.RenderResponse:
     """The requested images in the requested encodings; the caller fills in ``render_seconds``."""
     response = pb.RenderResponse(width=spec.intrinsics.width, height=spec.intrinsics.height)
@@ -71,6 +79,7 @@ def stats(config: pb.SessionConfig, engine: MapStats, counters: SessionCounters)
     return pb.Stats(
         session_id=config.session_id, preset=config.preset, device=engine.device,
         frames=counters.mapped, frames_received=counters.received, frames_rejected=counters.rejected,
+        frames_skipped=counters.skipped,
         queue_depth=counters.pending, processing_fps=counters.processing_fps, uptime_seconds=counters.uptime_seconds,
         keyframes=engine.keyframes, anchors=engine.anchors, anchors_per_level=engine.anchors_per_level,
         gaussians=engine.gaussians, iterations=engine.iterations, timings=engine.timings,

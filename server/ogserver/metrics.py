@@ -34,7 +34,8 @@ class _Sessions(Collector):
         totals = self._registry.frame_totals()
         frames = CounterMetricFamily(
             "ogserver_frames", "Frames by outcome: accepted into a session, rejected before it, mapped, "
-            "or skipped (accepted but never mapped: the mapper failed on it or the session closed first)",
+            "or skipped (accepted but never mapped: a realtime session passed over it for a newer frame, the mapper "
+            "failed on it or the session closed first)",
             labels=["outcome"])
         for outcome, count in (("accepted", totals.received), ("rejected", totals.rejected),
                                ("mapped", totals.mapped), ("skipped", totals.unmapped)):

@@ -1,4 +1,5 @@
-"""One MCAP file per session: the ogapi messages a replay needs, plus Foxglove channels to look at.
+"""One MCAP file per session: the ogapi messages a replay needs, plus Foxglove channels to look at
+(the input frames, and at keyframes the map's render and points, written by the live view).
 
 A frame is recorded when the session's worker takes it up, before it is mapped, and each frame is
 followed by a flush that writes the MCAP chunk in progress and a provisional end (``RecordingFile``):
@@ -66,10 +67,18 @@ def quaternion(rotation: np.ndarray) -> tuple[float, float, float, float]:
     return x / norm, y / norm, z / norm, w / norm
 
 
-def _timestamp(nanoseconds: int) -> Timestamp:
+def timestamp(nanoseconds: int) -> Timestamp:
     stamp = Timestamp()
     stamp.FromNanoseconds(nanoseconds)
     return stamp
+
+
+def transform(sensor_ns: int, c2w: np.ndarray, parent: str, child: str) -> FrameTransform:
+    """The camera's pose as Foxglove's transform from ``parent`` (the world) to ``child`` (the camera)."""
+    x, y, z, w = quaternion(c2w[:3, :3])
+    tx, ty, tz = (float(v) for v in c2w[:3, 3])
+    return FrameTransform(timestamp=timestamp(sensor_ns), parent_frame_id=parent, child_frame_id=child,
+                          translation=Vector3(x=tx, y=ty, z=tz), rotation=Quaternion(x=x, y=y, z=z, w=w))
 
 
 def _calibration(camera: Intrinsics, stamp: Timestamp) -> CameraCalibration:
@@ -175,7 +184,7 @@ class FrameRecord:
 def frame_record(message: pb.Frame, frame: Frame, received_ns: int) -> FrameRecord:
     """Encoded off the worker's path (raw images become PNGs for Foxglove); validation bounds the timestamp."""
     sensor_ns = round(frame.timestamp * 1e9) if frame.timestamp is not None else received_ns
-    stamp = _timestamp(sensor_ns)
+    stamp = timestamp(sensor_ns)
     if message.color.encoding in (pb.COLOR_JPEG, pb.COLOR_PNG):
         color_data = message.color.data
         color_format = "jpeg" if message.color.encoding == pb.COLOR_JPEG else "png"
@@ -185,8 +194,6 @@ def frame_record(message: pb.Frame, frame: Frame, received_ns: int) -> FrameReco
         message.depth.data if message.depth.encoding == pb.DEPTH_PNG16
         else encode_depth(frame.depth, pb.DEPTH_PNG16, 1000.0)
     )
-    x, y, z, w = quaternion(frame.c2w[:3, :3])
-    tx, ty, tz = (float(v) for v in frame.c2w[:3, 3])
     return FrameRecord(received_ns, sensor_ns, [
         (layout.TOPIC_FRAMES, message),
         (layout.TOPIC_COLOR, CompressedImage(
@@ -194,9 +201,7 @@ def frame_record(message: pb.Frame, frame: Frame, received_ns: int) -> FrameReco
         (layout.TOPIC_DEPTH, CompressedImage(
             timestamp=stamp, frame_id=layout.CAMERA_FRAME, data=depth_data, format="png")),
         (layout.TOPIC_CALIBRATION, _calibration(frame.color_intrinsics, stamp)),
-        (layout.TOPIC_TRANSFORM, FrameTransform(
-            timestamp=stamp, parent_frame_id=layout.WORLD_FRAME, child_frame_id=layout.CAMERA_FRAME,
-            translation=Vector3(x=tx, y=ty, z=tz), rotation=Quaternion(x=x, y=y, z=z, w=w))),
+        (layout.TOPIC_TRANSFORM, transform(sensor_ns, frame.c2w, layout.WORLD_FRAME, layout.CAMERA_FRAME)),
     ])
 
 
@@ -294,12 +299,25 @@ class Recorder:
 
     def write_ack(self, ack: pb.FrameAck) -> None:
         """Buffered with the next frame's flush; after a close (a frame outlasting it), dropped."""
+        self._write_late([(layout.TOPIC_ACKS, ack)], flush=False)
+
+    def write_views(self, views: list[tuple[str, Message]], sensor_ns: int) -> None:
+        """The map as of a keyframe (its render, its points), flushed at once: the thread that made
+        them compresses them, not the session's worker at its next frame. After a close, dropped."""
+        self._write_late(views, flush=True, publish_time=sensor_ns)
+
+    def _write_late(self, items: list[tuple[str, Message]], flush: bool, publish_time: int | None = None) -> None:
+        """Messages about frames already recorded, logged now."""
         with self._lock:
             if self._closed:
                 return
             self._check_open()
             try:
-                self._mcap.add(layout.TOPIC_ACKS, ack, time.time_ns())
+                now = time.time_ns()
+                for topic, message in items:
+                    self._mcap.add(topic, message, now, publish_time)
+                if flush:
+                    self._mcap.writer.flush()
             except Exception as error:
                 raise self._fail(error) from None
 

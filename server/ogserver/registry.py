@@ -85,6 +85,11 @@ class Registry:
         self._reserved: Counter[str] = Counter()
         self._lock = threading.Lock()
         self._closing = False
+        self._before_close: list[Callable[[Session], None]] = []
+
+    def before_close(self, callback: Callable[[Session], None]) -> None:
+        """Call ``callback`` with each session once its worker has stopped, before its recording is closed."""
+        self._before_close.append(callback)
 
     @contextmanager
     def _reserve(self, owner: str) -> Iterator[None]:
@@ -125,7 +130,7 @@ class Registry:
             raise invalid("overrides", error) from None
         with self._reserve(owner):
             mapper = Mapper(config, device=self.device)
-            return self._open(mapper, preset, overrides, request.label, "", owner)
+            return self._open(mapper, preset, overrides, request.label, "", owner, request.realtime)
 
     def restore(self, owner: str, receive: Callable[[], Upload]) -> Opened:
         """Reserve the session's place before ``receive`` reads the snapshot: a full server refuses at once."""
@@ -138,13 +143,14 @@ class Registry:
             return self._open(mapper, "", {}, upload.label, upload.sha256, owner)
 
     def _open(
-        self, mapper: Mapper, preset: str, overrides: dict[str, str], label: str, restored: str, owner: str
+        self, mapper: Mapper, preset: str, overrides: dict[str, str], label: str, restored: str, owner: str,
+        realtime: bool = False,
     ) -> Opened:
         session_id = uuid.uuid4().hex
         config = pb.SessionConfig(
             session_id=session_id, preset=preset, overrides=overrides,
             config_json=json.dumps(mapper.config.to_dict()), device=str(mapper.device), label=label,
-            created_unix=time.time(), server_version=__version__, restored_from_sha256=restored,
+            created_unix=time.time(), server_version=__version__, restored_from_sha256=restored, realtime=realtime,
         )
         token = auth.new_token()
         identity = Identity(owner, auth.TokenHash.of(token), config)
@@ -161,8 +167,8 @@ class Registry:
         session = Session(config, identity.token, mapper, recorder, self.settings.limits, self.settings.frame_seconds,
                           checkpoints)
         self._register(session, owner)
-        log.info("session %s opened for %s (preset %r, device %s)", session_id, owner, preset or "restored",
-                 mapper.device)
+        log.info("session %s opened for %s (preset %r, device %s%s)", session_id, owner, preset or "restored",
+                 mapper.device, ", realtime" if realtime else "")
         return Opened(session, token)
 
     def _register(self, session: Session, owner: str) -> None:
@@ -284,6 +290,8 @@ class Registry:
 
     def _finish(self, session: Session, timeout: float) -> Closed:
         stopped = session.close(timeout)
+        for callback in self._before_close:
+            callback(session)
         stats = messages.stats(session.config, session.map_stats(), session.counters())
         snapshot = None
         if self.settings.final_snapshots:

@@ -10,6 +10,11 @@ checkpoint of the map (``checkpoint.py``). A session resumed after a crash start
 checkpoint with a backlog: the recorded frames after it, which the worker maps (they are already
 recorded) before any new frame. The session answers in engine results and its own counters; the
 messages module turns them into ogapi messages.
+
+A realtime session never makes the stream wait: beyond ``realtime_queue_depth`` waiting frames, the
+oldest waiting one is skipped at once (recorded, acknowledged as skipped, never mapped). Taking a
+frame out of the queue and recording it happen under one lock, on either path, so the recording
+keeps arrival order and a replay maps every frame, skipped ones included, in that order.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ import math
 import queue
 import threading
 import time
+from collections import deque
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
@@ -41,6 +47,7 @@ from ogserver.events import Acked, SessionClosed, StreamEvent
 from ogserver.recorder import FrameRecord, Recorder, frame_record
 from ogserver.settings import Limits
 from ogserver.storage import StorageError
+from ogserver.views import LatestFrame, MappedFrame
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +59,7 @@ class Job:
     sequence: int
     received: float  # time.monotonic() when the frame was read
     sink: queue.SimpleQueue[StreamEvent] | None  # where the stream that sent it waits for its ack
-    size: int  # bytes it holds of the session's max_queued_bytes
+    size: int  # bytes it holds of the session's max_queued_bytes (0 in a realtime session, which holds none)
 
 
 @dataclass(frozen=True)
@@ -81,19 +88,24 @@ class Session:
         # Sequences go on from where the map (start) stands; this server run counts the backlog as received.
         self._sequence_base = start.sequence
         self._last_index = self._backlog[-1].message.index if self._backlog else start.index
-        self._recorded = self._mapped_position = start
+        self._mapped_position = start
         self._started = time.monotonic()
+        self.realtime = config.realtime
         self._slots = threading.Semaphore(limits.queue_depth)
         self._queued_bytes = ByteBudget(limits.max_queued_bytes)
-        self._jobs: queue.SimpleQueue[Job | None] = queue.SimpleQueue()
+        # Jobs in arrival order (None: stop). Lock order: _intake, then _lock.
+        self._intake = threading.Condition()
+        self._jobs: deque[Job | None] = deque()
         self._lock = threading.Lock()
+        self.latest = LatestFrame()  # what the live view and the recording's map views show next
         self._closed = threading.Event()
         # Each frame's optimisation stops after frame_seconds (0: no limit), or at once when the session closes.
         self._time_budget = Budget(seconds=frame_seconds or math.inf)
         self._stream_sink: queue.SimpleQueue[StreamEvent] | None = None
-        self._rejected = self._mapped = 0
+        self._rejected = self._mapped = self._skipped = 0
         self._received = self._pending = len(self._backlog)
-        self._anchors = mapper.stats().anchors  # a restored map starts with its anchors
+        engine = mapper.stats()
+        self._anchors, self._gaussians = engine.anchors, engine.gaussians  # a restored map starts with them
         self._first_received: float | None = self._started if self._backlog else None
         self._last_mapped: float | None = None
         self._worker = threading.Thread(target=self._run, name=f"session-{self.id[:8]}", daemon=True)
@@ -136,8 +148,8 @@ class Session:
             self._rejected += 1
 
     def submit(self, frame: Frame, message: pb.Frame, sink: queue.SimpleQueue[StreamEvent] | None) -> bool:
-        """Queue a validated frame, waiting while the queue is full; False once closed, StorageError
-        if the frame cannot be recorded."""
+        """Queue a validated frame, waiting while the queue is full (a realtime session skips the oldest
+        waiting frame instead); False once closed, StorageError if the frame cannot be recorded."""
         received, received_ns = time.monotonic(), time.time_ns()
         try:
             record = frame_record(message, frame, received_ns)
@@ -145,6 +157,8 @@ class Session:
             log.exception("session %s: frame %d cannot be recorded", self.id, frame.index)
             raise StorageError(grpc.StatusCode.INTERNAL, "the server could not encode the frame for its recording") \
                 from None
+        if self.realtime:
+            return self._submit_newest(frame, record, received, sink)
         while not self._slots.acquire(timeout=0.2):
             if self._closed.is_set():
                 return False
@@ -152,32 +166,48 @@ class Session:
         if not self._queued_bytes.acquire(size, self._closed):
             self._slots.release()
             return False
-        with self._lock:
-            if self._closed.is_set():
+        with self._intake:
+            job = self._enqueue(frame, record, received, sink, size)
+            if job is None:
                 self._queued_bytes.release(size)
                 self._slots.release()
                 return False
+        return True
+
+    def _enqueue(
+        self, frame: Frame, record: FrameRecord, received: float, sink: queue.SimpleQueue[StreamEvent] | None,
+        size: int,
+    ) -> Job | None:
+        """Count the frame in and queue it, the caller holding ``_intake``; None once closed."""
+        with self._lock:
+            if self._closed.is_set():
+                return None
             self._received += 1
             self._pending += 1
             self._last_index = frame.index
             if self._first_received is None:
                 self._first_received = received
-            self._jobs.put(Job(frame, record, self._sequence_base + self._received, received, sink, size))
-        return True
+            job = Job(frame, record, self._sequence_base + self._received, received, sink, size)
+        self._jobs.append(job)
+        self._intake.notify()
+        return job
 
-    def _run(self) -> None:
-        self._map_backlog()
-        while (job := self._jobs.get()) is not None:
-            try:
-                ack = self._record_and_map(job)
-            finally:
-                with self._lock:
-                    self._pending -= 1
-                self._queued_bytes.release(job.size)
-                self._slots.release()
+    def _submit_newest(
+        self, frame: Frame, record: FrameRecord, received: float, sink: queue.SimpleQueue[StreamEvent] | None
+    ) -> bool:
+        """Queue the frame at once; the oldest waiting frames beyond ``realtime_queue_depth`` are skipped."""
+        with self._intake:
+            if self._enqueue(frame, record, received, sink, 0) is None:
+                return False
+            skipped = []
+            while len(self._jobs) > self.limits.realtime_queue_depth:
+                job = self._jobs.popleft()
+                assert job is not None  # the stop marker is queued only once closed, and then nothing is
+                skipped.append((job, self._skip(job)))
+        for job, ack in skipped:
             if job.sink is not None:
                 job.sink.put(Acked(ack))
-            self._checkpoint_if_due()
+        return True
 
     def _map_backlog(self) -> None:
         """A resumed session's recorded frames after its checkpoint, mapped again (not recorded again)."""
@@ -191,7 +221,7 @@ class Session:
                           item.message.index, item.sequence, refusal.message)
             with self._lock:
                 self._pending -= 1
-                self._recorded = self._mapped_position = Position(item.sequence, item.message.index)
+                self._mapped_position = Position(item.sequence, item.message.index)
             self._checkpoint_if_due()
         if self._backlog:
             log.warning("session %s: closed before its %d remaining recorded frames were mapped again", self.id,
@@ -201,9 +231,12 @@ class Session:
             self._backlog.clear()
 
     def _checkpoint_if_due(self) -> None:
-        """After a frame is recorded, mapped and acknowledged: a checkpoint when one is due. A failed
-        write is logged and the previous checkpoint stands (a resume replays more frames)."""
-        position = self._recorded
+        """After a frame is recorded, mapped and acknowledged: a checkpoint when one is due. Its position
+        is the last mapped frame's, so a resume maps every recorded frame after it (a realtime session's
+        frames skipped since then included). A failed write is logged and the previous checkpoint
+        stands (a resume replays more frames)."""
+        with self._lock:
+            position = self._mapped_position
         if (self.checkpoints is None or not self.checkpoints.due(position.sequence) or self.recorder.failure
                 or self._closed.is_set()):
             return
@@ -213,21 +246,66 @@ class Session:
             log.error("session %s: cannot write its checkpoint at sequence %d: %s", self.id, position.sequence,
                       error.strerror or error)
 
-    def _record_and_map(self, job: Job) -> pb.FrameAck:
-        """A frame is mapped only once the recording holds it; one it cannot hold gets an error ack."""
+    def _skip(self, job: Job) -> pb.FrameAck:
+        """Record a frame passed over for a newer one, and its skipped ack (or why it could not be recorded)."""
+        refusal = self._record(job)
+        with self._lock:
+            self._pending -= 1
+            if refusal is None:
+                self._skipped += 1
+            waiting = len(self._jobs)
+            anchors, gaussians = self._anchors, self._gaussians
+        if refusal is not None:
+            return refusal
+        ack = messages.skipped_ack(job.frame.index, job.sequence, anchors, gaussians,
+                                   time.monotonic() - job.received, waiting)
+        with suppress(StorageError):  # logged by the recorder, as for a mapped frame's ack
+            self.recorder.write_ack(ack)
+        return ack
+
+    def _record(self, job: Job) -> pb.FrameAck | None:
+        """None once the recording holds the frame, else the error ack of a frame it cannot hold."""
         try:
             self.recorder.write_frame(job.record)
         except ServiceError as refusal:
             return messages.error_ack(job.frame.index, refusal)
-        self._recorded = Position(job.sequence, job.frame.index)
-        ack = self._map(job.frame, job.sequence, job.received)
+        return None
+
+    def _take(self) -> tuple[Job, pb.FrameAck | None] | None:
+        """The next frame, recorded before a newer one can be skipped past it; None to stop."""
+        with self._intake:
+            while not self._jobs:
+                self._intake.wait()
+            job = self._jobs.popleft()
+            return None if job is None else (job, self._record(job))
+
+    def _run(self) -> None:
+        self._map_backlog()
+        while (taken := self._take()) is not None:
+            job, refusal = taken
+            try:
+                ack = refusal or self._map_recorded(job)
+            finally:
+                with self._lock:
+                    self._pending -= 1
+                if not self.realtime:
+                    self._queued_bytes.release(job.size)
+                    self._slots.release()
+            if job.sink is not None:
+                job.sink.put(Acked(ack))
+            self._checkpoint_if_due()
+
+    def _map_recorded(self, job: Job) -> pb.FrameAck:
+        """A frame is mapped only once the recording holds it."""
+        ack = self._map(job.frame, job.sequence, job.received, job.record)
         with self._lock:
-            self._mapped_position = self._recorded
+            self._mapped_position = Position(job.sequence, job.frame.index)
         with suppress(StorageError):  # logged by the recorder; the frame is mapped and recorded, its ack is not
             self.recorder.write_ack(ack)
         return ack
 
-    def _map(self, frame: Frame, sequence: int, received: float) -> pb.FrameAck:
+    def _map(self, frame: Frame, sequence: int, received: float, record: FrameRecord | None = None) -> pb.FrameAck:
+        """Map one frame; a frame taken from a stream (with its ``record``) is offered to the live view."""
         try:
             result = self.mapper.process(frame, self._time_budget)
         except Exception as error:  # the session survives a failing frame; the client sees why
@@ -235,9 +313,11 @@ class Session:
             return messages.error_ack(frame.index, ServiceError(grpc.StatusCode.INTERNAL, f"mapping failed: {error}"))
         with self._lock:
             self._mapped += 1
-            self._anchors = result.anchors
+            self._anchors, self._gaussians = result.anchors, result.gaussians
             self._last_mapped = time.monotonic()
             waiting = self._pending - 1
+        if record is not None:
+            self.latest.offer(MappedFrame.of(frame, record, result.keyframe))
         return messages.frame_ack(result, sequence, time.monotonic() - received, max(waiting, 0))
 
     # ------------------------------------------------------------------ queries
@@ -256,7 +336,8 @@ class Session:
             )
             return SessionCounters(
                 received=self._received, rejected=self._rejected, mapped=self._mapped, pending=self._pending,
-                anchors=self._anchors, processing_fps=self._mapped / elapsed if elapsed > 0 else 0.0,
+                skipped=self._skipped, anchors=self._anchors,
+                processing_fps=self._mapped / elapsed if elapsed > 0 else 0.0,
                 uptime_seconds=time.monotonic() - self._started,
                 last_sequence=self._sequence_base + self._received, last_index=self._last_index,
                 mapped_sequence=self._mapped_position.sequence,
@@ -270,22 +351,17 @@ class Session:
     def close(self, timeout: float | None = None) -> bool:
         """Stop taking frames, drop the queued ones (never recorded), wait up to ``timeout`` for the
         frame being mapped, end any stream; whether the worker stopped in time."""
-        with self._lock:
+        with self._intake, self._lock:
             if self._closed.is_set():
                 return not self._worker.is_alive()
             self._closed.set()
             self._time_budget.cancelled.set()
             sink = self._stream_sink
-            dropped = 0
-            while True:
-                try:
-                    job = self._jobs.get_nowait()
-                except queue.Empty:
-                    break
-                if job is not None:
-                    dropped += 1
+            dropped = sum(job is not None for job in self._jobs)
+            self._jobs.clear()
             self._pending -= dropped
-            self._jobs.put(None)
+            self._jobs.append(None)
+            self._intake.notify()
         self._worker.join(timeout)
         if sink is not None:
             sink.put(SessionClosed())

@@ -24,6 +24,7 @@ class Limits:
 
     max_sessions: int = 4
     queue_depth: int = 8  # frames read ahead per session before backpressure
+    realtime_queue_depth: int = 1  # realtime sessions: newest frames kept waiting; older ones are skipped
     max_queued_bytes: int = 256 * MIB  # access: decoded frames one session holds queued before backpressure
     max_image_pixels: int = 4096 * 3072  # per colour/depth image and per render
     max_message_bytes: int = 64 * MIB  # gRPC send/receive limit
@@ -92,6 +93,32 @@ class Access:
 
 
 @dataclass
+class Live:
+    """The live view: each session's latest render and map, in Foxglove and in the recordings."""
+
+    foxglove_host: str = "127.0.0.1"  # the Foxglove WebSocket server's address (no authentication: keep it local)
+    foxglove_port: int = -1  # -1: no Foxglove server; 0: any free port (the log names it)
+    view_seconds: float = 1.0  # at most one render and point cloud per session this often; 0: views off
+    view_points: int = 50_000  # the point cloud's bound (Gaussians from anchors spread over the map)
+    record_views: bool = True  # write keyframes' render and point cloud into the recordings
+
+    def validate(self) -> None:
+        if not -1 <= self.foxglove_port <= 65535:
+            raise ValueError(f"live.foxglove_port must be -1 (off), 0 (any free port) or a port number "
+                             f"(got {self.foxglove_port})")
+        if not (math.isfinite(self.view_seconds) and self.view_seconds >= 0):
+            raise ValueError(f"live.view_seconds must be a finite number >= 0 (got {self.view_seconds})")
+        if self.foxglove and not self.view_seconds:
+            raise ValueError("live.foxglove_port needs live.view_seconds > 0 (0 turns the views off)")
+        if self.view_points < 1:
+            raise ValueError(f"live.view_points must be >= 1 (got {self.view_points})")
+
+    @property
+    def foxglove(self) -> bool:
+        return self.foxglove_port >= 0
+
+
+@dataclass
 class Settings:
     address: str = "127.0.0.1:50051"
     record_dir: str = "recordings"
@@ -113,6 +140,7 @@ class Settings:
     # written when it opens); at start, resume the sessions a crashed server left open
     checkpoint_interval: int = 50
     resume: bool = True
+    live: Live = field(default_factory=Live)
 
     def validate(self) -> None:
         if not self.address or ":" not in self.address:
@@ -124,6 +152,7 @@ class Settings:
         self.limits.validate()
         self.access.validate()
         self.config_bounds.validate()
+        self.live.validate()
         if not (math.isfinite(self.frame_seconds) and self.frame_seconds >= 0):
             raise ValueError(f"frame_seconds must be >= 0 and finite (got {self.frame_seconds})")
         if self.checkpoint_interval < 0:
@@ -164,7 +193,8 @@ def load(path: str | Path | None = None, flags: dict[str, Any] | None = None) ->
     for key, value in (flags or {}).items():
         if value is None:
             continue
-        target = next((section for section in (settings.limits, settings.access) if hasattr(section, key)), settings)
+        sections = (settings.limits, settings.access, settings.live)
+        target = next((section for section in sections if hasattr(section, key)), settings)
         _assign(target, {key: value})
     settings.validate()
     return settings

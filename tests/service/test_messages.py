@@ -25,6 +25,7 @@ def test_stats_rebuild_the_message_recorded_before_the_typed_records() -> None:
     })
     counters = SessionCounters(
         received=old.frames_received, rejected=old.frames_rejected, mapped=old.frames, pending=old.queue_depth,
+        skipped=old.frames_skipped,
         anchors=old.anchors, processing_fps=old.processing_fps, uptime_seconds=old.uptime_seconds,
     )
     rebuilt = messages.stats(recorded.config, engine, counters)

@@ -23,6 +23,13 @@ def test_defaults_then_file_then_flags(tmp_path: Path) -> None:
     assert settings.limits.max_anchors == 0
 
 
+def test_live_view_flags() -> None:
+    settings = load(None, {"foxglove_port": 0, "view_seconds": 0.5, "record_views": False, "realtime_queue_depth": 2})
+    assert settings.live.foxglove and settings.live.view_seconds == 0.5 and not settings.live.record_views
+    assert settings.limits.realtime_queue_depth == 2
+    assert not load().live.foxglove
+
+
 def test_the_test_server_config_loads() -> None:
     assert load(TEST_SERVER_CONFIG).limits.max_image_pixels == 65536
 
@@ -43,6 +50,10 @@ def test_the_test_server_config_loads() -> None:
         ("checkpoint_interval: -1\n", "checkpoint_interval must be an integer >= 0"),
         ("checkpoint_interval: 2.5\n", "checkpoint_interval must be int"),
         ("resume: 1\n", "resume must be bool"),
+        ("limits:\n  realtime_queue_depth: 0\n", "limits.realtime_queue_depth must be an integer >= 1"),
+        ("live:\n  foxglove_port: -2\n", "live.foxglove_port must be -1"),
+        ("live:\n  foxglove_port: 0\n  view_seconds: 0\n", "live.foxglove_port needs live.view_seconds > 0"),
+        ("live:\n  view_points: 0\n", "live.view_points must be >= 1"),
     ],
 )
 def test_bad_settings_are_refused(tmp_path: Path, text: str, message: str) -> None:

@@ -73,7 +73,7 @@ class CameraIntrinsics(_message.Message):
     def __init__(self, fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ...) -> None: ...
 
 class CreateSessionRequest(_message.Message):
-    __slots__ = ("preset", "overrides", "label")
+    __slots__ = ("preset", "overrides", "label", "realtime")
     class OverridesEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -84,10 +84,12 @@ class CreateSessionRequest(_message.Message):
     PRESET_FIELD_NUMBER: _ClassVar[int]
     OVERRIDES_FIELD_NUMBER: _ClassVar[int]
     LABEL_FIELD_NUMBER: _ClassVar[int]
+    REALTIME_FIELD_NUMBER: _ClassVar[int]
     preset: str
     overrides: _containers.ScalarMap[str, str]
     label: str
-    def __init__(self, preset: _Optional[str] = ..., overrides: _Optional[_Mapping[str, str]] = ..., label: _Optional[str] = ...) -> None: ...
+    realtime: bool
+    def __init__(self, preset: _Optional[str] = ..., overrides: _Optional[_Mapping[str, str]] = ..., label: _Optional[str] = ..., realtime: _Optional[bool] = ...) -> None: ...
 
 class SessionCredentials(_message.Message):
     __slots__ = ("session_id", "token", "config_json", "device", "recording")
@@ -104,7 +106,7 @@ class SessionCredentials(_message.Message):
     def __init__(self, session_id: _Optional[str] = ..., token: _Optional[str] = ..., config_json: _Optional[str] = ..., device: _Optional[str] = ..., recording: _Optional[str] = ...) -> None: ...
 
 class SessionConfig(_message.Message):
-    __slots__ = ("session_id", "preset", "overrides", "config_json", "device", "label", "created_unix", "server_version", "restored_from_sha256")
+    __slots__ = ("session_id", "preset", "overrides", "config_json", "device", "label", "created_unix", "server_version", "restored_from_sha256", "realtime")
     class OverridesEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -121,6 +123,7 @@ class SessionConfig(_message.Message):
     CREATED_UNIX_FIELD_NUMBER: _ClassVar[int]
     SERVER_VERSION_FIELD_NUMBER: _ClassVar[int]
     RESTORED_FROM_SHA256_FIELD_NUMBER: _ClassVar[int]
+    REALTIME_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     preset: str
     overrides: _containers.ScalarMap[str, str]
@@ -130,7 +133,8 @@ class SessionConfig(_message.Message):
     created_unix: float
     server_version: str
     restored_from_sha256: str
-    def __init__(self, session_id: _Optional[str] = ..., preset: _Optional[str] = ..., overrides: _Optional[_Mapping[str, str]] = ..., config_json: _Optional[str] = ..., device: _Optional[str] = ..., label: _Optional[str] = ..., created_unix: _Optional[float] = ..., server_version: _Optional[str] = ..., restored_from_sha256: _Optional[str] = ...) -> None: ...
+    realtime: bool
+    def __init__(self, session_id: _Optional[str] = ..., preset: _Optional[str] = ..., overrides: _Optional[_Mapping[str, str]] = ..., config_json: _Optional[str] = ..., device: _Optional[str] = ..., label: _Optional[str] = ..., created_unix: _Optional[float] = ..., server_version: _Optional[str] = ..., restored_from_sha256: _Optional[str] = ..., realtime: _Optional[bool] = ...) -> None: ...
 
 class Frame(_message.Message):
     __slots__ = ("index", "timestamp", "color", "depth", "color_intrinsics", "depth_intrinsics", "depth_to_color", "c2w")
@@ -163,7 +167,7 @@ class Error(_message.Message):
     def __init__(self, code: _Optional[int] = ..., code_name: _Optional[str] = ..., message: _Optional[str] = ...) -> None: ...
 
 class FrameAck(_message.Message):
-    __slots__ = ("index", "accepted", "sequence", "keyframe", "anchors", "gaussians", "iterations", "latency_seconds", "process_seconds", "queue_depth", "error")
+    __slots__ = ("index", "accepted", "sequence", "keyframe", "anchors", "gaussians", "iterations", "latency_seconds", "process_seconds", "queue_depth", "error", "skipped")
     INDEX_FIELD_NUMBER: _ClassVar[int]
     ACCEPTED_FIELD_NUMBER: _ClassVar[int]
     SEQUENCE_FIELD_NUMBER: _ClassVar[int]
@@ -175,6 +179,7 @@ class FrameAck(_message.Message):
     PROCESS_SECONDS_FIELD_NUMBER: _ClassVar[int]
     QUEUE_DEPTH_FIELD_NUMBER: _ClassVar[int]
     ERROR_FIELD_NUMBER: _ClassVar[int]
+    SKIPPED_FIELD_NUMBER: _ClassVar[int]
     index: int
     accepted: bool
     sequence: int
@@ -186,7 +191,8 @@ class FrameAck(_message.Message):
     process_seconds: float
     queue_depth: int
     error: Error
-    def __init__(self, index: _Optional[int] = ..., accepted: _Optional[bool] = ..., sequence: _Optional[int] = ..., keyframe: _Optional[bool] = ..., anchors: _Optional[int] = ..., gaussians: _Optional[int] = ..., iterations: _Optional[int] = ..., latency_seconds: _Optional[float] = ..., process_seconds: _Optional[float] = ..., queue_depth: _Optional[int] = ..., error: _Optional[_Union[Error, _Mapping]] = ...) -> None: ...
+    skipped: bool
+    def __init__(self, index: _Optional[int] = ..., accepted: _Optional[bool] = ..., sequence: _Optional[int] = ..., keyframe: _Optional[bool] = ..., anchors: _Optional[int] = ..., gaussians: _Optional[int] = ..., iterations: _Optional[int] = ..., latency_seconds: _Optional[float] = ..., process_seconds: _Optional[float] = ..., queue_depth: _Optional[int] = ..., error: _Optional[_Union[Error, _Mapping]] = ..., skipped: _Optional[bool] = ...) -> None: ...
 
 class RenderRequest(_message.Message):
     __slots__ = ("session_id", "c2w", "intrinsics", "outputs", "color_encoding", "depth_encoding", "jpeg_quality")
@@ -227,7 +233,7 @@ class GetStatsRequest(_message.Message):
     def __init__(self, session_id: _Optional[str] = ...) -> None: ...
 
 class Stats(_message.Message):
-    __slots__ = ("session_id", "preset", "device", "frames", "keyframes", "anchors", "anchors_per_level", "gaussians", "iterations", "timings", "frames_received", "frames_rejected", "queue_depth", "processing_fps", "uptime_seconds", "engine_json", "config_json", "last_sequence", "last_index", "mapped_sequence")
+    __slots__ = ("session_id", "preset", "device", "frames", "keyframes", "anchors", "anchors_per_level", "gaussians", "iterations", "timings", "frames_received", "frames_rejected", "queue_depth", "processing_fps", "uptime_seconds", "engine_json", "config_json", "last_sequence", "last_index", "mapped_sequence", "frames_skipped")
     class TimingsEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -255,6 +261,7 @@ class Stats(_message.Message):
     LAST_SEQUENCE_FIELD_NUMBER: _ClassVar[int]
     LAST_INDEX_FIELD_NUMBER: _ClassVar[int]
     MAPPED_SEQUENCE_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_SKIPPED_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     preset: str
     device: str
@@ -275,7 +282,8 @@ class Stats(_message.Message):
     last_sequence: int
     last_index: int
     mapped_sequence: int
-    def __init__(self, session_id: _Optional[str] = ..., preset: _Optional[str] = ..., device: _Optional[str] = ..., frames: _Optional[int] = ..., keyframes: _Optional[int] = ..., anchors: _Optional[int] = ..., anchors_per_level: _Optional[_Iterable[int]] = ..., gaussians: _Optional[int] = ..., iterations: _Optional[int] = ..., timings: _Optional[_Mapping[str, float]] = ..., frames_received: _Optional[int] = ..., frames_rejected: _Optional[int] = ..., queue_depth: _Optional[int] = ..., processing_fps: _Optional[float] = ..., uptime_seconds: _Optional[float] = ..., engine_json: _Optional[str] = ..., config_json: _Optional[str] = ..., last_sequence: _Optional[int] = ..., last_index: _Optional[int] = ..., mapped_sequence: _Optional[int] = ...) -> None: ...
+    frames_skipped: int
+    def __init__(self, session_id: _Optional[str] = ..., preset: _Optional[str] = ..., device: _Optional[str] = ..., frames: _Optional[int] = ..., keyframes: _Optional[int] = ..., anchors: _Optional[int] = ..., anchors_per_level: _Optional[_Iterable[int]] = ..., gaussians: _Optional[int] = ..., iterations: _Optional[int] = ..., timings: _Optional[_Mapping[str, float]] = ..., frames_received: _Optional[int] = ..., frames_rejected: _Optional[int] = ..., queue_depth: _Optional[int] = ..., processing_fps: _Optional[float] = ..., uptime_seconds: _Optional[float] = ..., engine_json: _Optional[str] = ..., config_json: _Optional[str] = ..., last_sequence: _Optional[int] = ..., last_index: _Optional[int] = ..., mapped_sequence: _Optional[int] = ..., frames_skipped: _Optional[int] = ...) -> None: ...
 
 class GetSnapshotRequest(_message.Message):
     __slots__ = ("session_id",)

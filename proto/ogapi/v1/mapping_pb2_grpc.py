@@ -90,6 +90,9 @@ class MappingServicer:
         """Frames in, one FrameAck out per frame (in order). The server reads ahead at most the
         configured queue depth and then applies backpressure. The response stream ends once the
         client has half-closed and every accepted frame has been mapped and acknowledged.
+        A realtime session (CreateSessionRequest.realtime) never applies backpressure: it keeps only
+        the newest frames waiting, and acknowledges each frame it passes over at once, with `skipped`
+        set, so a skipped frame's ack can come before the ack of an earlier frame still being mapped.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

@@ -1,0 +1,165 @@
+"""The live view's thread: each session's latest render, trajectory and map, to Foxglove and the recordings.
+
+Every ``view_seconds`` it takes what each session mapped since the last look (``LatestFrame``) and
+publishes, to the Foxglove clients subscribed (``--foxglove-port``): the camera poses, the input
+image, the map rendered from the latest pose and the map as a point cloud; and, when a keyframe was
+among those frames, writes the render and point cloud of the newest keyframe into the session's
+recording (once more when the session closes, so its recording ends with the final map). Rendering
+and decoding hold the mapper's lock like a Render call, between optimisation iterations; nothing is
+rendered or decoded that no client watches and no recording wants, and the rate bounds the rest
+(``bench/RESULTS.md`` measures what it costs the mapping).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from google.protobuf.message import Message
+from ogapi import recording as layout
+
+from ogmapping.export import ColoredPoints, default_viewpoint, point_cloud
+from ogserver.errors import ServiceError
+from ogserver.foxglove_ws import FoxgloveServer
+from ogserver.recorder import transform
+from ogserver.registry import Registry
+from ogserver.session import Session
+from ogserver.settings import Live
+from ogserver.views import FrameIds, MappedFrame, Pending, image, points_message, render_jpeg
+
+log = logging.getLogger(__name__)
+LIVE_TOPICS: dict[str, type[Message]] = {
+    layout.TOPIC_TRANSFORM: FrameTransform, layout.TOPIC_COLOR: CompressedImage,
+    layout.TOPIC_RENDER: CompressedImage, layout.TOPIC_MAP: PointCloud,
+}
+
+
+def session_prefix(session_id: str) -> str:
+    """Live topics of one session: the recording's topic names under this prefix."""
+    return f"/session/{session_id}"
+
+
+@dataclass
+class Looks:
+    """One session's renders and point cloud, each made at most once per look."""
+
+    session: Session
+    max_points: int
+    renders: dict[int, bytes] = field(default_factory=dict)  # by id() of the frame, alive for the look
+    points: ColoredPoints | None = None
+
+    def render(self, frame: MappedFrame) -> bytes:
+        if id(frame) not in self.renders:
+            self.renders[id(frame)] = render_jpeg(self.session.mapper, frame)
+        return self.renders[id(frame)]
+
+    def map(self) -> ColoredPoints:
+        if self.points is None:
+            mapper = self.session.mapper
+            self.points = point_cloud(mapper, default_viewpoint(mapper).center, self.max_points)
+        return self.points
+
+
+class LiveView:
+    def __init__(self, registry: Registry, settings: Live, foxglove: FoxgloveServer | None) -> None:
+        self.registry = registry
+        self.settings = settings
+        self.foxglove = foxglove
+        self._advertised: set[str] = set()
+        self.busy_seconds = 0.0  # spent publishing and recording views (rendering and decoding, mostly)
+        self.looks = 0  # sessions looked at with something new
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="live-view", daemon=True)
+        if settings.record_views:
+            registry.before_close(self.last_look)
+
+    def start(self) -> LiveView:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.ident is not None:
+            self._thread.join()
+            log.info("live view: %d session looks, %.1f s making and publishing views", self.looks, self.busy_seconds)
+        if self.foxglove is not None:
+            self.foxglove.stop()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.settings.view_seconds):
+            self.look()
+
+    def look(self) -> None:
+        """Publish and record what every session mapped since the last look."""
+        sessions = self.registry.sessions()
+        self._advertise({session.id for session in sessions})
+        for session in sessions:
+            pending = session.latest.take()
+            if pending is None:
+                continue
+            looks = Looks(session, self.settings.view_points)
+            start = time.perf_counter()
+            try:
+                if self.foxglove is not None:
+                    self._publish(session.id, pending, looks, self.foxglove)
+                if self.settings.record_views and pending.keyframe is not None:
+                    self._record(session, pending.keyframe, looks)
+            except Exception:  # one session's view must not stop the others'
+                log.exception("session %s: the live view failed", session.id)
+            self.busy_seconds += time.perf_counter() - start
+            self.looks += 1
+
+    def last_look(self, session: Session) -> None:
+        """A closing session's recording ends with its final map: the newest keyframe not yet recorded."""
+        pending = session.latest.take()
+        if pending is None or pending.keyframe is None:
+            return
+        try:
+            self._record(session, pending.keyframe, Looks(session, self.settings.view_points))
+        except Exception:  # the session closes regardless
+            log.exception("session %s: its last view could not be recorded", session.id)
+
+    def _advertise(self, open_ids: set[str]) -> None:
+        """Offer every open session's topics to Foxglove clients, and withdraw those of closed ones."""
+        if self.foxglove is None:
+            return
+        for session_id in open_ids - self._advertised:
+            for topic, message_type in LIVE_TOPICS.items():
+                self.foxglove.advertise(session_prefix(session_id) + topic, message_type)
+        for session_id in self._advertised - open_ids:
+            self.foxglove.withdraw(session_prefix(session_id) + "/")
+        self._advertised = open_ids
+
+    def _publish(self, session_id: str, pending: Pending, looks: Looks, foxglove: FoxgloveServer) -> None:
+        prefix, frames, latest = session_prefix(session_id), FrameIds.of_session(session_id), pending.latest
+        if foxglove.wants(prefix + layout.TOPIC_TRANSFORM):
+            for sensor_ns, c2w in pending.poses:
+                foxglove.publish(prefix + layout.TOPIC_TRANSFORM, transform(sensor_ns, c2w, frames.world,
+                                                                            frames.camera), sensor_ns)
+        if foxglove.wants(prefix + layout.TOPIC_COLOR):
+            color = CompressedImage()
+            color.CopyFrom(latest.color)
+            color.frame_id = frames.camera
+            foxglove.publish(prefix + layout.TOPIC_COLOR, color, latest.sensor_ns)
+        if foxglove.wants(prefix + layout.TOPIC_RENDER):
+            foxglove.publish(prefix + layout.TOPIC_RENDER, image(looks.render(latest), latest.sensor_ns, frames),
+                             latest.sensor_ns)
+        if foxglove.wants(prefix + layout.TOPIC_MAP):
+            foxglove.publish(prefix + layout.TOPIC_MAP, points_message(looks.map(), latest.sensor_ns, frames),
+                             latest.sensor_ns)
+
+    def _record(self, session: Session, keyframe: MappedFrame, looks: Looks) -> None:
+        frames = FrameIds()
+        views: list[tuple[str, Message]] = [
+            (layout.TOPIC_RENDER, image(looks.render(keyframe), keyframe.sensor_ns, frames)),
+            (layout.TOPIC_MAP, points_message(looks.map(), keyframe.sensor_ns, frames)),
+        ]
+        try:
+            session.recorder.write_views(views, keyframe.sensor_ns)
+        except ServiceError:  # the recorder logged it, and the session refuses frames from now on
+            return

@@ -1,0 +1,114 @@
+"""What a session's map looks like: the latest mapped frame, its render and the map as points.
+
+The session's worker only hands over references (``LatestFrame.offer``: the frame's pose, its
+recorded colour image); rendering and decoding the map happen later, on the live view's thread
+(``live.py``), between the mapper's optimisation iterations like any render call. The messages are
+Foxglove's schemas, the same bytes for the Foxglove WebSocket server and the session recording.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from ogapi import recording as layout
+from ogapi.images import encode_color
+from ogapi.v1 import mapping_pb2 as pb
+
+from ogmapping.camera import Intrinsics
+from ogmapping.export import ColoredPoints
+from ogmapping.frame import Frame
+from ogmapping.mapper import Mapper
+from ogserver.recorder import FrameRecord, timestamp
+
+RENDER_JPEG_QUALITY = 90
+MAX_POSES = 1000  # poses kept between two looks of the live view; older ones are dropped
+POINT_STRIDE = 16  # x, y, z float32, then red, green, blue, alpha uint8
+POINT_FIELDS = [
+    *(PackedElementField(name=name, offset=4 * axis, type=PackedElementField.FLOAT32)
+      for axis, name in enumerate(("x", "y", "z"))),
+    *(PackedElementField(name=name, offset=12 + channel, type=PackedElementField.UINT8)
+      for channel, name in enumerate(("red", "green", "blue", "alpha"))),
+]
+
+
+@dataclass(frozen=True)
+class FrameIds:
+    """Foxglove frame ids: ``world``/``camera`` in a recording (one session), prefixed live."""
+
+    world: str = layout.WORLD_FRAME
+    camera: str = layout.CAMERA_FRAME
+
+    @classmethod
+    def of_session(cls, session_id: str) -> FrameIds:
+        return cls(f"{session_id}/{layout.WORLD_FRAME}", f"{session_id}/{layout.CAMERA_FRAME}")
+
+
+@dataclass(frozen=True)
+class MappedFrame:
+    sensor_ns: int
+    c2w: np.ndarray  # (4, 4)
+    intrinsics: Intrinsics
+    color: CompressedImage  # the input image as recorded
+    keyframe: bool
+
+    @classmethod
+    def of(cls, frame: Frame, record: FrameRecord, keyframe: bool) -> MappedFrame:
+        color = next(view for topic, view in record.views if topic == layout.TOPIC_COLOR)
+        return cls(record.sensor_ns, np.array(frame.c2w, dtype=np.float64), frame.color_intrinsics, color, keyframe)
+
+
+@dataclass(frozen=True)
+class Pending:
+    """What a session mapped since the live view last looked."""
+
+    latest: MappedFrame
+    poses: list[tuple[int, np.ndarray]]  # (sensor ns, c2w) of every frame mapped since, oldest first
+    keyframe: MappedFrame | None  # the newest keyframe among them
+
+
+class LatestFrame:
+    """A one-slot mailbox from the session's worker to the live view: offering costs a lock and an append."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._latest: MappedFrame | None = None
+        self._keyframe: MappedFrame | None = None
+        self._poses: deque[tuple[int, np.ndarray]] = deque(maxlen=MAX_POSES)
+
+    def offer(self, frame: MappedFrame) -> None:
+        with self._lock:
+            self._latest = frame
+            self._poses.append((frame.sensor_ns, frame.c2w))
+            if frame.keyframe:
+                self._keyframe = frame
+
+    def take(self) -> Pending | None:
+        with self._lock:
+            if self._latest is None:
+                return None
+            pending = Pending(self._latest, list(self._poses), self._keyframe)
+            self._latest = self._keyframe = None
+            self._poses.clear()
+            return pending
+
+
+def render_jpeg(mapper: Mapper, frame: MappedFrame) -> bytes:
+    """The map rendered from the frame's pose and camera, to show beside the input image."""
+    return encode_color(mapper.render(frame.c2w, frame.intrinsics).color, pb.COLOR_JPEG, RENDER_JPEG_QUALITY)
+
+
+def image(jpeg: bytes, sensor_ns: int, frames: FrameIds) -> CompressedImage:
+    return CompressedImage(timestamp=timestamp(sensor_ns), frame_id=frames.camera, data=jpeg, format="jpeg")
+
+
+def points_message(points: ColoredPoints, sensor_ns: int, frames: FrameIds) -> PointCloud:
+    packed = np.zeros(len(points.positions), dtype=[("xyz", "<f4", 3), ("rgba", "u1", 4)])
+    packed["xyz"], packed["rgba"] = points.positions, points.rgba
+    return PointCloud(timestamp=timestamp(sensor_ns), frame_id=frames.world, point_stride=POINT_STRIDE,
+                      fields=POINT_FIELDS, data=packed.tobytes())

@@ -1,0 +1,86 @@
+"""A Foxglove WebSocket protocol client over a plain websocket (``websockets``), for the live-view tests.
+
+It speaks the protocol as the Foxglove app does: JSON ``advertise`` messages name the channels and
+carry each channel's schema (a protobuf FileDescriptorSet, base64), ``subscribe`` asks for them, and
+binary message-data frames (opcode 1, subscription id, log time, payload) bring the messages, decoded
+here with classes built from the advertised schema, not from a package the server also uses.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import json
+import struct
+import time
+from dataclasses import dataclass, field
+
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+from google.protobuf.message import Message
+from websockets.asyncio.client import ClientConnection, connect
+from websockets.exceptions import ConnectionClosed
+
+SUBPROTOCOL = "foxglove.sdk.v1"
+MESSAGE_DATA = 1
+
+
+@dataclass(frozen=True)
+class Advertised:
+    id: int
+    topic: str
+    schema_name: str
+    message_type: type[Message]
+
+
+def message_type(schema_name: str, schema_base64: str) -> type[Message]:
+    files = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(schema_base64))
+    pool = descriptor_pool.DescriptorPool()
+    for file in files.file:
+        pool.Add(file)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(schema_name))
+
+
+@dataclass
+class Received:
+    channels: dict[str, Advertised] = field(default_factory=dict)  # by topic
+    messages: dict[str, list[tuple[int, Message]]] = field(default_factory=dict)  # topic -> (log time, message)
+
+
+async def _read(ws: ClientConnection, received: Received, subscribed: dict[int, Advertised]) -> None:
+    message = await ws.recv()
+    if isinstance(message, str):
+        data = json.loads(message)
+        if data["op"] == "advertise":
+            for channel in data["channels"]:
+                assert channel["encoding"] == "protobuf" and channel["schemaEncoding"] == "protobuf"
+                received.channels[channel["topic"]] = Advertised(
+                    channel["id"], channel["topic"], channel["schemaName"],
+                    message_type(channel["schemaName"], channel["schema"]))
+        return
+    assert message[0] == MESSAGE_DATA, f"unexpected binary opcode {message[0]}"
+    subscription, log_time = struct.unpack_from("<IQ", message, 1)
+    channel = subscribed[subscription]
+    received.messages.setdefault(channel.topic, []).append((log_time, channel.message_type.FromString(message[13:])))
+
+
+async def watch(url: str, prefix: str, topics: list[str], wanted: set[str], seconds: float) -> Received:
+    """Subscribe to ``prefix + topic`` for each topic once advertised; return once every ``wanted``
+    topic has a message (none wanted: until the server ends the connection), or after ``seconds``."""
+    received, subscribed = Received(), {}
+    deadline = time.monotonic() + seconds
+    async with connect(url, subprotocols=[SUBPROTOCOL], max_size=None) as ws:
+        while time.monotonic() < deadline and not (wanted and wanted <= set(received.messages)):
+            try:
+                await asyncio.wait_for(_read(ws, received, subscribed), max(deadline - time.monotonic(), 0.01))
+            except (TimeoutError, ConnectionClosed):
+                break
+            fresh = [received.channels[prefix + topic] for topic in topics
+                     if prefix + topic in received.channels
+                     and received.channels[prefix + topic] not in subscribed.values()]
+            if fresh:
+                for channel in fresh:
+                    subscribed[len(subscribed) + 1] = channel
+                await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                    {"id": number, "channelId": channel.id} for number, channel in subscribed.items()
+                    if channel in fresh]}))
+    return received
