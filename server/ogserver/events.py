@@ -41,4 +41,11 @@ class SessionClosed:
     """The session was closed while the stream was open."""
 
 
-StreamEvent = Acked | Rejected | ReaderDone | Cancelled | SessionClosed
+@dataclass(frozen=True)
+class Lost:
+    """The session's host stopped answering (cluster mode: its actor or its node died)."""
+
+    error: ServiceError
+
+
+StreamEvent = Acked | Rejected | ReaderDone | Cancelled | SessionClosed | Lost

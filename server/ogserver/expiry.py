@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import threading
 
-from ogserver.registry import Registry
+from ogserver.hosting import SessionHost
 
 CHECKS_PER_LIMIT = 10  # a session is closed at most a tenth of the limit late
 LONGEST_CHECK_INTERVAL = 10.0
 
 
 class Expiry:
-    def __init__(self, registry: Registry) -> None:
+    def __init__(self, registry: SessionHost) -> None:
         self._registry = registry
         self._stopped = threading.Event()
         limit = registry.settings.access.session_idle_seconds

@@ -17,7 +17,7 @@ from prometheus_client import CollectorRegistry, Counter, Histogram, start_http_
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
-from ogserver.registry import Registry
+from ogserver.hosting import SessionHost
 
 LATENCY_BUCKETS = (0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 25.0, 60.0, 150.0)
 
@@ -25,7 +25,7 @@ LATENCY_BUCKETS = (0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 25.0,
 class _Sessions(Collector):
     """What the registry holds, read at scrape time."""
 
-    def __init__(self, registry: Registry) -> None:
+    def __init__(self, registry: SessionHost) -> None:
         self._registry = registry
 
     def collect(self) -> Iterator[Metric]:
@@ -55,7 +55,7 @@ class _Sessions(Collector):
 
 
 class Metrics:
-    def __init__(self, registry: Registry) -> None:
+    def __init__(self, registry: SessionHost) -> None:
         self.collectors = CollectorRegistry()
         self.collectors.register(_Sessions(registry))
         self._calls = Counter("ogserver_calls", "Mapping calls by method and final status code",

@@ -25,12 +25,14 @@ from google.protobuf.message import DecodeError
 from ogapi import recording as layout
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogmapping.config import PRESETS, resolve
+from ogmapping.config import PRESETS, MapperConfig, resolve
 from ogmapping.mapper import Mapper
 from ogserver import __version__, auth, checkpoint, messages, validation
 from ogserver.checkpoint import CheckpointError, Checkpoints, Identity, Position
 from ogserver.counters import FrameTotals
 from ogserver.errors import ServiceError, invalid
+from ogserver.hosting import Closed, Opened, Upload
+from ogserver.places import check_room
 from ogserver.recorder import Recorder
 from ogserver.session import Recorded, Session
 from ogserver.settings import Settings
@@ -40,29 +42,27 @@ log = logging.getLogger(__name__)
 DEFAULT_PRESET = "sparse"  # as ogmap run
 
 
-@dataclass(frozen=True)
-class Closed:
-    stats: pb.Stats
-    recording: Path
-    snapshot: Path | None
-    stopped: bool  # the frame being mapped, if any, finished before the recording was closed
+def new_session_id() -> str:
+    return uuid.uuid4().hex
 
 
-@dataclass(frozen=True)
-class Upload:
-    """A snapshot received by RestoreSession."""
-
-    data: bytes
-    label: str
-    sha256: str
+def check_label(label: str, settings: Settings) -> None:
+    limit = settings.access.max_label_chars
+    if len(label) > limit:
+        raise invalid("label", f"longer than the server's limit of {limit} characters ({len(label)})")
 
 
-@dataclass(frozen=True)
-class Opened:
-    """A new session and its token: the only time the server has the token, not just its hash."""
-
-    session: Session
-    token: str
+def requested_config(request: pb.CreateSessionRequest, settings: Settings) -> tuple[str, dict[str, str], MapperConfig]:
+    """The preset, overrides and resolved config a CreateSession asks for, or INVALID_ARGUMENT naming why not."""
+    check_label(request.label, settings)
+    preset = request.preset or DEFAULT_PRESET
+    if preset not in PRESETS:
+        raise invalid("preset", f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    overrides = dict(request.overrides)
+    try:
+        return preset, overrides, resolve(preset, overrides=overrides, bounds=settings.config_bounds)
+    except ValueError as error:
+        raise invalid("overrides", error) from None
 
 
 @dataclass
@@ -99,13 +99,9 @@ class Registry:
         with self._lock:
             if self._closing:
                 raise ServiceError(grpc.StatusCode.UNAVAILABLE, "the server is shutting down")
-            if len(self._sessions) + len(self._retiring) + self._reserved.total() >= limit:
-                raise ServiceError(grpc.StatusCode.RESOURCE_EXHAUSTED,
-                                   f"the server already holds its limit of {limit} sessions")
             held = self._reserved[owner] + sum(tenancy.owner == owner for tenancy in self._tenancy.values())
-            if quota and held >= quota:
-                raise ServiceError(grpc.StatusCode.RESOURCE_EXHAUSTED,
-                                   f"the caller {owner} already holds its limit of {quota} sessions")
+            check_room(len(self._sessions) + len(self._retiring) + self._reserved.total(), held, owner, limit, quota,
+                       "server")
             self._reserved[owner] += 1
         try:
             yield
@@ -114,25 +110,16 @@ class Registry:
                 self._reserved[owner] -= 1
 
     def check_label(self, label: str) -> None:
-        limit = self.settings.access.max_label_chars
-        if len(label) > limit:
-            raise invalid("label", f"longer than the server's limit of {limit} characters ({len(label)})")
+        check_label(label, self.settings)
 
-    def create(self, request: pb.CreateSessionRequest, owner: str) -> Opened:
-        self.check_label(request.label)
-        preset = request.preset or DEFAULT_PRESET
-        if preset not in PRESETS:
-            raise invalid("preset", f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
-        overrides = dict(request.overrides)
-        try:
-            config = resolve(preset, overrides=overrides, bounds=self.settings.config_bounds)
-        except ValueError as error:
-            raise invalid("overrides", error) from None
+    def create(self, request: pb.CreateSessionRequest, owner: str, session_id: str = "") -> Opened:
+        """A new session; ``session_id`` is chosen here unless given (cluster mode names the actor first)."""
+        preset, overrides, config = requested_config(request, self.settings)
         with self._reserve(owner):
             mapper = Mapper(config, device=self.device)
-            return self._open(mapper, preset, overrides, request.label, "", owner, request.realtime)
+            return self._open(mapper, preset, overrides, request.label, "", owner, request.realtime, session_id)
 
-    def restore(self, owner: str, receive: Callable[[], Upload]) -> Opened:
+    def restore(self, owner: str, receive: Callable[[], Upload], session_id: str = "") -> Opened:
         """Reserve the session's place before ``receive`` reads the snapshot: a full server refuses at once."""
         with self._reserve(owner):
             upload = receive()
@@ -140,13 +127,13 @@ class Registry:
                 mapper = Mapper.restore(upload.data, device=self.device, bounds=self.settings.config_bounds)
             except ValueError as error:
                 raise invalid("data", f"not a usable snapshot: {error}") from None
-            return self._open(mapper, "", {}, upload.label, upload.sha256, owner)
+            return self._open(mapper, "", {}, upload.label, upload.sha256, owner, session_id=session_id)
 
     def _open(
         self, mapper: Mapper, preset: str, overrides: dict[str, str], label: str, restored: str, owner: str,
-        realtime: bool = False,
+        realtime: bool = False, session_id: str = "",
     ) -> Opened:
-        session_id = uuid.uuid4().hex
+        session_id = session_id or new_session_id()
         config = pb.SessionConfig(
             session_id=session_id, preset=preset, overrides=overrides,
             config_json=json.dumps(mapper.config.to_dict()), device=str(mapper.device), label=label,

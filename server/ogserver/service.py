@@ -17,10 +17,9 @@ from ogserver import messages, stream, validation, wire
 from ogserver.callers import Callers
 from ogserver.errors import ServiceError, exhausted, invalid
 from ogserver.failures import FailedAuthentications, peer_address
+from ogserver.hosting import HostedSession, Opened, SessionHost, Upload
 from ogserver.metrics import Metrics
 from ogserver.pacing import Paced, Timeout
-from ogserver.registry import Opened, Registry, Upload
-from ogserver.session import Session
 
 log = logging.getLogger(__name__)
 SNAPSHOT_CHUNK_BYTES = 1 << 20
@@ -46,15 +45,15 @@ def metadata(context: grpc.ServicerContext, key: str) -> str:
 
 
 def credentials(opened: Opened) -> pb.SessionCredentials:
-    return messages.credentials(opened.session.config, opened.token, opened.session.recorder.path)
+    return messages.credentials(opened.session.config, opened.token, opened.session.recording)
 
 
-def info(session: Session) -> pb.SessionInfo:
-    return messages.session_info(session.config, session.counters(), session.streaming, session.recorder.path)
+def info(session: HostedSession) -> pb.SessionInfo:
+    return messages.session_info(session.config, session.counters(), session.streaming, session.recording)
 
 
 class MappingService(pb_grpc.MappingServicer):
-    def __init__(self, registry: Registry, callers: Callers, metrics: Metrics) -> None:
+    def __init__(self, registry: SessionHost, callers: Callers, metrics: Metrics) -> None:
         self.registry = registry
         self.callers = callers
         self.metrics = metrics
@@ -67,7 +66,7 @@ class MappingService(pb_grpc.MappingServicer):
         with self.failures.guard(peer_address(context.peer())):
             return self.callers.identify(metadata(context, API_KEY_METADATA_KEY), context.peer_identities())
 
-    def _session(self, session_id: str, context: grpc.ServicerContext, field: str = "session_id") -> Session:
+    def _session(self, session_id: str, context: grpc.ServicerContext, field: str = "session_id") -> HostedSession:
         with self.failures.guard(peer_address(context.peer())):
             return self.registry.get(session_id, metadata(context, TOKEN_METADATA_KEY), field)
 

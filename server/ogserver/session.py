@@ -28,6 +28,7 @@ from collections import deque
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
+from pathlib import Path
 
 import grpc
 from ogapi import SESSION_METADATA_KEY
@@ -114,6 +115,10 @@ class Session:
     # ------------------------------------------------------------------ access
 
     @property
+    def recording(self) -> Path:
+        return self.recorder.path
+
+    @property
     def streaming(self) -> bool:
         return self._stream_sink is not None
 
@@ -142,6 +147,12 @@ class Session:
         if self.limits.max_anchors and self._anchors >= self.limits.max_anchors:
             raise ServiceError(grpc.StatusCode.RESOURCE_EXHAUSTED,
                                f"the map reached the server's limit of {self.limits.max_anchors} anchors")
+
+    def offer(self, message: pb.Frame, max_pixels: int, sink: queue.SimpleQueue[StreamEvent] | None) -> bool:
+        """Check, validate and queue a client's frame: ``submit``'s answer, or the ServiceError refusing it."""
+        self.check_capacity()
+        frame = validation.frame(message, max_pixels, self.mapper.config.octree)
+        return self.submit(frame, message, sink)
 
     def count_rejected(self) -> None:
         with self._lock:

@@ -141,6 +141,10 @@ class Settings:
     checkpoint_interval: int = 50
     resume: bool = True
     live: Live = field(default_factory=Live)
+    # --- cluster mode (docs/cluster.md): sessions as named Ray actors; "" = sessions in this process
+    cluster: str = ""  # a Ray address: "auto", HOST:PORT of a head node, or ray://HOST:PORT (Ray Client)
+    session_cpus: float = 1.0  # each session actor's Ray resource request
+    session_gpus: float = 0.0  # a fraction of a GPU shares one among several sessions
 
     def validate(self) -> None:
         if not self.address or ":" not in self.address:
@@ -155,6 +159,12 @@ class Settings:
         self.live.validate()
         if not (math.isfinite(self.frame_seconds) and self.frame_seconds >= 0):
             raise ValueError(f"frame_seconds must be >= 0 and finite (got {self.frame_seconds})")
+        if self.cluster and self.live.foxglove:
+            raise ValueError("live.foxglove_port: the live view is not available in cluster mode yet")
+        for name in ("session_cpus", "session_gpus"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0 (got {value})")
         if self.checkpoint_interval < 0:
             raise ValueError(f"checkpoint_interval must be an integer >= 0 (got {self.checkpoint_interval})")
 

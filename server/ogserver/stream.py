@@ -17,10 +17,10 @@ from typing import assert_never
 import grpc
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogserver import messages, validation, wire
+from ogserver import messages, wire
 from ogserver.errors import ServiceError
-from ogserver.events import Acked, Cancelled, ReaderDone, Rejected, SessionClosed, StreamEvent
-from ogserver.session import Session
+from ogserver.events import Acked, Cancelled, Lost, ReaderDone, Rejected, SessionClosed, StreamEvent
+from ogserver.hosting import HostedSession
 
 log = logging.getLogger(__name__)
 
@@ -28,16 +28,14 @@ log = logging.getLogger(__name__)
 Requests = Iterable[pb.Frame | wire.Unparsable]
 
 
-def _read(session: Session, requests: Requests, sink: queue.SimpleQueue[StreamEvent], max_pixels: int) -> None:
+def _read(session: HostedSession, requests: Requests, sink: queue.SimpleQueue[StreamEvent], max_pixels: int) -> None:
     accepted, error = 0, None
     try:
         for request in requests:
             index = 0 if isinstance(request, wire.Unparsable) else request.index  # unknown when it does not parse
             try:
                 message = wire.parsed(request)
-                session.check_capacity()
-                frame = validation.frame(message, max_pixels, session.mapper.config.octree)
-                if not session.submit(frame, message, sink):
+                if not session.offer(message, max_pixels, sink):
                     error = ServiceError(grpc.StatusCode.ABORTED, "the session was closed during the stream")
                     break
             except ServiceError as refusal:
@@ -57,7 +55,7 @@ def _read(session: Session, requests: Requests, sink: queue.SimpleQueue[StreamEv
 
 
 def serve(
-    session: Session, requests: Requests, context: grpc.ServicerContext, max_pixels: int
+    session: HostedSession, requests: Requests, context: grpc.ServicerContext, max_pixels: int
 ) -> Iterator[pb.FrameAck]:
     sink: queue.SimpleQueue[StreamEvent] = queue.SimpleQueue()
     with session.stream(sink):
@@ -74,7 +72,7 @@ def serve(
                     return
                 case SessionClosed():
                     raise ServiceError(grpc.StatusCode.ABORTED, "the session was closed during the stream")
-                case ReaderDone(error=ServiceError() as error):
+                case ReaderDone(error=ServiceError() as error) | Lost(error):
                     raise error
                 case ReaderDone() as finished:
                     done = finished

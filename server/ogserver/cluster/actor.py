@@ -1,0 +1,136 @@
+"""A session's Ray actor: a ``Registry`` holding exactly one ``Session``, the single server's code unchanged.
+
+Its methods answer in plain values, protobuf bytes and the engine's dataclasses; refusals are the
+registry's ``ServiceError`` (``remote.py`` raises them again on the front-end). The actor is threaded
+(Ray ``max_concurrency``): a frame offer waiting on the session's bounded queue, the stream's event
+poll and renders run side by side, as the gRPC threads of a single server would.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+from contextlib import ExitStack
+
+import grpc
+from ogapi.v1 import mapping_pb2 as pb
+
+from ogmapping.mapper import Rendered
+from ogmapping.profile import resolve_device
+from ogmapping.stats import MapStats
+from ogserver.counters import SessionCounters
+from ogserver.errors import ServiceError
+from ogserver.events import Acked, SessionClosed, StreamEvent
+from ogserver.hosting import Closed, Opened, Upload
+from ogserver.registry import Registry
+from ogserver.session import Session
+from ogserver.settings import Settings
+from ogserver.validation import RenderSpec
+
+Described = tuple[bytes, str]  # the session's SessionConfig, serialized, and its recording's path
+Event = tuple[str, bytes]  # ("ack", FrameAck bytes) or ("closed", b"")
+
+
+class SessionActor:
+    def __init__(self, settings: Settings) -> None:
+        # Before numba's first parallel kernel: the session's worker and renders run kernels concurrently.
+        os.environ.setdefault("NUMBA_THREADING_LAYER", "threadsafe")
+        import torch
+
+        torch.set_num_threads(max(1, int(settings.session_cpus)))
+        self._registry = Registry(settings, str(resolve_device(settings.device)))
+        self._session: Session | None = None
+        self._sink: queue.SimpleQueue[StreamEvent] | None = None
+        self._stream = ExitStack()
+
+    def _opened(self, opened: Opened) -> tuple[bytes, str, str]:
+        assert isinstance(opened.session, Session)
+        self._session = opened.session
+        return opened.session.config.SerializeToString(), opened.token, str(opened.session.recording)
+
+    def open(self, request: bytes, owner: str, session_id: str) -> tuple[bytes, str, str]:
+        """Create the session: (its SessionConfig bytes, its token, its recording)."""
+        return self._opened(self._registry.create(pb.CreateSessionRequest.FromString(request), owner, session_id))
+
+    def restore(self, owner: str, upload: Upload, session_id: str) -> tuple[bytes, str, str]:
+        return self._opened(self._registry.restore(owner, lambda: upload, session_id))
+
+    def _current(self) -> Session:
+        if self._session is None:
+            raise ServiceError(grpc.StatusCode.NOT_FOUND, "the session is closed")
+        return self._session
+
+    def describe(self) -> Described:
+        session = self._current()
+        return session.config.SerializeToString(), str(session.recording)
+
+    def authorize(self, token: str) -> Described:
+        """The registry's own lookup: the token checked against the stored hash, the session touched."""
+        self._registry.get(self._current().id, token)
+        return self.describe()
+
+    def touch(self) -> None:
+        self._registry.touch(self._current())
+
+    # ------------------------------------------------------------------ the frame stream
+
+    def claim_stream(self) -> None:
+        sink: queue.SimpleQueue[StreamEvent] = queue.SimpleQueue()
+        self._stream.enter_context(self._current().stream(sink))
+        self._sink = sink
+
+    def release_stream(self) -> None:
+        self._sink = None
+        self._stream.close()
+
+    def streaming(self) -> bool:
+        return self._session is not None and self._session.streaming
+
+    def offer(self, message: bytes, max_pixels: int) -> bool:
+        """Validate and queue one frame, waiting while the session's queue is full (backpressure)."""
+        return self._current().offer(pb.Frame.FromString(message), max_pixels, self._sink)
+
+    def count_rejected(self) -> None:
+        self._current().count_rejected()
+
+    def events(self, wait: float) -> list[Event]:
+        """The stream's acks and its end, in order, waiting up to ``wait`` seconds for the first."""
+        sink = self._sink
+        if sink is None:
+            return []
+        taken = []
+        try:
+            taken.append(sink.get(timeout=wait))
+            while True:
+                taken.append(sink.get_nowait())
+        except queue.Empty:
+            pass
+        return [("ack", event.ack.SerializeToString()) if isinstance(event, Acked) else ("closed", b"")
+                for event in taken if isinstance(event, Acked | SessionClosed)]
+
+    # ------------------------------------------------------------------ queries
+
+    def render(self, spec: RenderSpec) -> Rendered:
+        return self._current().render(spec)
+
+    def map_stats(self) -> MapStats:
+        return self._current().map_stats()
+
+    def counters(self) -> SessionCounters:
+        return self._current().counters()
+
+    def snapshot(self) -> bytes:
+        return self._current().snapshot()
+
+    # ------------------------------------------------------------------ end
+
+    def close(self) -> Closed:
+        closed = self._registry.close(self._current())
+        self._session = None
+        return closed
+
+    def expire_idle(self) -> list[Closed]:
+        closed = self._registry.expire_idle()
+        if closed:
+            self._session = None
+        return closed
