@@ -24,12 +24,14 @@ from ogclient.connection import SessionRef, connect
 from ogclient.evaluation import render, snapshot_bytes
 from ogclient.local_server import LocalServer
 from ogclient.streaming import StreamResult, stream_frames
+from ogserver.cluster.local import local_cluster
 
 from ogmapping.mapper import Mapper
 from ogmapping.metrics import psnr
 
-from .ray_cluster import ray_cluster
 from .scene import TEST_SERVER_CONFIG, TINY, create_request, messages, scene
+
+pytest.importorskip("ray", reason="cluster mode needs Ray: the 'cluster' extra (make cluster-test installs it)")
 
 pytestmark = pytest.mark.cluster
 
@@ -50,11 +52,11 @@ def front_ends(tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[FrontE
     record_dir = tmp_path_factory.mktemp("recordings")
     logs = tmp_path_factory.mktemp("logs")
     started: list[FrontEnd] = []
-    with ray_cluster(logs) as cluster:
+    with local_cluster(logs, nodes=2, cpus_per_node=1) as address:
         try:
             for number in range(2):
                 local = LocalServer(record_dir, "--config", str(TEST_SERVER_CONFIG), "--device", "cpu", "--cluster",
-                                    cluster.address, "--max-sessions", "2", log_path=logs / f"front-end{number}.log")
+                                    address, "--max-sessions", "2", log_path=logs / f"front-end{number}.log")
                 local.start()
                 started.append(FrontEnd(local, *connect(local.address, timeout=60.0)))
             yield started
