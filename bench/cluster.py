@@ -107,7 +107,7 @@ def main() -> None:
                 with LocalServer(record_dir, *common, *extra) as server:
                     rows.append(measure(name, server.address, frames, overrides, args.renders, loaded[0].c2w,
                                         loaded[0].color_intrinsics))
-    print(f"{len(frames)} frames of {loaded[0].color.shape[1]}x{loaded[0].color.shape[0]}, overrides {overrides}\n")
+    print(f"{len(frames)} frames of {loaded[0].rgb.shape[1]}x{loaded[0].rgb.shape[0]}, overrides {overrides}\n")
     print("| server | per frame, lockstep p50 (ms) | p95 (ms) | pipelined stream (frames/s) | render p50 (ms) |")
     print("|---|---|---|---|---|")
     for row in rows:
