@@ -20,7 +20,7 @@ from ogmapping.profile import resolve_device
 from ogmapping.stats import MapStats
 from ogserver.counters import SessionCounters
 from ogserver.errors import ServiceError
-from ogserver.events import Acked, SessionClosed, StreamEvent
+from ogserver.events import Acked, Cancelled, SessionClosed, StreamEvent
 from ogserver.hosting import Closed, Opened, Upload
 from ogserver.registry import Registry
 from ogserver.session import Session
@@ -80,8 +80,10 @@ class SessionActor:
         self._sink = sink
 
     def release_stream(self) -> None:
-        self._sink = None
+        sink, self._sink = self._sink, None
         self._stream.close()
+        if sink is not None:
+            sink.put(Cancelled())  # wakes the poll waiting on it, which returns what it has
 
     def streaming(self) -> bool:
         return self._session is not None and self._session.streaming

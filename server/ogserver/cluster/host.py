@@ -23,7 +23,7 @@ from ray.exceptions import GetTimeoutError, RayActorError
 from ogserver import validation
 from ogserver.cluster.actor import SessionActor
 from ogserver.cluster.directory import Directory
-from ogserver.cluster.remote import RemoteSession, call, outcome
+from ogserver.cluster.remote import ACK_GROUP, RemoteSession, call, outcome
 from ogserver.counters import FrameTotals
 from ogserver.errors import ServiceError
 from ogserver.hosting import Closed, HostedSession, Opened, Upload
@@ -52,7 +52,7 @@ class ClusterHost:
         self._directory = ray.remote(Directory).options(
             name=DIRECTORY_NAME, namespace=NAMESPACE, lifetime="detached", get_if_exists=True, num_cpus=0,
         ).remote()
-        self._actor = ray.remote(SessionActor)
+        self._actor = ray.remote(concurrency_groups={ACK_GROUP: 1})(SessionActor)
         log.info("cluster mode: sessions are Ray actors in namespace %r of %s (%g CPUs, %g GPUs each)", NAMESPACE,
                  settings.cluster, settings.session_cpus, settings.session_gpus)
 

@@ -33,11 +33,15 @@ from ogserver.validation import RenderSpec
 
 log = logging.getLogger(__name__)
 EVENT_WAIT_SECONDS = 0.5  # how long one poll for acks waits in the actor; also how soon a finished pump stops
+ACK_GROUP = "acks"  # the ack poll's own threads in the actor, apart from offers, renders and stats
 
 
-def call(actor: ActorHandle, method: str, *args: Any, timeout: float | None = None) -> Any:
-    """``actor.method(*args)``'s result; its ServiceError raised again, a dead actor as UNAVAILABLE."""
-    return outcome(getattr(actor, method).remote(*args), method, timeout)
+def call(actor: ActorHandle, method: str, *args: Any, timeout: float | None = None, group: str = "") -> Any:
+    """``actor.method(*args)``'s result (run in concurrency ``group`` when given); its ServiceError raised
+    again, a dead actor as UNAVAILABLE."""
+    bound = getattr(actor, method)
+    pending = (bound.options(concurrency_group=group) if group else bound).remote(*args)
+    return outcome(pending, method, timeout)
 
 
 def outcome(pending: ObjectRef, what: str, timeout: float | None = None) -> Any:
@@ -79,14 +83,14 @@ class RemoteSession:
             yield
         finally:
             stop.set()
-            pump.join()
             with suppress(ServiceError):  # an actor that died holds no stream any more
-                call(self.actor, "release_stream")
+                call(self.actor, "release_stream")  # which also ends the pump's poll in flight
+            pump.join()
 
     def _pump(self, sink: queue.SimpleQueue[StreamEvent], stop: threading.Event) -> None:
         while not stop.is_set():
             try:
-                events = call(self.actor, "events", EVENT_WAIT_SECONDS)
+                events = call(self.actor, "events", EVENT_WAIT_SECONDS, group=ACK_GROUP)
             except ServiceError as error:
                 sink.put(Lost(error))
                 return
