@@ -9,6 +9,7 @@ hold cluster-wide and refusals carry the single server's codes.
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,8 +47,14 @@ class FrontEnd:
         return getattr(self.stub, method)(request, metadata=session.metadata())
 
 
+@dataclass
+class Cluster:
+    address: str
+    front_ends: list[FrontEnd]
+
+
 @pytest.fixture(scope="module")
-def front_ends(tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[FrontEnd]]:
+def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
     """Two front-ends of one two-node cluster, sharing one record dir (the storage every node sees)."""
     record_dir = tmp_path_factory.mktemp("recordings")
     logs = tmp_path_factory.mktemp("logs")
@@ -59,7 +66,7 @@ def front_ends(tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[FrontE
                                     address, "--max-sessions", "2", log_path=logs / f"front-end{number}.log")
                 local.start()
                 started.append(FrontEnd(local, *connect(local.address, timeout=60.0)))
-            yield started
+            yield Cluster(address, started)
         finally:
             for front_end in started:
                 front_end.channel.close()
@@ -70,7 +77,8 @@ def stream(front_end: FrontEnd, session: SessionRef, frames: list[pb.Frame], res
     results[session.session_id] = stream_frames(front_end.stub, session, frames, progress=False)
 
 
-def test_any_front_end_serves_any_session(front_ends: list[FrontEnd]) -> None:
+def test_any_front_end_serves_any_session(cluster: Cluster) -> None:
+    front_ends = cluster.front_ends
     a, b = front_ends
     frames = scene()
     sent = messages(frames)
@@ -121,3 +129,48 @@ def test_any_front_end_serves_any_session(front_ends: list[FrontEnd]) -> None:
         b.call("GetStats", pb.GetStatsRequest(session_id=first.session_id), first)
     assert gone.value.code() == grpc.StatusCode.NOT_FOUND
     assert not b.stub.ListSessions(pb.ListSessionsRequest()).sessions
+
+
+def wait_for_stats(front_end: FrontEnd, session: SessionRef, frames: int) -> pb.Stats:
+    """The session's stats once it answers again and has mapped ``frames`` frames (UNAVAILABLE meanwhile)."""
+    deadline = time.monotonic() + 180.0
+    while True:
+        try:
+            stats = front_end.call("GetStats", pb.GetStatsRequest(session_id=session.session_id), session)
+            if stats.frames >= frames and stats.queue_depth == 0:
+                return stats
+        except grpc.RpcError as error:
+            assert error.code() == grpc.StatusCode.UNAVAILABLE, error.details()
+        assert time.monotonic() < deadline, "the session did not come back"
+        time.sleep(0.5)
+
+
+def test_a_session_whose_actor_dies_comes_back_with_its_id_token_and_frames(cluster: Cluster) -> None:
+    import ray
+    from ogserver.cluster.host import NAMESPACE, actor_name
+
+    a, b = cluster.front_ends
+    frames = scene()
+    sent = messages(frames)
+    session = SessionRef.from_credentials(a.stub.CreateSession(create_request(TINY, "crashing")))
+    acks = stream_frames(a.stub, session, sent[:6], progress=False).acks
+    assert [ack.sequence for ack in acks] == list(range(1, 7)) and all(ack.accepted for ack in acks)
+    frame = frames.load(frames.selection.heldout[0])
+    before = render(b.stub, session, frame.c2w, frame.color_intrinsics)
+
+    killed = time.monotonic()
+    ray.init(address=cluster.address, namespace=NAMESPACE, log_to_driver=False)
+    try:  # as if its worker process crashed: Ray restarts it, on any node with a free CPU
+        ray.kill(ray.get_actor(actor_name(session.session_id)), no_restart=False)
+    finally:
+        ray.shutdown()
+    stats = wait_for_stats(b, session, 6)  # the old token, through the other front-end
+    assert stats.session_id == session.session_id and stats.last_sequence == 6
+    assert stats.uptime_seconds < time.monotonic() - killed  # a new actor, resumed from the checkpoint
+    after = render(b.stub, session, frame.c2w, frame.color_intrinsics)
+    assert psnr(after.color, before.color) > 40.0 and np.abs(after.depth - before.depth).mean() < 0.01
+
+    more = stream_frames(a.stub, session, sent[6:], progress=False).acks
+    assert [ack.sequence for ack in more] == list(range(7, len(sent) + 1)) and all(ack.accepted for ack in more)
+    closed = b.call("CloseSession", pb.CloseSessionRequest(session_id=session.session_id), session)
+    assert closed.stats.frames_received == len(sent)

@@ -3,7 +3,10 @@
 Its methods answer in plain values, protobuf bytes and the engine's dataclasses; refusals are the
 registry's ``ServiceError`` (``remote.py`` raises them again on the front-end). The actor is threaded
 (Ray ``max_concurrency``): a frame offer waiting on the session's bounded queue, the stream's event
-poll and renders run side by side, as the gRPC threads of a single server would.
+poll and renders run side by side, as the gRPC threads of a single server would. When Ray restarts
+the actor after its process or node died, the session's checkpoint is still on the shared record
+dir: the new actor resumes the session from it as a restarted single server would
+(``Registry.resume``: same id and token, the recorded frames after the checkpoint mapped again).
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from ogapi.v1 import mapping_pb2 as pb
 from ogmapping.mapper import Rendered
 from ogmapping.profile import resolve_device
 from ogmapping.stats import MapStats
+from ogserver import checkpoint
 from ogserver.counters import SessionCounters
 from ogserver.errors import ServiceError
 from ogserver.events import Acked, Cancelled, SessionClosed, StreamEvent
@@ -32,7 +36,7 @@ Event = tuple[str, bytes]  # ("ack", FrameAck bytes) or ("closed", b"")
 
 
 class SessionActor:
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: Settings, session_id: str) -> None:
         # Before numba's first parallel kernel: the session's worker and renders run kernels concurrently.
         os.environ.setdefault("NUMBA_THREADING_LAYER", "threadsafe")
         import torch
@@ -42,6 +46,9 @@ class SessionActor:
         self._session: Session | None = None
         self._sink: queue.SimpleQueue[StreamEvent] | None = None
         self._stream = ExitStack()
+        recording = self._registry.record_dir / f"{session_id}.mcap"
+        if checkpoint.path_for(recording).exists():  # Ray restarted the actor: its process or node died
+            self._session = self._registry.resume(recording)
 
     def _opened(self, opened: Opened) -> tuple[bytes, str, str]:
         assert isinstance(opened.session, Session)

@@ -37,6 +37,7 @@ DIRECTORY_NAME = "directory"
 # long the CreateSession is refused instead of waiting for a node to join or a session to close.
 PLACEMENT_SECONDS = 120.0
 ACTOR_CONCURRENCY = 16  # a blocked frame offer, the ack poll, renders, stats and snapshots side by side
+MAX_RESTARTS = 3  # Ray restarts a session's actor (on any node) this often after its process or node died
 
 
 def actor_name(session_id: str) -> str:
@@ -77,8 +78,8 @@ class ClusterHost:
             actor = self._actor.options(
                 name=actor_name(session_id), namespace=NAMESPACE, lifetime="detached",
                 num_cpus=self.settings.session_cpus, num_gpus=self.settings.session_gpus,
-                max_concurrency=ACTOR_CONCURRENCY,
-            ).remote(self.settings)
+                max_concurrency=ACTOR_CONCURRENCY, max_restarts=MAX_RESTARTS,
+            ).remote(self.settings, session_id)
             try:
                 config, token, recording = self._opened(actor, opening(actor, session_id))
             except BaseException:
