@@ -23,12 +23,9 @@ from sequence import add_sequence_arguments, load_sequence
 from ogmapping.config import parse_override_args, resolve
 from ogmapping.evaluation import ground_truth
 from ogmapping.mapper import Mapper
+from ogmapping.metrics import psnr
 
 MARGIN = 3  # pixels dropped at each border when comparing shifted renders
-
-
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    return float(-10 * np.log10(np.mean((a - b) ** 2)))
 
 
 def affine_fit(render: np.ndarray, truth: np.ndarray) -> np.ndarray:
