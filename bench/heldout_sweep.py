@@ -12,39 +12,27 @@ rendered and scored unless --streamed asks for the streamed ones too. Each setti
 from __future__ import annotations
 
 import argparse
-import time
 
 import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts its thread pool)
 
 # isort: split
-from ogmapping.config import parse_override_args, resolve
-from ogmapping.datasets import open_dataset
+from sequence import add_sequence_arguments, load_sequence, map_setting
+
 from ogmapping.evaluation import ground_truth, score
-from ogmapping.mapper import Mapper
 from ogmapping.metrics import summarise
-from ogmapping.preprocess import resize_frame
-from ogmapping.selection import select
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("settings", nargs="+", help='space-separated KEY=VALUE overrides per setting ("" = preset)')
-    parser.add_argument("--data", default="../shared/data/7scenes-redkitchen")
-    parser.add_argument("--frames", default="0:300", help="START:END (default 0:300)")
-    parser.add_argument("--scale", type=float, default=0.5, help="image scale (default 0.5: 320x240)")
-    parser.add_argument("--preset", default="sparse")
+    add_sequence_arguments(parser)
     parser.add_argument("--streamed", action="store_true", help="score the streamed frames as well")
     args = parser.parse_args()
-    source = open_dataset(args.data)
-    selection = select(len(source), args.frames, 1)
-    streamed = [resize_frame(source[i], args.scale) for i in selection.streamed]
-    heldout = [resize_frame(source[i], args.scale) for i in selection.heldout]
+    sequence = load_sequence(args)
+    streamed, heldout = sequence.streamed, sequence.heldout
     for setting in args.settings:
-        config = resolve(args.preset, overrides=parse_override_args(setting.split()))
-        mapper = Mapper(config)
-        start = time.perf_counter()
-        keyframes = sum(mapper.process(frame).keyframe for frame in streamed)
-        seconds = time.perf_counter() - start
+        run = map_setting(args.preset, setting, streamed)
+        config, mapper, keyframes, seconds = run.config, run.mapper, run.keyframes, run.seconds
         splits = {"held-out": heldout, "streamed": streamed} if args.streamed else {"held-out": heldout}
         scores = []
         for name, frames in splits.items():

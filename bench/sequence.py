@@ -1,0 +1,58 @@
+"""The frames the tuning scripts map and score: one set of flags, decoded once before any clock starts."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass
+
+from ogmapping.config import MapperConfig, parse_override_args, resolve
+from ogmapping.datasets import open_dataset
+from ogmapping.frame import Frame
+from ogmapping.mapper import Mapper
+from ogmapping.preprocess import resize_frame
+from ogmapping.selection import Selection, select
+
+
+@dataclass
+class Sequence:
+    selection: Selection
+    streamed: list[Frame]
+    heldout: list[Frame]  # positions with index % 10 == 5, never streamed
+
+
+def add_sequence_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", default="../shared/data/7scenes-redkitchen")
+    parser.add_argument("--frames", default="0:300", help="START:END (default 0:300)")
+    parser.add_argument("--scale", type=float, default=0.5, help="image scale (default 0.5: 320x240)")
+    parser.add_argument("--preset", default="sparse")
+
+
+def load_sequence(args: argparse.Namespace) -> Sequence:
+    source = open_dataset(args.data)
+    selection = select(len(source), args.frames, 1)
+    return Sequence(
+        selection,
+        [resize_frame(source[i], args.scale) for i in selection.streamed],
+        [resize_frame(source[i], args.scale) for i in selection.heldout],
+    )
+
+
+@dataclass
+class MappedRun:
+    config: MapperConfig
+    mapper: Mapper
+    keyframes: int
+    seconds: float  # the mapping loop alone
+
+    def fps(self, frames: int) -> float:
+        return frames / self.seconds
+
+
+def map_setting(preset: str, setting: str, frames: list[Frame]) -> MappedRun:
+    """Map ``frames`` under ``preset`` plus the overrides in ``setting`` ("KEY=VALUE KEY=VALUE")."""
+    config = resolve(preset, overrides=parse_override_args(setting.split()))
+    mapper = Mapper(config)
+    start = time.perf_counter()
+    keyframes = sum(mapper.process(frame).keyframe for frame in frames)
+    return MappedRun(config, mapper, keyframes, time.perf_counter() - start)
