@@ -101,8 +101,8 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory(prefix="ogbench-") as work:
         root = Path(work)
-        with local_cluster(root, nodes=1, cpus_per_node=1) as address:
-            for name, extra in (("single server", ()), ("front-end + Ray actor", ("--cluster", address))):
+        with local_cluster(root, workers=0, cpus_per_node=1) as cluster:
+            for name, extra in (("single server", ()), ("front-end + Ray actor", ("--cluster", cluster.address))):
                 record_dir = root / name.replace(" ", "-").replace("+", "")
                 with LocalServer(record_dir, *common, *extra) as server:
                     rows.append(measure(name, server.address, frames, overrides, args.renders, loaded[0].c2w,

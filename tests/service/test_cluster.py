@@ -1,16 +1,21 @@
-"""Cluster mode end to end on a real two-node Ray cluster with two front-ends (``ogserver --cluster``).
+"""Cluster mode end to end on a real Ray cluster with two front-ends (``ogserver --cluster``).
 
-Two sessions, one CPU each on nodes of one CPU each (so each on its own node), stream the tiny
-synthetic scene at the same time, one through each front-end; every call on a session is then made
-through the other front-end: renders match a local copy of the map, stats and listings agree, limits
-hold cluster-wide and refusals carry the single server's codes.
+A head node that takes no session (0 CPUs) and two worker nodes of two CPUs each; sessions ask for one
+CPU and are spread over nodes (SPREAD). Two sessions stream the tiny synthetic scene at the same time,
+one through each front-end; every call on a session is then made through the other front-end: renders
+match a local copy of the map, stats and listings agree, limits hold cluster-wide and refusals carry
+the single server's codes. Then the node holding one session is killed mid-stream (its whole
+``ray start`` process group, SIGKILL): that stream ends UNAVAILABLE, the other session's stream goes
+on, the session comes back on the surviving node with its id, token and every acknowledged frame,
+takes the rest of the frames and renders what a single server's map of the same frames renders.
+Last, a session whose actor is dead for good gives its place in the cluster back.
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,14 +30,15 @@ from ogclient.connection import SessionRef, connect
 from ogclient.evaluation import render, snapshot_bytes
 from ogclient.local_server import LocalServer
 from ogclient.streaming import StreamResult, stream_frames
-from ogserver.cluster.local import local_cluster
+from ogserver.cluster.local import LocalCluster, local_cluster
 
 from ogmapping.mapper import Mapper
 from ogmapping.metrics import psnr
 
+from .inprocess import serving, settings
 from .scene import TEST_SERVER_CONFIG, TINY, create_request, messages, scene
 
-pytest.importorskip("ray", reason="cluster mode needs Ray: the 'cluster' extra (make cluster-test installs it)")
+ray = pytest.importorskip("ray", reason="cluster mode needs Ray: the 'cluster' extra (make cluster-test installs it)")
 
 pytestmark = pytest.mark.cluster
 
@@ -49,25 +55,37 @@ class FrontEnd:
 
 @dataclass
 class Cluster:
-    address: str
+    local: LocalCluster
     front_ends: list[FrontEnd]
+
+    def node_of(self, session: SessionRef) -> str:
+        """The Ray node id of the node the session's actor runs on now."""
+        from ogserver.cluster.host import actor_name
+
+        return ray.get(ray.get_actor(actor_name(session.session_id)).node_id.remote(), timeout=120.0)
 
 
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
-    """Two front-ends of one two-node cluster, sharing one record dir (the storage every node sees)."""
+    """Two front-ends of one cluster (a head and two worker nodes), sharing one record dir (the storage every
+    node sees); this process is a Ray driver too, to find and kill nodes and actors."""
+    from ogserver.cluster.host import NAMESPACE
+
     record_dir = tmp_path_factory.mktemp("recordings")
     logs = tmp_path_factory.mktemp("logs")
     started: list[FrontEnd] = []
-    with local_cluster(logs, nodes=2, cpus_per_node=1) as address:
+    with local_cluster(logs, workers=2, cpus_per_node=2, head_cpus=0, fast_failure_detection=True) as local:
         try:
             for number in range(2):
-                local = LocalServer(record_dir, "--config", str(TEST_SERVER_CONFIG), "--device", "cpu", "--cluster",
-                                    address, "--max-sessions", "2", log_path=logs / f"front-end{number}.log")
-                local.start()
-                started.append(FrontEnd(local, *connect(local.address, timeout=60.0)))
-            yield Cluster(address, started)
+                front_end = LocalServer(record_dir, "--config", str(TEST_SERVER_CONFIG), "--device", "cpu",
+                                        "--cluster", local.address, "--max-sessions", "2", "--checkpoint-interval",
+                                        "2", log_path=logs / f"front-end{number}.log")
+                front_end.start()
+                started.append(FrontEnd(front_end, *connect(front_end.address, timeout=60.0)))
+            ray.init(address=local.address, namespace=NAMESPACE, log_to_driver=False)
+            yield Cluster(local, started)
         finally:
+            ray.shutdown()
             for front_end in started:
                 front_end.channel.close()
                 front_end.local.stop()
@@ -131,13 +149,13 @@ def test_any_front_end_serves_any_session(cluster: Cluster) -> None:
     assert not b.stub.ListSessions(pb.ListSessionsRequest()).sessions
 
 
-def wait_for_stats(front_end: FrontEnd, session: SessionRef, frames: int) -> pb.Stats:
-    """The session's stats once it answers again and has mapped ``frames`` frames (UNAVAILABLE meanwhile)."""
-    deadline = time.monotonic() + 180.0
+def wait_for_stats(front_end: FrontEnd, session: SessionRef) -> pb.Stats:
+    """The session's stats once it answers again with nothing queued (UNAVAILABLE while Ray restarts it)."""
+    deadline = time.monotonic() + 120.0
     while True:
         try:
             stats = front_end.call("GetStats", pb.GetStatsRequest(session_id=session.session_id), session)
-            if stats.frames >= frames and stats.queue_depth == 0:
+            if stats.queue_depth == 0 and stats.mapped_sequence == stats.last_sequence:
                 return stats
         except grpc.RpcError as error:
             assert error.code() == grpc.StatusCode.UNAVAILABLE, error.details()
@@ -145,32 +163,112 @@ def wait_for_stats(front_end: FrontEnd, session: SessionRef, frames: int) -> pb.
         time.sleep(0.5)
 
 
-def test_a_session_whose_actor_dies_comes_back_with_its_id_token_and_frames(cluster: Cluster) -> None:
-    import ray
-    from ogserver.cluster.host import NAMESPACE, actor_name
+def slowly(frames: Iterable[pb.Frame], seconds: float) -> Iterator[pb.Frame]:
+    for frame in frames:
+        yield frame
+        time.sleep(seconds)
 
+
+@dataclass
+class Cut:
+    acks: list[pb.FrameAck]
+    error: grpc.RpcError | None = None
+
+
+def stream_until_cut(front_end: FrontEnd, session: SessionRef, frames: list[pb.Frame], acked: threading.Event,
+                     after: int, cut: Cut) -> None:
+    """Stream ``frames`` slowly, setting ``acked`` once ``after`` are acknowledged, until the stream ends."""
+    try:
+        for ack in front_end.stub.StreamFrames(slowly(frames, 0.4), metadata=session.stream_metadata()):
+            cut.acks.append(ack)
+            if len(cut.acks) == after:
+                acked.set()
+    except grpc.RpcError as error:
+        cut.error = error
+    finally:
+        acked.set()
+
+
+def single_server_render(tmp_path: Path, frames: list[pb.Frame], position: int) -> tuple[np.ndarray, np.ndarray]:
+    """What an ogserver of its own (in this process) renders from ``position`` after mapping ``frames``."""
+    frame = scene().load(position)
+    with serving(settings(tmp_path)) as server:
+        session = SessionRef.from_credentials(server.stub.CreateSession(create_request(TINY, "single")))
+        acks = stream_frames(server.stub, session, frames, progress=False).acks
+        assert all(ack.accepted for ack in acks) and len(acks) == len(frames)
+        rendered = render(server.stub, session, frame.c2w, frame.color_intrinsics)
+    return rendered.color, rendered.depth
+
+
+KILL_AFTER = 4  # acks: two checkpoints written (every 2 frames), later frames recorded, queued or on their way
+
+
+def test_losing_the_node_of_a_session_mid_stream(cluster: Cluster, tmp_path: Path) -> None:
     a, b = cluster.front_ends
     frames = scene()
     sent = messages(frames)
-    session = SessionRef.from_credentials(a.stub.CreateSession(create_request(TINY, "crashing")))
-    acks = stream_frames(a.stub, session, sent[:6], progress=False).acks
-    assert [ack.sequence for ack in acks] == list(range(1, 7)) and all(ack.accepted for ack in acks)
-    frame = frames.load(frames.selection.heldout[0])
-    before = render(b.stub, session, frame.c2w, frame.color_intrinsics)
+    lost, kept = (SessionRef.from_credentials(a.stub.CreateSession(create_request(TINY, name)))
+                  for name in ("lost", "kept"))
+    lost_node, kept_node = cluster.node_of(lost), cluster.node_of(kept)
+    head = cluster.local.nodes[0]
+    assert lost_node != kept_node, "both sessions were placed on one node"
+    assert head not in (cluster.local.node_of(lost_node), cluster.local.node_of(kept_node))
 
-    killed = time.monotonic()
-    ray.init(address=cluster.address, namespace=NAMESPACE, log_to_driver=False)
-    try:  # as if its worker process crashed: Ray restarts it, on any node with a free CPU
-        ray.kill(ray.get_actor(actor_name(session.session_id)), no_restart=False)
-    finally:
-        ray.shutdown()
-    stats = wait_for_stats(b, session, 6)  # the old token, through the other front-end
-    assert stats.session_id == session.session_id and stats.last_sequence == 6
-    assert stats.uptime_seconds < time.monotonic() - killed  # a new actor, resumed from the checkpoint
-    after = render(b.stub, session, frame.c2w, frame.color_intrinsics)
-    assert psnr(after.color, before.color) > 40.0 and np.abs(after.depth - before.depth).mean() < 0.01
+    acked, cut, whole = threading.Event(), Cut([]), Cut([])
+    streams = [threading.Thread(target=stream_until_cut, args=(a, lost, sent, acked, KILL_AFTER, cut)),
+               threading.Thread(target=stream_until_cut, args=(a, kept, sent, threading.Event(), 0, whole))]
+    for thread in streams:
+        thread.start()
+    assert acked.wait(120.0) and len(cut.acks) == KILL_AFTER, cut.error
+    cluster.local.node_of(lost_node).kill()
+    for thread in streams:
+        thread.join(180.0)
+    assert cut.error is not None and cut.error.code() == grpc.StatusCode.UNAVAILABLE, cut.error
+    assert "node failed" in cut.error.details()
+    assert whole.error is None and [ack.sequence for ack in whole.acks] == list(range(1, len(sent) + 1))
+    acknowledged = [ack for ack in cut.acks if ack.accepted]
+    assert len(acknowledged) >= KILL_AFTER and [ack.sequence for ack in acknowledged] == \
+        list(range(1, len(acknowledged) + 1))
 
-    more = stream_frames(a.stub, session, sent[6:], progress=False).acks
-    assert [ack.sequence for ack in more] == list(range(7, len(sent) + 1)) and all(ack.accepted for ack in more)
-    closed = b.call("CloseSession", pb.CloseSessionRequest(session_id=session.session_id), session)
-    assert closed.stats.frames_received == len(sent)
+    standing = wait_for_stats(b, lost)  # the same id and token, through the other front-end
+    assert cluster.node_of(lost) == kept_node, "not restarted on the surviving node"
+    assert standing.session_id == lost.session_id
+    assert standing.last_sequence >= acknowledged[-1].sequence, "an acknowledged frame was lost"
+    assert standing.last_index >= acknowledged[-1].index
+    rest = [message for message in sent if message.index > standing.last_index]  # what ogclient --resume sends
+    more = stream_frames(a.stub, lost, rest, progress=False).acks
+    assert [ack.sequence for ack in more] == list(range(standing.last_sequence + 1, len(sent) + 1))
+    assert all(ack.accepted for ack in more)
+    done = wait_for_stats(b, lost)
+    assert done.last_sequence == done.mapped_sequence == len(sent), "each streamed frame is in the map once"
+
+    position = frames.selection.heldout[0]
+    frame = frames.load(position)
+    after = render(b.stub, lost, frame.c2w, frame.color_intrinsics)
+    color, depth = single_server_render(tmp_path, sent, position)
+    assert psnr(after.color, color) > 40.0, "the recovered map differs from a single server's"
+    assert np.abs(after.depth - depth).mean() < 0.01
+
+    for session in (lost, kept):
+        closed = b.call("CloseSession", pb.CloseSessionRequest(session_id=session.session_id), session)
+        assert closed.stats.last_sequence == len(sent)
+
+
+def test_a_session_dead_for_good_gives_its_place_back(cluster: Cluster) -> None:
+    from ogserver.cluster.host import actor_name
+
+    a, b = cluster.front_ends
+    dead, alive = (SessionRef.from_credentials(a.stub.CreateSession(create_request(TINY, name)))
+                   for name in ("dead", "alive"))
+    with pytest.raises(grpc.RpcError) as full:
+        b.stub.CreateSession(create_request(TINY, "third"))
+    assert full.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+    ray.kill(ray.get_actor(actor_name(dead.session_id)), no_restart=True)  # as when Ray's restarts are spent
+    third = SessionRef.from_credentials(b.stub.CreateSession(create_request(TINY, "third")))
+    listed = {info.session_id for info in a.stub.ListSessions(pb.ListSessionsRequest()).sessions}
+    assert listed == {alive.session_id, third.session_id}
+    with pytest.raises(grpc.RpcError) as gone:
+        b.call("GetStats", pb.GetStatsRequest(session_id=dead.session_id), dead)
+    assert gone.value.code() == grpc.StatusCode.NOT_FOUND
+    for session in (alive, third):
+        b.call("CloseSession", pb.CloseSessionRequest(session_id=session.session_id), session)

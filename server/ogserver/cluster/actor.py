@@ -16,7 +16,9 @@ import queue
 from contextlib import ExitStack
 
 import grpc
+import ray
 from ogapi.v1 import mapping_pb2 as pb
+from ray.actor import ActorHandle
 
 from ogmapping.mapper import Rendered
 from ogmapping.profile import resolve_device
@@ -36,7 +38,7 @@ Event = tuple[str, bytes]  # ("ack", FrameAck bytes) or ("closed", b"")
 
 
 class SessionActor:
-    def __init__(self, settings: Settings, session_id: str) -> None:
+    def __init__(self, settings: Settings, session_id: str, directory: ActorHandle) -> None:
         # Before numba's first parallel kernel: the session's worker and renders run kernels concurrently.
         os.environ.setdefault("NUMBA_THREADING_LAYER", "threadsafe")
         import torch
@@ -49,6 +51,7 @@ class SessionActor:
         recording = self._registry.record_dir / f"{session_id}.mcap"
         if checkpoint.path_for(recording).exists():  # Ray restarted the actor: its process or node died
             self._session = self._registry.resume(recording)
+        directory.placed.remote(session_id, self.node_id())  # the directory counts sessions per node
 
     def _opened(self, opened: Opened) -> tuple[bytes, str, str]:
         assert isinstance(opened.session, Session)
@@ -66,6 +69,11 @@ class SessionActor:
         if self._session is None:
             raise ServiceError(grpc.StatusCode.NOT_FOUND, "the session is closed")
         return self._session
+
+    @staticmethod
+    def node_id() -> str:
+        """The Ray node this actor runs on (logged where a session opens; the tests find its node by it)."""
+        return ray.get_runtime_context().get_node_id()
 
     def describe(self) -> Described:
         session = self._current()

@@ -19,6 +19,7 @@ from ogapi.v1 import mapping_pb2 as pb
 from ray import ObjectRef
 from ray.actor import ActorHandle
 from ray.exceptions import GetTimeoutError, RayActorError
+from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from ogserver import validation
 from ogserver.cluster.actor import SessionActor
@@ -38,10 +39,22 @@ DIRECTORY_NAME = "directory"
 PLACEMENT_SECONDS = 120.0
 ACTOR_CONCURRENCY = 16  # a blocked frame offer, the ack poll, renders, stats and snapshots side by side
 MAX_RESTARTS = 3  # Ray restarts a session's actor (on any node) this often after its process or node died
+# The directory lives on the head node, beside Ray's own control store (GCS): a lost worker node never takes it.
+HEAD_NODE = {"node:__internal_head__": 0.001}
 
 
 def actor_name(session_id: str) -> str:
     return f"session-{session_id}"
+
+
+def session_alive(session_id: str) -> bool:
+    """Whether the session's actor still exists (running, or being restarted by Ray); Ray releases the name of
+    an actor that is dead for good (its restarts spent, or killed without restart)."""
+    try:
+        ray.get_actor(actor_name(session_id), namespace=NAMESPACE)
+    except ValueError:
+        return False
+    return True
 
 
 class ClusterHost:
@@ -52,7 +65,8 @@ class ClusterHost:
         self.device = f"ray cluster {settings.cluster}"
         self._directory = ray.remote(Directory).options(
             name=DIRECTORY_NAME, namespace=NAMESPACE, lifetime="detached", get_if_exists=True, num_cpus=0,
-        ).remote()
+            resources=HEAD_NODE,
+        ).remote(session_alive)
         self._actor = ray.remote(concurrency_groups={ACK_GROUP: 1})(SessionActor)
         log.info("cluster mode: sessions are Ray actors in namespace %r of %s (%g CPUs, %g GPUs each)", NAMESPACE,
                  settings.cluster, settings.session_cpus, settings.session_gpus)
@@ -72,14 +86,15 @@ class ClusterHost:
     def _place(self, owner: str, opening: Callable[[ActorHandle, str], ObjectRef]) -> Opened:
         limits = self.settings.limits.max_sessions, self.settings.access.max_sessions_per_client
         call(self._directory, "reserve", owner, *limits)
+        session_id = new_session_id()
         committed = False
         try:
-            session_id = new_session_id()
             actor = self._actor.options(
                 name=actor_name(session_id), namespace=NAMESPACE, lifetime="detached",
                 num_cpus=self.settings.session_cpus, num_gpus=self.settings.session_gpus,
                 max_concurrency=ACTOR_CONCURRENCY, max_restarts=MAX_RESTARTS,
-            ).remote(self.settings, session_id)
+                scheduling_strategy=self._placement(session_id),
+            ).remote(self.settings, session_id, self._directory)
             try:
                 config, token, recording = self._opened(actor, opening(actor, session_id))
             except BaseException:
@@ -89,9 +104,20 @@ class ClusterHost:
             committed = True
         finally:
             if not committed:
-                call(self._directory, "release", owner)
-        log.info("session %s opened for %s in a Ray actor", session_id, owner)
+                call(self._directory, "release", owner, session_id)
+        log.info("session %s opened for %s in a Ray actor on node %s", session_id, owner, call(actor, "node_id"))
         return Opened(RemoteSession(actor, config, recording), token)
+
+    def _placement(self, session_id: str) -> NodeAffinitySchedulingStrategy | str:
+        """The emptiest live node with the resources a session asks for, softly: if it is full or gone, Ray
+        places the actor elsewhere, and restarts it elsewhere when that node dies. Ray's own choice (DEFAULT)
+        when no node can take it now (one may join within PLACEMENT_SECONDS)."""
+        wanted = {"CPU": self.settings.session_cpus, "GPU": self.settings.session_gpus}
+        candidates = [node["NodeID"] for node in ray.nodes() if node["Alive"] and all(
+            node["Resources"].get(resource, 0.0) >= amount for resource, amount in wanted.items() if amount > 0)]
+        if not candidates:
+            return "DEFAULT"
+        return NodeAffinitySchedulingStrategy(call(self._directory, "place", session_id, candidates), soft=True)
 
     def _opened(self, actor: ActorHandle, pending: ObjectRef) -> tuple[pb.SessionConfig, str, Path]:
         try:

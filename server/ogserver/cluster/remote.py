@@ -33,6 +33,8 @@ from ogserver.validation import RenderSpec
 
 log = logging.getLogger(__name__)
 EVENT_WAIT_SECONDS = 0.5  # how long one poll for acks waits in the actor; also how soon a finished pump stops
+UNAVAILABLE = ("the session's Ray actor stopped answering (its process or node failed); the cluster restarts it "
+               "from its last checkpoint: retry, and stream again from the frame after GetStats' last_index")
 ACK_GROUP = "acks"  # the ack poll's own threads in the actor, apart from offers, renders and stats
 
 
@@ -54,8 +56,7 @@ def outcome(pending: ObjectRef, what: str, timeout: float | None = None) -> Any:
         raise
     except (RayActorError, GetTimeoutError) as error:
         log.warning("a session actor did not answer %s: %s", what, error)
-        raise ServiceError(grpc.StatusCode.UNAVAILABLE,
-                           "the session's host is unavailable (its node may have failed); retry later") from None
+        raise ServiceError(grpc.StatusCode.UNAVAILABLE, UNAVAILABLE) from None
 
 
 class RemoteSession:
