@@ -91,6 +91,11 @@ def parser() -> argparse.ArgumentParser:
                         help="with --session: go on where the session stands (after a dropped connection or a "
                              "server crash): ask it for the last frame it has taken and stream only the frames "
                              "after it")
+    stream.add_argument("--retries", type=int, default=8,
+                        help="a stream cut by UNAVAILABLE (the server or its node failed) is resumed by itself: wait "
+                             "(0.5 s, doubling, up to 15 s), ask GetStats for the last frame the session holds and "
+                             "stream the frames after it; at most this many UNAVAILABLE answers with no frame "
+                             "acknowledged in between (default 8; 0: stop at the first)")
     stream.add_argument("--close", action="store_true", help="close the session when done")
     stream.add_argument("--quiet", action="store_true", help="no progress bar")
     stream.set_defaults(handler=commands.stream)

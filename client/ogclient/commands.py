@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from ogclient import replay as replaying
 from ogclient.connection import ClientError, SessionRef
 from ogclient.evaluation import evaluate, snapshot_bytes
 from ogclient.messages import frame_to_proto, intrinsics_to_proto
+from ogclient.resuming import Backoff, stream_resuming
 from ogclient.streaming import paced, stream_frames
 from ogmapping.camera import validate_pose
 from ogmapping.config import load_file, parse_override_args, resolve
@@ -93,6 +95,8 @@ def stream(ctx: Context, args: argparse.Namespace) -> int:
         raise ClientError("--resume goes on with an existing session: name its credentials with --session FILE")
     if args.fps < 0:
         raise ClientError(f"--fps must be >= 0 (got {args.fps:g})")
+    if args.retries < 0:
+        raise ClientError(f"--retries must be >= 0 (got {args.retries})")
     for line in frame_set.source.report():
         print(f"{frame_set.source.name}: {line}", flush=True)
     if args.session:
@@ -106,8 +110,14 @@ def stream(ctx: Context, args: argparse.Namespace) -> int:
     positions = list(frame_set.selection.streamed)
     if args.resume:
         positions = resumed_positions(ctx, session, positions)
-    messages = paced((frame_to_proto(frame_set.load(position), encoding) for position in positions), args.fps)
-    result = stream_frames(ctx.stub, session, messages, total=len(positions), progress=not args.quiet)
+
+    def after(last_index: int | None) -> Iterator[pb.Frame]:
+        """The selected frames after the last one the session holds (ogclient sets Frame.index to the position)."""
+        chosen = [position for position in positions if last_index is None or position > last_index]
+        return paced((frame_to_proto(frame_set.load(position), encoding) for position in chosen), args.fps)
+
+    result = stream_resuming(ctx.stub, session, after, total=len(positions), progress=not args.quiet,
+                             backoff=Backoff(retries=args.retries))
     print(result.summary())
     close_if_asked(ctx, session, args)
     return 1 if result.rejected else 0

@@ -57,10 +57,11 @@ def paced(messages: Iterable[pb.Frame], fps: float) -> Iterator[pb.Frame]:
 
 def stream_frames(
     stub: pb_grpc.MappingStub, session: SessionRef, messages: Iterable[pb.Frame], total: int | None = None,
-    progress: bool = True,
+    progress: bool = True, result: StreamResult | None = None,
 ) -> StreamResult:
-    """Stream ``messages`` and collect one ack per frame; refusals are printed, not raised."""
-    result = StreamResult()
+    """Stream ``messages`` and collect one ack per frame (into ``result`` when given, so the acks of a stream
+    that ends with an error are kept); refusals are printed, not raised, a failed call is raised."""
+    result = StreamResult() if result is None else result
     start = time.perf_counter()
     bar = tqdm(total=total, desc="streaming", unit="frame", disable=not progress)
     responses = stub.StreamFrames(iter(messages), metadata=session.stream_metadata())
@@ -82,5 +83,5 @@ def stream_frames(
         raise ClientError("interrupted; frames sent so far stay in the session") from None
     finally:
         bar.close()
-    result.seconds = time.perf_counter() - start
+        result.seconds += time.perf_counter() - start
     return result
