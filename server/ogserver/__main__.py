@@ -95,6 +95,10 @@ def parser() -> argparse.ArgumentParser:
                          help="CPUs each session actor requests (1)")
     cluster.add_argument("--session-gpus", dest="session_gpus", type=float,
                          help="GPUs each session actor requests, a fraction shares one (0)")
+    cluster.add_argument("--shared-storage", dest="shared_storage", metavar="URL",
+                         help="an fsspec URL (s3://bucket/prefix, file:///mnt/shared, ...) where every node keeps "
+                              "and finds recordings and checkpoints; --record-dir is then each node's scratch space "
+                              "(default: --record-dir itself is a path every node sees)")
     live = p.add_argument_group("live view: each session's render, trajectory and map (docs/foxglove.md)")
     live.add_argument("--foxglove-port", dest="foxglove_port", type=int,
                       help="serve the live view to Foxglove over WebSocket on this port (0 = any free port; "

@@ -21,6 +21,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from google.protobuf import json_format
 from ogapi.v1 import mapping_pb2 as pb
@@ -29,6 +30,9 @@ from ogmapping import snapshot
 from ogmapping.config import ConfigBounds
 from ogmapping.state import MapState
 from ogserver.auth import TokenHash
+
+if TYPE_CHECKING:
+    from ogserver.shared import SharedStore
 
 log = logging.getLogger(__name__)
 FORMAT = "ogserver-checkpoint"
@@ -166,10 +170,12 @@ def write_atomically(path: Path, data: bytes) -> None:
 
 
 class Checkpoints:
-    """One session's checkpoints: where they go, what each carries besides the map, when one is due."""
+    """One session's checkpoints: where they go (and, with shared storage, where else), what each carries
+    besides the map, when one is due."""
 
-    def __init__(self, recording: Path, identity: Identity, interval: int) -> None:
+    def __init__(self, recording: Path, identity: Identity, interval: int, store: SharedStore | None = None) -> None:
         self.path = path_for(recording)
+        self.store = store
         self.identity = identity
         self.interval = interval  # frames; 0: only the one written when the session opens
         self.written = 0
@@ -181,7 +187,10 @@ class Checkpoints:
     def write(self, state: MapState, position: Position) -> None:
         """Raises OSError if it could not be written; the previous checkpoint then still stands."""
         start = time.perf_counter()
-        write_atomically(self.path, encode(self.identity, position, state))
+        data = encode(self.identity, position, state)
+        write_atomically(self.path, data)
+        if self.store is not None:  # after the recording's parts up to this frame, which were uploaded first
+            self.store.put(self.path.name, data)
         elapsed = time.perf_counter() - start
         self.written += 1
         self.seconds += elapsed
@@ -191,3 +200,9 @@ class Checkpoints:
     def remove(self) -> None:
         """The session closed cleanly: nothing to resume."""
         self.path.unlink(missing_ok=True)
+        if self.store is not None:
+            try:
+                self.store.remove(self.path.name)
+            except OSError as error:  # the recording is closed and published: only a stale checkpoint is left
+                log.error("session %s: cannot remove its checkpoint from the shared storage: %s",
+                          self.identity.session_id, error)

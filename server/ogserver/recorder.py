@@ -7,7 +7,8 @@ a crash loses at most the acks after the last frame, and leaves a file any MCAP 
 close appends the summary and index. The first write that fails (a full disk) stops the recording
 for good: the file is cut back to the last complete frame, and closing rewrites it with a summary.
 A session resumed after a crash goes on with its recording (``Recorder.resume``): the cut file is
-copied into a new one, which replaces it, and later frames are appended there.
+copied into a new one, which replaces it, and later frames are appended there. With shared storage
+at a URL (cluster mode, ``shared.py``) each flush's bytes are uploaded too, before the flush returns.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import grpc
 import numpy as np
@@ -42,6 +44,9 @@ from ogmapping.camera import Intrinsics
 from ogmapping.frame import Frame
 from ogserver.errors import ServiceError
 from ogserver.storage import StorageError, storage_error
+
+if TYPE_CHECKING:
+    from ogserver.shared import RecordingParts
 
 log = logging.getLogger(__name__)
 PROFILE = "protobuf"
@@ -104,10 +109,12 @@ PROVISIONAL_END = _provisional_end()
 class RecordingFile:
     """The file under the MCAP writer: bytes reach the disk only at a flush, which also writes
     ``PROVISIONAL_END`` after them for the next flush to overwrite, so a file cut between two
-    flushes is a complete MCAP. A flush that fails is cut back to the one before."""
+    flushes is a complete MCAP. A flush that fails is cut back to the one before; so is one whose bytes
+    could not be uploaded to the shared storage's ``parts``."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, parts: RecordingParts | None = None) -> None:
         self._file = open(path, "wb", buffering=0)  # noqa: SIM115 - lives as long as the recording
+        self._parts = parts
         self._pending = bytearray()
         self._committed = 0  # bytes of MCAP data on disk; what follows them is ``_end``
         self._end = b""
@@ -138,6 +145,8 @@ class RecordingFile:
         self._pending.clear()
         try:
             self._write_at(self._committed, data)
+            if self._parts is not None:
+                self._parts.add(self._committed, data[: len(data) - len(end)], end=not end)
         except OSError:
             with contextlib.suppress(OSError):  # in place, so a full disk takes it; readers stop at a cut anyway
                 self._file.truncate(self._committed + len(self._end))
@@ -205,23 +214,24 @@ def frame_record(message: pb.Frame, frame: Frame, received_ns: int) -> FrameReco
     ])
 
 
-def _open_mcap(path: Path) -> tuple[RecordingFile, Writer]:
-    file = RecordingFile(path)
+def _open_mcap(path: Path, parts: RecordingParts | None = None) -> tuple[RecordingFile, Writer]:
+    file = RecordingFile(path, parts)
     return file, Writer(file, compression=CompressionType.ZSTD)
 
 
 class Recorder:
     """Thread-safe writer of one session's recording. Every write failure is a ``StorageError``;
-    after the first, ``failure`` holds it and frames are refused with it."""
+    after the first, ``failure`` holds it and frames are refused with it. With ``parts`` (shared storage),
+    every flush is uploaded as well and the closed recording is published there."""
 
-    def __init__(self, path: Path, config: pb.SessionConfig) -> None:
+    def __init__(self, path: Path, config: pb.SessionConfig, parts: RecordingParts | None = None) -> None:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            file, writer = _open_mcap(path)
+            file, writer = _open_mcap(path, parts)
         except OSError as error:
             log.error("recording %s: cannot create it: %s", path, error)
             raise storage_error(error, "a new session's recording") from None
-        self._attach(path, file, _Channels(writer))
+        self._attach(path, file, _Channels(writer), parts)
         try:
             writer.start(profile=PROFILE, library="ogserver")
             self._mcap.add(layout.TOPIC_SESSION, config, time.time_ns())
@@ -232,8 +242,9 @@ class Recorder:
             log.error("recording %s: cannot start it: %s", path, error)
             raise storage_error(error, "a new session's recording") from None
 
-    def _attach(self, path: Path, file: RecordingFile, mcap: _Channels) -> None:
+    def _attach(self, path: Path, file: RecordingFile, mcap: _Channels, parts: RecordingParts | None) -> None:
         self.path = path
+        self._parts = parts
         self.failure: StorageError | None = None
         self._lock = threading.Lock()
         self._closed = False
@@ -241,14 +252,15 @@ class Recorder:
         self._mcap = mcap
 
     @classmethod
-    def resume(cls, path: Path) -> Recorder:
+    def resume(cls, path: Path, parts: RecordingParts | None = None) -> Recorder:
         """Go on with a recording a crash cut: what it holds (``layout.read_messages`` reads up to the
         cut) is copied into a new file, ended and synced, which then replaces it, so the session keeps
         one recording and a crash during this leaves the old file as it was. Needs as much free space
-        as the recording takes. StorageError if it cannot be written, RecordingError if it cannot be read."""
+        as the recording takes. StorageError if it cannot be written, RecordingError if it cannot be read.
+        With ``parts``, the copy is uploaded whole as a new generation of parts."""
         partial = path.with_name(path.name + ".resumed")
         try:
-            file, writer = _open_mcap(partial)
+            file, writer = _open_mcap(partial, parts)
             try:
                 copied = layout.copy_records(path, writer)
                 writer.flush()
@@ -265,7 +277,7 @@ class Recorder:
             partial.unlink(missing_ok=True)
             raise
         recorder = cls.__new__(cls)
-        recorder._attach(path, file, _Channels(writer, copied.channels))
+        recorder._attach(path, file, _Channels(writer, copied.channels), parts)
         return recorder
 
     def _fail(self, error: Exception) -> StorageError:
@@ -323,22 +335,31 @@ class Recorder:
 
     def close(self, stats: pb.Stats | None = None) -> None:
         """Write the final stats and the summary; later writes are dropped. A recording that failed
-        is rewritten with a summary instead; if that fails too (StorageError), closing can be retried."""
+        is rewritten with a summary instead; if that fails too (StorageError), closing can be retried, as
+        it can when the finished recording cannot be published to the shared storage."""
         with self._lock:
-            if self._closed:
-                return
-            if self.failure is None:
+            if not self._closed:
+                self._finish(stats)
+            if self._parts is not None:
                 try:
-                    if stats is not None:
-                        self._mcap.add(layout.TOPIC_STATS, stats, time.time_ns())
-                    self._mcap.writer.finish()
-                    self._file.finish()
-                except Exception as error:
-                    self._fail(error)
-            if self.failure is not None:
-                self._rewrite(stats)
-            self._file.close()
-            self._closed = True
+                    self._parts.publish(self.path)
+                except OSError as error:
+                    log.error("recording %s: cannot publish it to the shared storage: %s", self.path, error)
+                    raise storage_error(error, "the session's recording to the shared storage") from None
+
+    def _finish(self, stats: pb.Stats | None) -> None:
+        if self.failure is None:
+            try:
+                if stats is not None:
+                    self._mcap.add(layout.TOPIC_STATS, stats, time.time_ns())
+                self._mcap.writer.finish()
+                self._file.finish()
+            except Exception as error:
+                self._fail(error)
+        if self.failure is not None:
+            self._rewrite(stats)
+        self._file.close()
+        self._closed = True
 
     def _rewrite(self, stats: pb.Stats | None) -> None:
         """A failed recording, finished: what its file holds, copied into a new one with the stats and

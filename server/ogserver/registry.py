@@ -36,6 +36,7 @@ from ogserver.places import check_room
 from ogserver.recorder import Recorder
 from ogserver.session import Recorded, Session
 from ogserver.settings import Settings
+from ogserver.shared import RecordingParts, SharedStore
 from ogserver.storage import StorageError, storage_error
 
 log = logging.getLogger(__name__)
@@ -76,6 +77,8 @@ class Registry:
         self.settings = settings
         self.device = device
         self.record_dir = Path(settings.record_dir)
+        # Cluster mode's shared storage at a URL; the record dir is then this node's scratch space.
+        self.store = SharedStore(settings.shared_storage) if settings.shared_storage else None
         self._sessions: dict[str, Session] = {}
         self._tenancy: dict[str, Tenancy] = {}
         # Being closed: no longer served, still counted under max_sessions and the owner's quota (a close
@@ -141,8 +144,8 @@ class Registry:
         )
         token = auth.new_token()
         identity = Identity(owner, auth.TokenHash.of(token), config)
-        recorder = Recorder(self.record_dir / f"{session_id}.mcap", config)
-        checkpoints = Checkpoints(recorder.path, identity, self.settings.checkpoint_interval)
+        recorder = Recorder(self.record_dir / f"{session_id}.mcap", config, self._parts(f"{session_id}.mcap"))
+        checkpoints = Checkpoints(recorder.path, identity, self.settings.checkpoint_interval, self.store)
         try:
             # without it a crash would lose who the session is
             checkpoints.write(mapper.state(training_state=True), Position())
@@ -157,6 +160,9 @@ class Registry:
         log.info("session %s opened for %s (preset %r, device %s%s)", session_id, owner, preset or "restored",
                  mapper.device, ", realtime" if realtime else "")
         return Opened(session, token)
+
+    def _parts(self, name: str) -> RecordingParts | None:
+        return self.store.recording(name) if self.store is not None else None
 
     def _register(self, session: Session, owner: str) -> None:
         with self._lock:
@@ -191,8 +197,8 @@ class Registry:
                 mapper = Mapper.from_state(saved.state, device=self.device, training_state=True)
             except ValueError as error:
                 raise CheckpointError(f"its map cannot be rebuilt: {error}") from None
-            recorder = Recorder.resume(recording)
-            checkpoints = Checkpoints(recording, saved.identity, self.settings.checkpoint_interval)
+            recorder = Recorder.resume(recording, self._parts(recording.name))
+            checkpoints = Checkpoints(recording, saved.identity, self.settings.checkpoint_interval, self.store)
             config = pb.SessionConfig()
             config.CopyFrom(saved.identity.config)
             config.device = str(mapper.device)  # this server's, which may not be the crashed one's
@@ -284,7 +290,10 @@ class Registry:
         if self.settings.final_snapshots:
             snapshot = self.record_dir / f"{session.id}.safetensors"
             try:
-                snapshot.write_bytes(session.snapshot())
+                data = session.snapshot()
+                snapshot.write_bytes(data)
+                if self.store is not None:
+                    self.store.put(snapshot.name, data)
             except OSError as error:
                 snapshot.unlink(missing_ok=True)
                 log.error("session %s: cannot write its final snapshot %s: %s", session.id, snapshot, error)

@@ -145,6 +145,9 @@ class Settings:
     cluster: str = ""  # a Ray address: "auto", HOST:PORT of a head node, or ray://HOST:PORT (Ray Client)
     session_cpus: float = 1.0  # each session actor's Ray resource request
     session_gpus: float = 0.0  # a fraction of a GPU shares one among several sessions
+    # An fsspec URL (s3://bucket/prefix, file:///mnt/shared, ...) holding recordings and checkpoints for every
+    # node, record_dir being each node's scratch space; "" = record_dir itself is shared (NFS, a shared volume).
+    shared_storage: str = ""
 
     def validate(self) -> None:
         if not self.address or ":" not in self.address:
@@ -167,6 +170,9 @@ class Settings:
                 raise ValueError(f"{name} must be a finite number >= 0 (got {value})")
         if self.checkpoint_interval < 0:
             raise ValueError(f"checkpoint_interval must be an integer >= 0 (got {self.checkpoint_interval})")
+        if self.shared_storage and not (self.cluster and "://" in self.shared_storage):
+            raise ValueError(f"shared_storage must be an fsspec URL such as s3://bucket/prefix, in cluster mode only "
+                             f"(got {self.shared_storage!r}{'' if self.cluster else ' without cluster'})")
 
     def threads(self) -> int:
         return self.torch_threads or max(1, min(os.cpu_count() or 1, 8))

@@ -39,6 +39,9 @@ def _read(session: HostedSession, requests: Requests, sink: queue.SimpleQueue[St
                     error = ServiceError(grpc.StatusCode.ABORTED, "the session was closed during the stream")
                     break
             except ServiceError as refusal:
+                if refusal.code == grpc.StatusCode.UNAVAILABLE:  # the session's host failed, not the frame
+                    error = refusal
+                    break
                 session.count_rejected()
                 sink.put(Rejected(messages.error_ack(index, refusal)))
                 continue

@@ -79,3 +79,8 @@ def test_cluster_mode_refuses_what_it_cannot_do_yet() -> None:
     with pytest.raises(ValueError, match="session_gpus"):
         Settings(cluster="auto", session_gpus=-0.5).validate()
     Settings(cluster="auto", session_gpus=0.25).validate()
+    with pytest.raises(ValueError, match="without cluster"):
+        Settings(shared_storage="s3://bucket/recordings").validate()
+    with pytest.raises(ValueError, match="fsspec URL"):
+        Settings(cluster="auto", shared_storage="/mnt/shared").validate()  # a path: that is record_dir's job
+    Settings(cluster="auto", shared_storage="s3://bucket/recordings").validate()

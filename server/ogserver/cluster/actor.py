@@ -49,6 +49,8 @@ class SessionActor:
         self._sink: queue.SimpleQueue[StreamEvent] | None = None
         self._stream = ExitStack()
         recording = self._registry.record_dir / f"{session_id}.mcap"
+        if self._registry.store is not None:  # this node's scratch space may not hold the session's latest files
+            self._registry.store.fetch(session_id, self._registry.record_dir)
         if checkpoint.path_for(recording).exists():  # Ray restarted the actor: its process or node died
             self._session = self._registry.resume(recording)
         directory.placed.remote(session_id, self.node_id())  # the directory counts sessions per node

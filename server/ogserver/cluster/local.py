@@ -2,10 +2,11 @@
 
 Each node is a ``ray start --block`` process (the head first, then nodes that join it) on 127.0.0.1,
 in a process group of its own, so stopping it ends exactly the processes that node started and
-nothing else of the machine's (never ``ray stop``, which stops every Ray process it finds). Killing
-one node's group with SIGKILL is how the tests lose a node. Each node's raylet listens on a port
-chosen here, which is how a node of ``ray.nodes()`` is told apart from the others on one IP. The
-nodes inherit this process's environment: its PYTHONPATH is how their workers import ogserver.
+nothing else of the machine's (never ``ray stop``, which stops every Ray process it finds). The raylet
+starts its workers (the session actors) in process groups of their own, so losing a node is SIGKILL
+to the node's group and to every process descended from it, found by their parent ids in /proc. Each
+node's raylet listens on a port chosen here, which is how a node of ``ray.nodes()`` is told apart from
+the others on one IP. The nodes inherit this process's environment: its PYTHONPATH is how their workers import ogserver.
 """
 
 from __future__ import annotations
@@ -30,6 +31,21 @@ STARTED = "Ray runtime started"  # what ``ray start`` logs once its node has joi
 # How soon the head declares a lost node dead (Ray's defaults take about 30 s): 1 s checks, 3 misses.
 FAST_FAILURE_DETECTION = {"RAY_health_check_period_ms": "1000", "RAY_health_check_timeout_ms": "1000",
                           "RAY_health_check_failure_threshold": "3", "RAY_health_check_initial_delay_ms": "1000"}
+
+
+def descendants(root: int) -> list[int]:
+    """The ids of every process below ``root`` (Linux /proc), whatever their process group."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with suppress(OSError, ValueError, IndexError):
+            fields = stat.read_text().rsplit(")", 1)[1].split()  # after "pid (comm)": state, ppid, ...
+            children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    found, pending = [], [root]
+    while pending:
+        below = children.get(pending.pop(), [])
+        found.extend(below)
+        pending.extend(below)
+    return found
 
 
 def free_port() -> int:
@@ -60,8 +76,12 @@ class Node:
         self.process.wait()
 
     def _kill_group(self) -> None:
+        below = descendants(self.process.pid)
         with suppress(ProcessLookupError):
             os.killpg(self.process.pid, signal.SIGKILL)
+        for pid in below:
+            with suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
 
 
 @dataclass
