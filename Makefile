@@ -21,12 +21,14 @@ venv: $(STAMP)
 demo: $(STAMP) $(LPIPS_WEIGHTS)
 	$(PY) -m ogclient.demo --out out/demo
 
+# The cluster tests (marker `cluster`) are make cluster-test's: deselected here, so they never run twice.
 test: $(STAMP) $(LPIPS_WEIGHTS)
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -m "not cluster"
+	@$(PY) -c 'import importlib.util as u; print("cluster tests: not run by make test; " + ("make cluster-test runs them" if u.find_spec("ray") else "skipped: Ray (the cluster extra) is not installed; make cluster-test installs it and runs them"))'
 
-# Cluster mode (docs/cluster.md): installs the `cluster` extra (Ray) into the venv, then runs the tests
-# that start a real two-node Ray cluster on 127.0.0.1. `make test` skips them where Ray is absent.
+# Cluster mode (docs/cluster.md): installs the `cluster` extra (Ray, fsspec) into the venv, then runs the
+# tests that start a real Ray cluster (a head and two worker nodes) on 127.0.0.1, about 1 to 1.5 minutes.
 cluster-test: $(STAMP)
 	$(PY) -m pip install -q -e '.[cluster]'
 	$(PY) -m pytest -q -m cluster
