@@ -9,6 +9,7 @@ import signal
 import sys
 import threading
 
+from ogserver import LOG_FORMAT
 from ogserver import settings as settings_module
 
 READY_PREFIX = "ogserver listening on"
@@ -117,7 +118,7 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
-    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=args.log_level.upper(), format=LOG_FORMAT)
     flags = {key: value for key, value in vars(args).items() if key not in ("config", "log_level")}
     try:
         settings = settings_module.load(args.config, flags)

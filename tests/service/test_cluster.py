@@ -13,6 +13,7 @@ Last, a session whose actor is dead for good gives its place in the cluster back
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 from collections.abc import Iterable, Iterator
@@ -241,6 +242,11 @@ def test_losing_the_node_of_a_session_mid_stream(cluster: Cluster, tmp_path: Pat
 
     standing = wait_for_stats(b, lost)  # the same id and token, through the other front-end
     assert cluster.node_of(lost) == kept_node, "not restarted on the surviving node"
+    resumed = re.search(rf"session {lost.session_id} resumed for \S+ from its checkpoint at frame (\d+), (\d+) "
+                        "recorded frames after it", cluster.local.worker_logs())
+    assert resumed, "the restarted actor did not resume the session from its checkpoint"
+    checkpointed, replayed = int(resumed[1]), int(resumed[2])
+    assert checkpointed >= 2 and checkpointed + replayed == standing.last_sequence
     assert standing.session_id == lost.session_id
     assert standing.last_sequence >= acknowledged[-1].sequence, "an acknowledged frame was lost"
     assert standing.last_index >= acknowledged[-1].index

@@ -11,6 +11,7 @@ dir: the new actor resumes the session from it as a restarted single server woul
 
 from __future__ import annotations
 
+import logging
 import os
 import queue
 from contextlib import ExitStack
@@ -23,7 +24,7 @@ from ray.actor import ActorHandle
 from ogmapping.mapper import Rendered
 from ogmapping.profile import resolve_device
 from ogmapping.stats import MapStats
-from ogserver import checkpoint
+from ogserver import LOG_FORMAT, checkpoint
 from ogserver.counters import SessionCounters
 from ogserver.errors import ServiceError
 from ogserver.events import Acked, Cancelled, SessionClosed, StreamEvent
@@ -41,6 +42,8 @@ class SessionActor:
     def __init__(self, settings: Settings, session_id: str, directory: ActorHandle) -> None:
         # Before numba's first parallel kernel: the session's worker and renders run kernels concurrently.
         os.environ.setdefault("NUMBA_THREADING_LAYER", "threadsafe")
+        # The registry's and session's log lines, in the worker's log (Ray's logs/worker-*.err on its node).
+        logging.basicConfig(level=logging.INFO, format=LOG_FORMAT)
         import torch
 
         torch.set_num_threads(max(1, int(settings.session_cpus)))

@@ -88,6 +88,12 @@ class Node:
 class LocalCluster:
     address: str
     nodes: list[Node]  # the head first
+    temp_dir: Path  # Ray's, for every node of this machine: session_latest/logs holds the workers' logs
+
+    def worker_logs(self) -> str:
+        """What the cluster's workers (the session actors among them) have written to stderr so far."""
+        return "".join(path.read_text(errors="replace")
+                       for path in sorted((self.temp_dir / "session_latest" / "logs").glob("worker-*.err")))
 
     def node_of(self, node_id: str) -> Node:
         """The node whose Ray node id is ``node_id`` (as ``ray.get_runtime_context().get_node_id()`` says)."""
@@ -126,7 +132,7 @@ def local_cluster(logs: Path, workers: int = 1, cpus_per_node: int = 1, head_cpu
                                            env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
             started.append(Node(process, port))
             wait_started(process, logs / f"node{number}.log")  # a node that joins a head still starting may hang
-        yield LocalCluster(address, started)
+        yield LocalCluster(address, started, Path(temp_dir))
     finally:
         for node in reversed(started):
             node.stop()
