@@ -3,13 +3,14 @@ front-end whose session lives in a Ray actor, in one run.
 
     python bench/cluster.py --frames 0:20 --scale 0.25 [--renders 20] [--set KEY=VALUE ...]
 
-A local Ray cluster of one node (``ogserver.cluster.local``) and two servers on 127.0.0.1: a single
-``ogserver`` and an ``ogserver --cluster``. For each, one session (preset ``sparse-fast``, no
-optimisation unless ``--set`` asks for it, so the figures are the plumbing, not the mapping)
-gets the synthetic frames twice: in lockstep (the next frame is sent once the previous one's ack
-arrived: the client-side round trip per frame) and as one pipelined stream (throughput, frames
-per second over the whole stream). Then ``--renders`` renders from the first frame's pose (the
-client-side time per render). Prints a Markdown table.
+A local Ray cluster of one node (``ogserver.cluster.local``) and three servers on 127.0.0.1, one after
+the other: a single ``ogserver``, an ``ogserver --cluster`` (record dir shared as a path), and one with
+``--shared-storage file://...`` (each flush also uploaded as a part through fsspec, as to s3://).
+For each, one session (preset ``sparse-fast``, no optimisation unless ``--set`` asks for it, so the
+figures are the plumbing, not the mapping) gets the synthetic frames twice: in lockstep (the next
+frame is sent once the previous one's ack arrived: the client-side round trip per frame) and as one
+pipelined stream (throughput, frames per second over the whole stream). Then ``--renders`` renders
+from the first frame's pose (the client-side time per render). Prints a Markdown table.
 """
 
 from __future__ import annotations
@@ -102,8 +103,11 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="ogbench-") as work:
         root = Path(work)
         with local_cluster(root, workers=0, cpus_per_node=1) as cluster:
-            for name, extra in (("single server", ()), ("front-end + Ray actor", ("--cluster", cluster.address))):
-                record_dir = root / name.replace(" ", "-").replace("+", "")
+            servers = (("single server", ()), ("front-end + Ray actor", ("--cluster", cluster.address)),
+                       ("front-end + Ray actor, fsspec file:// storage",
+                        ("--cluster", cluster.address, "--shared-storage", (root / "store").as_uri())))
+            for name, extra in servers:
+                record_dir = root / f"recordings{len(rows)}"
                 with LocalServer(record_dir, *common, *extra) as server:
                     rows.append(measure(name, server.address, frames, overrides, args.renders, loaded[0].c2w,
                                         loaded[0].color_intrinsics))
