@@ -21,7 +21,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from google.protobuf import json_format
 from ogapi.v1 import mapping_pb2 as pb
@@ -30,9 +30,6 @@ from ogmapping import snapshot
 from ogmapping.config import ConfigBounds
 from ogmapping.state import MapState
 from ogserver.auth import TokenHash
-
-if TYPE_CHECKING:
-    from ogserver.shared import SharedStore
 
 log = logging.getLogger(__name__)
 FORMAT = "ogserver-checkpoint"
@@ -167,6 +164,14 @@ def write_atomically(path: Path, data: bytes) -> None:
         os.fsync(directory)  # the rename itself survives a power cut
     finally:
         os.close(directory)
+
+
+class SharedStore(Protocol):
+    """Where else checkpoints go (``shared.SharedStore``: an fsspec store)."""
+
+    def put(self, name: str, data: bytes) -> None: ...
+
+    def remove(self, name: str) -> None: ...
 
 
 class Checkpoints:

@@ -20,7 +20,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import grpc
 import numpy as np
@@ -45,11 +45,16 @@ from ogmapping.frame import Frame
 from ogserver.errors import ServiceError
 from ogserver.storage import StorageError, storage_error
 
-if TYPE_CHECKING:
-    from ogserver.shared import RecordingParts
-
 log = logging.getLogger(__name__)
 PROFILE = "protobuf"
+
+
+class RecordingParts(Protocol):
+    """Where else a recording's bytes go as they are committed (``shared.RecordingParts``: an fsspec store)."""
+
+    def add(self, offset: int, data: bytes, end: bool) -> None: ...
+
+    def publish(self, finished: Path) -> None: ...
 
 
 def quaternion(rotation: np.ndarray) -> tuple[float, float, float, float]:
