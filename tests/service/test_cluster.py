@@ -30,6 +30,7 @@ from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 from ogclient.connection import SessionRef, connect
 from ogclient.evaluation import render, snapshot_bytes
 from ogclient.local_server import LocalServer
+from ogclient.resuming import stream_resuming
 from ogclient.streaming import StreamResult, stream_frames
 from ogserver.cluster.local import LocalCluster, local_cluster
 
@@ -154,18 +155,20 @@ def test_any_front_end_serves_any_session(cluster: Cluster) -> None:
     assert not b.stub.ListSessions(pb.ListSessionsRequest()).sessions
 
 
-def wait_for_stats(front_end: FrontEnd, session: SessionRef) -> pb.Stats:
-    """The session's stats once it answers again with nothing queued (UNAVAILABLE while Ray restarts it)."""
+def wait_for_stats(front_end: FrontEnd, session: SessionRef, mapped: int | None = None) -> pb.Stats:
+    """The session's stats once it answers (UNAVAILABLE while Ray restarts it) with ``mapped`` frames mapped, or,
+    by default, nothing left to map."""
     deadline = time.monotonic() + 120.0
     while True:
         try:
             stats = front_end.call("GetStats", pb.GetStatsRequest(session_id=session.session_id), session)
-            if stats.queue_depth == 0 and stats.mapped_sequence == stats.last_sequence:
+            if (stats.mapped_sequence >= mapped if mapped is not None else
+                    stats.queue_depth == 0 and stats.mapped_sequence == stats.last_sequence):
                 return stats
         except grpc.RpcError as error:
             assert error.code() == grpc.StatusCode.UNAVAILABLE, error.details()
         assert time.monotonic() < deadline, "the session did not come back"
-        time.sleep(0.5)
+        time.sleep(0.2)
 
 
 @dataclass
@@ -207,7 +210,9 @@ def single_server_render(tmp_path: Path, frames: list[pb.Frame], position: int) 
     return rendered.color, rendered.depth
 
 
-KILL_AFTER = 4  # acks: two checkpoints written (every 2 frames); two more frames sent, the rest held back
+KILL_AFTER = 4  # frames mapped: two checkpoints written (every 2 frames); two more frames sent, the rest held back
+UNAVAILABLE_CUT = ("the frame stream was cut: UNAVAILABLE: the session's Ray actor stopped answering (its process or "
+                   "node failed)")
 
 
 def test_losing_the_node_of_a_session_mid_stream(cluster: Cluster, tmp_path: Path) -> None:
@@ -221,41 +226,56 @@ def test_losing_the_node_of_a_session_mid_stream(cluster: Cluster, tmp_path: Pat
     assert lost_node != kept_node, "both sessions were placed on one node"
     assert head not in (cluster.local.node_of(lost_node), cluster.local.node_of(kept_node))
 
-    acked, killed, cut, whole = threading.Event(), threading.Event(), Cut([]), Cut([])
-    streams = [threading.Thread(target=stream_until_cut,
-                                args=(a, lost, held_back(sent, KILL_AFTER + 2, killed), acked, KILL_AFTER, cut)),
+    killed, said, cut, whole = threading.Event(), [], Cut([]), Cut([])
+
+    def frames_after(last_index: int | None) -> Iterator[pb.Frame]:
+        """What ogclient streams: all frames (the later ones held back until the node is killed), then, after
+        a cut, those after the last one the session holds."""
+        if last_index is None:
+            return held_back(sent, KILL_AFTER + 2, killed)
+        return iter([message for message in sent if message.index > last_index])
+
+    def stream_lost() -> None:
+        try:
+            cut.acks = stream_resuming(a.stub, lost, frames_after, progress=False, say=said.append).acks
+        except Exception as error:  # reported by the assertions below
+            said.append(f"failed: {error!r}")
+
+    streams = [threading.Thread(target=stream_lost),
                threading.Thread(target=stream_until_cut,
                                 args=(a, kept, held_back(sent, KILL_AFTER, killed), threading.Event(), 0, whole))]
     for thread in streams:
         thread.start()
-    assert acked.wait(120.0) and len(cut.acks) >= KILL_AFTER, cut.error
+    wait_for_stats(b, lost, mapped=KILL_AFTER)
     cluster.local.node_of(lost_node).kill()
     killed.set()
     for thread in streams:
-        thread.join(180.0)
-    assert cut.error is not None and cut.error.code() == grpc.StatusCode.UNAVAILABLE, cut.error
-    assert "node failed" in cut.error.details()
+        thread.join(300.0)
     assert whole.error is None and [ack.sequence for ack in whole.acks] == list(range(1, len(sent) + 1))
-    acknowledged = [ack for ack in cut.acks if ack.accepted]
-    assert len(acknowledged) >= KILL_AFTER and [ack.sequence for ack in acknowledged] == \
-        list(range(1, len(acknowledged) + 1))
 
-    standing = wait_for_stats(b, lost)  # the same id and token, through the other front-end
+    # ogclient saw the stream end UNAVAILABLE, waited for the session, asked GetStats and went on after it
+    assert sum(UNAVAILABLE_CUT in line for line in said) == 1, said
+    resuming = [re.fullmatch(r"resuming: the session holds (\d+) frames, the last with index (\d+); streaming "
+                             r"the frames after it", line) for line in said if line.startswith("resuming")]
+    assert len(resuming) == 1 and resuming[0], said
+    held, last_index = int(resuming[0][1]), int(resuming[0][2])
+    assert held >= KILL_AFTER, "a frame mapped before the node was lost is gone"
+    sequences = [ack.sequence for ack in cut.acks]
+    before = [sequence for sequence in sequences if sequence <= held]
+    assert before == list(range(1, len(before) + 1)) and before, "no acknowledged frame may be lost"
+    assert sequences == before + list(range(held + 1, len(sent) + 1)), "the resumed stream goes on after it"
+    assert all(ack.accepted for ack in cut.acks)
+    assert next(ack.index for ack in cut.acks if ack.sequence > held) > last_index
+
+    done = wait_for_stats(b, lost)  # the same id and token, through the other front-end
+    assert done.session_id == lost.session_id
+    assert done.last_sequence == done.mapped_sequence == len(sent), "each streamed frame is in the map once"
     assert cluster.node_of(lost) == kept_node, "not restarted on the surviving node"
     resumed = re.search(rf"session {lost.session_id} resumed for \S+ from its checkpoint at frame (\d+), (\d+) "
                         "recorded frames after it", cluster.local.worker_logs())
     assert resumed, "the restarted actor did not resume the session from its checkpoint"
     checkpointed, replayed = int(resumed[1]), int(resumed[2])
-    assert checkpointed >= 2 and checkpointed + replayed == standing.last_sequence
-    assert standing.session_id == lost.session_id
-    assert standing.last_sequence >= acknowledged[-1].sequence, "an acknowledged frame was lost"
-    assert standing.last_index >= acknowledged[-1].index
-    rest = [message for message in sent if message.index > standing.last_index]  # what ogclient --resume sends
-    more = stream_frames(a.stub, lost, rest, progress=False).acks
-    assert [ack.sequence for ack in more] == list(range(standing.last_sequence + 1, len(sent) + 1))
-    assert all(ack.accepted for ack in more)
-    done = wait_for_stats(b, lost)
-    assert done.last_sequence == done.mapped_sequence == len(sent), "each streamed frame is in the map once"
+    assert checkpointed >= 2 and checkpointed + replayed == held
 
     position = frames.selection.heldout[0]
     frame = frames.load(position)
