@@ -136,10 +136,17 @@ class RecordingParts:
                 self.store.fs.makedirs(self.folder, exist_ok=True)  # a filesystem's folder; nothing on object stores
             self.store.fs.pipe_file(f"{self.folder}/{part.name}", data)
         if offset == 0:
+            self._retire_older()
+
+    def _retire_older(self) -> None:
+        """Remove the parts of older generations; one left behind is harmless (``assemble`` takes the newest)."""
+        try:
             for old in self._listed():
                 if old.generation < self.generation:
                     with uploading(f"remove an old part of {self.name}"):
                         self.store.fs.rm(f"{self.folder}/{old.name}")
+        except OSError as error:
+            log.warning("%s: older parts not removed: %s", self.name, error)
 
     def assemble(self) -> bytes:
         """The newest generation's parts that follow each other whole from offset 0, then a provisional end

@@ -50,6 +50,10 @@ def test_a_session_moves_to_a_node_that_never_saw_it_through_the_store(tmp_path:
     resumed = second.resume(second.record_dir / f"{session_id}.mcap")
     assert resumed.id == session_id and second.get(session_id, opened.token) is resumed  # same id and token
     assert resumed.counters().last_sequence == 3
+    folder = store.recording(f"{session_id}.mcap").folder
+    generations = {part.generation for entry in store.fs.ls(folder, detail=False)
+                   if (part := Part.parse(entry.rsplit("/", 1)[-1]))}
+    assert generations == {1}, "the resumed recording is a new generation of parts, the old one removed"
     closed = second.close(resumed)
     assert closed.stats.last_sequence == 3
     published = store.get(f"{session_id}.mcap")
