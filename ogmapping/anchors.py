@@ -1,8 +1,10 @@
 """The anchor map: per-anchor tensors, grown and pruned with their optimiser state.
 
 Each anchor v has a centre p_v (the centre of its octree cell, derived from its Morton code and
-level so it is exact), a level l_v, a learnable log-scale s_v (3), n learnable offsets o_v (n, 3)
-and, in the sparse version, a learnable feature f_v. Gaussians sit at p_v + s_v * o_v.
+level so it is exact), a level l_v, a learnable log-scale s_v (3), n learnable offsets o_v (n, 3),
+in the sparse version a learnable feature f_v and, with ``model.anchor_colour``, a learnable colour
+c_v (3, in logits) added to the colour decoder's output for its n Gaussians. Gaussians sit at
+p_v + s_v * o_v.
 Per-Gaussian statistics for refinement and pruning live here too, so that they follow the anchors
 whenever anchors are added or removed.
 """
@@ -12,17 +14,19 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-LEARNABLE = ("log_scales", "offsets", "features")
+LEARNABLE = ("log_scales", "offsets", "features", "colours")
 
 
 class AnchorMap(nn.Module):
     """Anchors as rows of parallel tensors; learnable rows are ``nn.Parameter``s."""
 
-    def __init__(self, n_offsets: int, feature_dim: int, with_features: bool, device: torch.device) -> None:
+    def __init__(self, n_offsets: int, feature_dim: int, with_features: bool, device: torch.device,
+                 with_colours: bool = False) -> None:
         super().__init__()
         self.n_offsets = n_offsets
         self.feature_dim = feature_dim
         self.with_features = with_features
+        self.with_colours = with_colours
         self.device = device
         self.codes = torch.zeros(0, dtype=torch.int64, device=device)
         self.levels = torch.zeros(0, dtype=torch.int64, device=device)
@@ -30,6 +34,7 @@ class AnchorMap(nn.Module):
         self.log_scales = nn.Parameter(torch.zeros(0, 3, device=device))
         self.offsets = nn.Parameter(torch.zeros(0, n_offsets, 3, device=device))
         self.features = nn.Parameter(torch.zeros(0, feature_dim if with_features else 0, device=device))
+        self.colours = nn.Parameter(torch.zeros(0, 3 if with_colours else 0, device=device))
         self.reset_statistics()
         self.spawned = torch.zeros(0, n_offsets, dtype=torch.bool, device=device)
         self.observations = torch.zeros(0, dtype=torch.int64, device=device)
@@ -52,8 +57,10 @@ class AnchorMap(nn.Module):
         cell_sizes: torch.Tensor,
         features: torch.Tensor | None,
         optimizer: torch.optim.Optimizer | None,
+        colours: torch.Tensor | None = None,
     ) -> None:
-        """Append anchors; new rows start with scale = cell size and zero offsets."""
+        """Append anchors; new rows start with scale = cell size and zero offsets (and, without
+        ``colours``, a zero colour logit: the decoder's colour alone)."""
         count = int(codes.shape[0])
         if count == 0:
             return
@@ -65,6 +72,11 @@ class AnchorMap(nn.Module):
                 features.to(device)
                 if features is not None
                 else torch.zeros(count, self.features.shape[1], device=device)
+            ),
+            "colours": (
+                colours.to(device)
+                if colours is not None and self.with_colours
+                else torch.zeros(count, self.colours.shape[1], device=device)
             ),
         }
         for name in LEARNABLE:

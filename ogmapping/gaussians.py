@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ogmapping.anchor_colour import with_anchor_colours
 from ogmapping.anchors import AnchorMap
 from ogmapping.camera import Intrinsics
 from ogmapping.decoders import Decoders, activate
@@ -57,6 +58,9 @@ def generate(
     to_camera = camera_center.to(positions) - positions
     distances = to_camera.norm(dim=-1, keepdim=True).clamp_min(1e-6)
     logits = decoders.logits(features(rows), to_camera / distances, distances)
+    if anchors.with_colours:
+        opacity, color, cov = logits
+        logits = opacity, with_anchor_colours(color, anchors.colours, rows), cov
     if compiled:
         return _assemble_compiled(anchors, rows, *logits)
     return _assemble_torch(anchors, rows, positions, *logits)

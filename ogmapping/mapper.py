@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from ogmapping import allocation, refine, snapshot, training
+from ogmapping.anchor_colour import cell_colour_logits
 from ogmapping.anchors import AnchorMap
 from ogmapping.budget import Budget, Stop
 from ogmapping.camera import Intrinsics
@@ -76,7 +77,8 @@ class Mapper:
         self.generator = torch.Generator().manual_seed(config.seed)
         model = config.model
         self.octree = SparseVoxelOctree.from_config(config.octree, self.device)
-        self.anchors = AnchorMap(model.n_offsets, model.feature_dim, model.encoding == "anchor", self.device)
+        self.anchors = AnchorMap(model.n_offsets, model.feature_dim, model.encoding == "anchor", self.device,
+                                 with_colours=model.anchor_colour)
         self.encoding = HashGridEncoding(model, self.generator).to(self.device) if model.encoding == "hash" else None
         self.decoders = Decoders(feature_dim(model), model.n_offsets, model.hidden_dim, self.generator)
         self.decoders = self.decoders.to(self.device)
@@ -113,6 +115,8 @@ class Mapper:
         ]
         if self.encoding is None:
             groups.append({"params": [self.anchors.features], "lr": lr.features_lr, "name": "features"})
+        if self.anchors.with_colours:
+            groups.append({"params": [self.anchors.colours], "lr": lr.colour_lr, "name": "colours"})
         return torch.optim.Adam(groups, eps=1e-15)
 
     @contextmanager
@@ -146,7 +150,7 @@ class Mapper:
             new_codes = allocation.allocate(self.config.octree.allocation, self.octree, sampled,
                                             frame.color_intrinsics, c2w,
                                             lambda: self._render(c2w, frame.color_intrinsics)[1])
-            self._add_coarse_anchors(new_codes)
+            self._add_coarse_anchors(new_codes, rgb, depth, frame.color_intrinsics, c2w)
         with self._timed("keyframes"):
             codes = self.octree.seen_from(depth, frame.color_intrinsics, c2w)
             is_keyframe = self.keyframes.should_insert(codes)
@@ -172,17 +176,37 @@ class Mapper:
             stopped=stopped,
         )
 
-    def _add_coarse_anchors(self, codes: torch.Tensor) -> None:
+    def _add_coarse_anchors(self, codes: torch.Tensor, rgb: torch.Tensor, depth: torch.Tensor,
+                            intrinsics: Intrinsics, c2w: torch.Tensor) -> None:
+        """New coarsest-level anchors for ``codes``, observed in the frame of ``rgb`` and ``depth``
+        (each starts with the mean colour of the frame's points in its cell)."""
         count = int(codes.numel())
         if count == 0:
             return
         levels = torch.zeros(count, dtype=torch.int64, device=self.device)
         sizes = torch.full((count,), self.octree.cell_size(0), device=self.device)
+        positions = self.octree.centers(codes, 0)
         features = (
             initial_anchor_features(count, self.config.model.feature_dim, self.device, self.generator)
             if self.anchors.with_features else None
         )
-        self.anchors.add(codes, levels, self.octree.centers(codes, 0), sizes, features, self.optimizer)
+        colours = None
+        if self.anchors.with_colours:
+            target, seen = cell_colour_logits(self.octree, codes, rgb, depth, intrinsics, c2w)
+            colours = torch.where(seen.unsqueeze(1), target - self._decoded_colour(positions, features, c2w), 0.0)
+        self.anchors.add(codes, levels, positions, sizes, features, self.optimizer, colours)
+
+    def _decoded_colour(self, positions: torch.Tensor, features: torch.Tensor | None,
+                        c2w: torch.Tensor) -> torch.Tensor:
+        """Mean colour logit (N, 3) the decoder gives new anchors at ``positions`` seen from ``c2w``,
+        from their ``features`` (the sparse version's) or the hash grid's."""
+        with torch.no_grad():
+            if features is None:
+                features = self.encoding(positions, compiled=self.profile.compiled)
+            to_camera = c2w[:3, 3].to(positions) - positions
+            distances = to_camera.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+            _, colour, _ = self.decoders.logits(features, to_camera / distances, distances)
+            return colour.view(positions.shape[0], -1, 3).mean(1)
 
     def _footprint(self, keyframe: Keyframe) -> torch.Tensor:
         depth = keyframe.depth.to(self.device, non_blocking=keyframe.pinned).to(torch.float32)
@@ -356,6 +380,8 @@ class Mapper:
             }
             if anchors.with_features:
                 tensors["anchors.features"] = anchors.features
+            if anchors.with_colours:
+                tensors["anchors.colours"] = anchors.colours
             if self.encoding is not None:
                 tensors["encoding.table"] = self.encoding.table
             tensors.update({f"decoders.{name}": value for name, value in self.decoders.state_dict().items()})
@@ -405,8 +431,11 @@ class Mapper:
             self.encoding.table.data.copy_(tensor["encoding.table"])
         codes, levels = tensor["anchors.codes"], tensor["anchors.levels"]
         features = tensor["anchors.features"] if anchors.with_features else None
+        # Snapshots written before anchors had colours hold none: theirs start at zero (the decoder's colour).
+        colours = (_checked_shapes(state.tensors, {"anchors.colours": (count, 3)}, self.device)["anchors.colours"]
+                   if anchors.with_colours and "anchors.colours" in state.tensors else None)
         anchors.add(codes, levels, self.octree.centers_by_level(codes, levels),
-                    torch.ones(count, device=self.device), features, self.optimizer)
+                    torch.ones(count, device=self.device), features, self.optimizer, colours)
         anchors.log_scales.data.copy_(tensor["anchors.log_scales"])
         anchors.offsets.data.copy_(tensor["anchors.offsets"])
         anchors.spawned = tensor["anchors.spawned"].bool()

@@ -165,8 +165,9 @@ def grow(anchors: AnchorMap, octree: SparseVoxelOctree, config: RefineConfig, vo
         octree.insert(proposals.codes[proposals.levels == level], level)
     positions = octree.centers_by_level(proposals.codes, proposals.levels)
     features = anchors.features.detach()[proposals.parents] if anchors.with_features else None
+    colours = anchors.colours.detach()[proposals.parents] if anchors.with_colours else None
     anchors.add(proposals.codes, proposals.levels, positions, cell_size(voxel_size, proposals.levels),
-                features, optimizer)
+                features, optimizer, colours)
     return total
 
 

@@ -20,7 +20,7 @@ from ogmapping.state import MapState
 
 FORMAT = "ogmapping-snapshot"
 VERSION = "1"
-HALF = ("anchors.log_scales", "anchors.offsets", "anchors.features", "encoding.table")
+HALF = ("anchors.log_scales", "anchors.offsets", "anchors.features", "anchors.colours", "encoding.table")
 
 
 def encode(state: MapState, half: bool = True) -> bytes:

@@ -1,0 +1,48 @@
+"""Anchor colours started from the image: the colour a new anchor renders before its first step.
+
+A new anchor's feature is random (sparse version) or whatever the hash grid holds there (dense),
+so the colour decoder first renders its Gaussians in an unrelated colour, and the few steps an
+online map gives each frame go into undoing that. With ``model.anchor_colour`` every anchor carries
+a learnable colour logit added to the decoder's output, started so that its Gaussians' mean
+logit is that of the mean colour of the allocating frame's depth points in its cell (a grown
+anchor takes its parent's). The mean, not the
+pixel at the cell's centre: on 7-Scenes one pixel carries the sensor's noise (bench/RESULTS.md).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ogmapping.camera import Intrinsics
+from ogmapping.geometry import backproject
+from ogmapping.octree import SparseVoxelOctree
+
+COLOUR_MARGIN = 1.0 / 255.0  # keeps the logit finite for black and white pixels
+
+
+def with_anchor_colours(color_logits: torch.Tensor, colours: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """The colour decoder's (V, 3n) logits plus each anchor's own colour logit on all n of its Gaussians."""
+    n = color_logits.shape[1] // 3
+    return color_logits + colours.index_select(0, rows).repeat(1, n)
+
+
+def cell_colour_logits(octree: SparseVoxelOctree, codes: torch.Tensor, rgb: torch.Tensor, depth: torch.Tensor,
+                       intrinsics: Intrinsics, c2w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Logits (N, 3) of the mean colour of the frame's depth points inside each coarsest cell of
+    ``codes`` (sorted, non-empty), and which cells any point fell in (the others' logits are zero)."""
+    valid = torch.isfinite(depth) & (depth > 0)
+    points = backproject(depth, intrinsics, c2w)
+    colours = rgb[valid].to(torch.float32)
+    codable = octree.holds(points)
+    points, colours = points[codable], colours[codable]
+    point_codes = octree.codes_of(points, 0)
+    slots = torch.searchsorted(codes, point_codes).clamp_max(codes.numel() - 1)
+    inside = codes[slots] == point_codes
+    sums = torch.zeros(codes.numel(), 3, dtype=torch.float32, device=codes.device)
+    counts = torch.zeros(codes.numel(), dtype=torch.float32, device=codes.device)
+    sums.index_add_(0, slots[inside], colours[inside])
+    counts.index_add_(0, slots[inside], torch.ones_like(slots[inside], dtype=torch.float32))
+    seen = counts > 0
+    logits = torch.zeros_like(sums)
+    logits[seen] = torch.logit((sums[seen] / counts[seen].unsqueeze(1)).clamp(COLOUR_MARGIN, 1.0 - COLOUR_MARGIN))
+    return logits, seen

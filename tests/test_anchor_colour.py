@@ -1,0 +1,96 @@
+"""Anchor colours: started at their cell's mean colour, learned, kept in snapshots, switchable off."""
+
+import numpy as np
+import torch
+
+from ogmapping.anchor_colour import cell_colour_logits, with_anchor_colours
+from ogmapping.camera import Intrinsics
+from ogmapping.config import resolve
+from ogmapping.datasets.synthetic import SyntheticSource
+from ogmapping.mapper import Mapper
+from ogmapping.octree import SparseVoxelOctree
+from ogmapping.snapshot import decode, encode
+
+CAMERA = Intrinsics(fx=40.0, fy=40.0, cx=32.0, cy=24.0, width=64, height=48)
+
+
+def _wall_in_two_colours() -> tuple[torch.Tensor, torch.Tensor]:
+    """A flat wall 1 m in front of the camera: red on the left half of the image, blue on the right."""
+    rgb = torch.zeros(48, 64, 3)
+    rgb[:, :32, 0] = 0.8
+    rgb[:, 32:, 2] = 0.6
+    return rgb, torch.ones(48, 64)
+
+
+def test_each_cell_starts_at_the_mean_colour_of_its_points():
+    octree = SparseVoxelOctree(voxel_size=0.1, max_level=0)
+    rgb, depth = _wall_in_two_colours()
+    c2w = torch.eye(4)
+    codes = octree.insert(octree.codes_of(torch.tensor([[-0.35, 0.0, 1.0], [0.35, 0.0, 1.0], [0.0, 0.0, 3.0]])))
+    logits, seen = cell_colour_logits(octree, codes, rgb, depth, CAMERA, c2w)
+    centres = octree.centers(codes)
+    left, right, behind = (int(torch.argmin((centres - torch.tensor(point)).norm(dim=1)))
+                           for point in ([-0.35, 0.0, 1.0], [0.35, 0.0, 1.0], [0.0, 0.0, 3.0]))
+    assert seen[left] and seen[right]
+    assert torch.allclose(torch.sigmoid(logits[left]), torch.tensor([0.8, 1 / 255, 1 / 255]), atol=1e-4)
+    assert torch.allclose(torch.sigmoid(logits[right]), torch.tensor([1 / 255, 1 / 255, 0.6]), atol=1e-4)
+    assert not seen[behind], "a cell behind the wall holds none of the frame's points"
+    assert torch.equal(logits[behind], torch.zeros(3))
+
+
+def test_anchor_colour_is_added_to_every_gaussian_of_its_anchor():
+    decoder_logits = torch.zeros(2, 3 * 4)
+    colours = torch.tensor([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 9.0]])
+    out = with_anchor_colours(decoder_logits, colours, torch.tensor([2, 0]))
+    assert out.view(2, 4, 3)[0].tolist() == [[7.0, 8.0, 9.0]] * 4
+    assert out.view(2, 4, 3)[1].tolist() == [[1.0, 2.0, 3.0]] * 4
+
+
+def _first_frame_only(preset: str, **overrides) -> tuple[Mapper, object]:
+    source = SyntheticSource(n_frames=1, width=64, height=48)
+    mapper = Mapper(resolve(preset, overrides={"keyframes.first_iterations": 0, **overrides}))
+    mapper.process(source[0])
+    return mapper, source[0]
+
+
+def test_new_anchors_start_at_their_cells_mean_colour_before_any_step():
+    """Decoder and anchor colour together give each new anchor's Gaussians, on average over its n
+    slots and seen from the allocating frame, the logit of its cell's mean colour."""
+    for preset in ("sparse", "dense"):
+        mapper, frame = _first_frame_only(preset)
+        anchors = mapper.anchors
+        rows = torch.arange(len(anchors))
+        c2w = torch.as_tensor(frame.c2w, dtype=torch.float32)
+        to_camera = c2w[:3, 3] - anchors.positions
+        distances = to_camera.norm(dim=-1, keepdim=True)
+        with torch.no_grad():
+            _, decoder, _ = mapper.decoders.logits(mapper._features(rows), to_camera / distances, distances)
+            colour = with_anchor_colours(decoder, anchors.colours, rows).view(len(anchors), -1, 3).mean(1)
+        target, seen = cell_colour_logits(mapper.octree, anchors.codes, torch.as_tensor(frame.rgb),
+                                          torch.as_tensor(frame.depth), frame.color_intrinsics, c2w)
+        assert int(seen.sum()) == len(anchors), "every new anchor's cell holds points of the frame"
+        assert torch.allclose(colour, target, atol=1e-4), preset
+
+
+def test_switched_off_the_map_has_no_anchor_colours():
+    mapper, _ = _first_frame_only("sparse", **{"model.anchor_colour": False})
+    assert mapper.anchors.colours.shape == (len(mapper.anchors), 0)
+    assert "anchors.colours" not in mapper.state().tensors
+    assert "colours" not in {group["name"] for group in mapper.optimizer.param_groups}
+
+
+def test_colours_learn_and_survive_a_snapshot_and_old_snapshots_still_load():
+    source = SyntheticSource(n_frames=2, width=64, height=48)
+    mapper = Mapper(resolve("sparse", overrides={"keyframes.first_iterations": 6}))
+    mapper.process(source[0])
+    started = mapper.anchors.colours.detach().clone()
+    mapper.process(source[1])
+    assert not torch.equal(mapper.anchors.colours.detach()[: len(started)], started), "colours are optimised"
+    restored = Mapper.restore(mapper.snapshot())
+    assert torch.allclose(restored.anchors.colours, mapper.anchors.colours, atol=1e-2)
+    state = decode(mapper.snapshot())
+    del state.tensors["anchors.colours"]
+    older = Mapper.restore(encode(state))
+    assert torch.equal(older.anchors.colours, torch.zeros(len(mapper.anchors), 3))
+    frame = source[1]
+    assert np.isfinite(older.render(frame.c2w, frame.color_intrinsics).color).all()
