@@ -48,6 +48,13 @@ class Intrinsics:
         sx, sy = width / self.width, height / self.height
         return Intrinsics(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height)
 
+    def strided(self, stride: int, start: int) -> Intrinsics:
+        """Intrinsics of ``image[start::stride, start::stride]``: its pixel j is the original pixel
+        start + j * stride, centres included."""
+        shift = start + 0.5 - stride / 2
+        return Intrinsics(self.fx / stride, self.fy / stride, (self.cx - shift) / stride, (self.cy - shift) / stride,
+                          len(range(start, self.width, stride)), len(range(start, self.height, stride)))
+
     def matrix(self) -> np.ndarray:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 

@@ -36,10 +36,10 @@ class ModelConfig:
     hash_log2_size: int = 19
     hash_min_resolution: float = 4.0  # cells per metre at the coarsest hash level
     hash_max_resolution: float = 128.0  # cells per metre at the finest hash level
-    # A learnable colour per anchor, added to the colour decoder's logits and started at the pixel
-    # its centre projects to in the frame that allocates it: new surface renders in its colour from
-    # the first step (Replica room0 0-19 at 600x340, `sparse`: +2.5 dB, bench/RESULTS.md).
-    anchor_colour: bool = True
+    # A learnable colour per anchor, added to the colour decoder's logits and started at its cell's
+    # mean colour in the frame that allocates it (not in the paper). Off by default: on Replica room0
+    # 0-19 at 600x340 `sparse` +1.9 dB, on 7-Scenes' Kinect frames 0.3-1.5 dB worse (bench/RESULTS.md).
+    anchor_colour: bool = False
 
 
 @dataclass
@@ -138,15 +138,12 @@ def preset(name: str) -> MapperConfig:
         # Two steps per streamed frame keep 7-Scenes 0-299 at 320x240 above 5 FPS; three gave
         # +0.3 dB there (+0.6 dB on Replica room0 at 600x340) at 3.8-4.7 FPS (bench/RESULTS.md).
         config.keyframes.frame_iterations = 2
-        # Anchors that start in their own colour stay opaque, and growth at tau_0 = 2e-4 then gave
-        # 1.3x the anchors on 7-Scenes; at 4e-4 as many as before (bench/RESULTS.md).
-        config.refine.grad_threshold = 0.0004
         if name == "sparse-fast":
             # Half of sparse's iterations, as the paper's sparse-fast.
             config.keyframes.iterations = 6
             config.keyframes.frame_iterations = 1
-            # Fewer steps leave depth less converged: weighted up, its held-out L1 stays below
-            # TSDF fusion's 3.25 cm on 7-Scenes (bench/RESULTS.md).
+            # Fewer steps leave depth less converged; weighted up, held-out depth L1 on 7-Scenes
+            # 0-299 at 320x240 is 2.85 cm against 3.31 cm, below TSDF fusion's 3.25 (bench/RESULTS.md).
             config.loss.depth = 1.0
         return config
     raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from ogmapping import allocation, refine, snapshot, training
-from ogmapping.anchor_colour import cell_colour_logits
+from ogmapping.anchor_colour import cell_colour_logits, colour_sample_stride
 from ogmapping.anchors import AnchorMap
 from ogmapping.budget import Budget, Stop
 from ogmapping.camera import Intrinsics
@@ -192,7 +192,8 @@ class Mapper:
         )
         colours = None
         if self.anchors.with_colours:
-            target, seen = cell_colour_logits(self.octree, codes, rgb, depth, intrinsics, c2w)
+            stride = colour_sample_stride(self.config.octree.voxel_size, self.config.octree.depth_max, intrinsics)
+            target, seen = cell_colour_logits(self.octree, codes, rgb, depth, intrinsics, c2w, stride)
             colours = torch.where(seen.unsqueeze(1), target - self._decoded_colour(positions, features, c2w), 0.0)
         self.anchors.add(codes, levels, positions, sizes, features, self.optimizer, colours)
 

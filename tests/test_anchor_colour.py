@@ -1,4 +1,4 @@
-"""Anchor colours: started at their cell's mean colour, learned, kept in snapshots, switchable off."""
+"""Anchor colours (model.anchor_colour): started at their cell mean colour, learned, kept, off by default."""
 
 import numpy as np
 import torch
@@ -48,7 +48,8 @@ def test_anchor_colour_is_added_to_every_gaussian_of_its_anchor():
 
 def _first_frame_only(preset: str, **overrides) -> tuple[Mapper, object]:
     source = SyntheticSource(n_frames=1, width=64, height=48)
-    mapper = Mapper(resolve(preset, overrides={"keyframes.first_iterations": 0, **overrides}))
+    mapper = Mapper(resolve(preset, overrides={"keyframes.first_iterations": 0, "model.anchor_colour": True,
+                                               **overrides}))
     mapper.process(source[0])
     return mapper, source[0]
 
@@ -72,8 +73,11 @@ def test_new_anchors_start_at_their_cells_mean_colour_before_any_step():
         assert torch.allclose(colour, target, atol=1e-4), preset
 
 
-def test_switched_off_the_map_has_no_anchor_colours():
-    mapper, _ = _first_frame_only("sparse", **{"model.anchor_colour": False})
+def test_off_by_default_the_map_has_no_anchor_colours():
+    assert not any(resolve(preset).model.anchor_colour for preset in ("dense", "sparse", "sparse-fast"))
+    source = SyntheticSource(n_frames=1, width=64, height=48)
+    mapper = Mapper(resolve("sparse", overrides={"keyframes.first_iterations": 0}))
+    mapper.process(source[0])
     assert mapper.anchors.colours.shape == (len(mapper.anchors), 0)
     assert "anchors.colours" not in mapper.state().tensors
     assert "colours" not in {group["name"] for group in mapper.optimizer.param_groups}
@@ -81,7 +85,7 @@ def test_switched_off_the_map_has_no_anchor_colours():
 
 def test_colours_learn_and_survive_a_snapshot_and_old_snapshots_still_load():
     source = SyntheticSource(n_frames=2, width=64, height=48)
-    mapper = Mapper(resolve("sparse", overrides={"keyframes.first_iterations": 6}))
+    mapper = Mapper(resolve("sparse", overrides={"keyframes.first_iterations": 6, "model.anchor_colour": True}))
     mapper.process(source[0])
     started = mapper.anchors.colours.detach().clone()
     mapper.process(source[1])
@@ -94,3 +98,22 @@ def test_colours_learn_and_survive_a_snapshot_and_old_snapshots_still_load():
     assert torch.equal(older.anchors.colours, torch.zeros(len(mapper.anchors), 3))
     frame = source[1]
     assert np.isfinite(older.render(frame.c2w, frame.color_intrinsics).color).all()
+
+
+def test_strided_intrinsics_see_each_kept_pixel_where_the_full_image_does():
+    from ogmapping.geometry import pixel_rays
+
+    full = Intrinsics(fx=500.0, fy=480.0, cx=321.3, cy=239.7, width=640, height=480)
+    for stride, start in ((2, 1), (3, 1), (4, 2)):
+        strided = full.strided(stride, start)
+        assert (strided.width, strided.height) == (len(range(start, 640, stride)), len(range(start, 480, stride)))
+        assert torch.allclose(pixel_rays(strided), pixel_rays(full)[start::stride, start::stride], atol=1e-5)
+
+
+def test_strided_colour_means_match_every_pixel_on_a_wall():
+    octree = SparseVoxelOctree(voxel_size=0.1, max_level=0)
+    rgb, depth = _wall_in_two_colours()
+    codes = octree.insert(octree.codes_of(torch.tensor([[-0.35, 0.0, 1.0], [0.35, 0.0, 1.0]])))
+    every, _ = cell_colour_logits(octree, codes, rgb, depth, CAMERA, torch.eye(4))
+    strided, _ = cell_colour_logits(octree, codes, rgb, depth, CAMERA, torch.eye(4), stride=3)
+    assert torch.allclose(every, strided, atol=1e-5)
