@@ -5,8 +5,8 @@ so the colour decoder first renders its Gaussians in an unrelated colour, and th
 online map gives each frame go into undoing that. With ``model.anchor_colour`` every anchor carries
 a learnable colour logit added to the decoder's output, started so that its Gaussians' mean
 logit is that of the mean colour of the allocating frame's depth points in its cell (a grown
-anchor takes its parent's). The mean, not the
-pixel at the cell's centre: on 7-Scenes one pixel carries the sensor's noise (bench/RESULTS.md).
+anchor takes its parent's). The mean, not the pixel at the cell's centre: on 7-Scenes one pixel
+carries the sensor's noise (bench/RESULTS.md).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 
 from ogmapping.camera import Intrinsics
-from ogmapping.geometry import backproject
+from ogmapping.geometry import backproject, valid_depth
 from ogmapping.octree import SparseVoxelOctree
 
 COLOUR_MARGIN = 1.0 / 255.0  # keeps the logit finite for black and white pixels
@@ -40,9 +40,8 @@ def cell_colour_logits(octree: SparseVoxelOctree, codes: torch.Tensor, rgb: torc
     start = stride // 2
     depth, rgb = depth[start::stride, start::stride], rgb[start::stride, start::stride]
     intrinsics = intrinsics.strided(stride, start) if stride > 1 else intrinsics
-    valid = torch.isfinite(depth) & (depth > 0)
     points = backproject(depth, intrinsics, c2w)
-    colours = rgb[valid].to(torch.float32)
+    colours = rgb[valid_depth(depth)].to(torch.float32)
     codable = octree.holds(points)
     points, colours = points[codable], colours[codable]
     point_codes = octree.codes_of(points, 0)

@@ -40,6 +40,15 @@ def anchors_in_view(anchors: AnchorMap, intrinsics: Intrinsics, c2w: torch.Tenso
     return torch.nonzero(mask).squeeze(-1)
 
 
+def decoded_logits(decoders: Decoders, features: torch.Tensor, positions: torch.Tensor,
+                   camera_center: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The decoders' logits for anchors with ``features`` at ``positions``, seen from ``camera_center``
+    (the view direction and distance they are conditioned on)."""
+    to_camera = camera_center.to(positions) - positions
+    distances = to_camera.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+    return decoders.logits(features, to_camera / distances, distances)
+
+
 def generate(
     anchors: AnchorMap,
     features: Callable[[torch.Tensor], torch.Tensor],
@@ -55,9 +64,7 @@ def generate(
     of torch ops; both give the same Gaussians and gradients.
     """
     positions = anchors.positions.index_select(0, rows)
-    to_camera = camera_center.to(positions) - positions
-    distances = to_camera.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-    logits = decoders.logits(features(rows), to_camera / distances, distances)
+    logits = decoded_logits(decoders, features(rows), positions, camera_center)
     if anchors.with_colours:
         opacity, color, cov = logits
         logits = opacity, with_anchor_colours(color, anchors.colours, rows), cov

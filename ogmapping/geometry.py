@@ -42,9 +42,14 @@ def pixel_rays(intrinsics: Intrinsics, device: torch.device | str = "cpu") -> to
     return torch.stack([x, y, torch.ones_like(x)], dim=-1)
 
 
+def valid_depth(depth: torch.Tensor) -> torch.Tensor:
+    """Pixels with a measured depth (finite and positive): the ones ``backproject`` returns, in order."""
+    return torch.isfinite(depth) & (depth > 0)
+
+
 def backproject(depth: torch.Tensor, intrinsics: Intrinsics, c2w: torch.Tensor) -> torch.Tensor:
-    """World points of every valid depth pixel, shape (M, 3)."""
-    valid = torch.isfinite(depth) & (depth > 0)
+    """World points of every valid depth pixel (``valid_depth``, row-major order), shape (M, 3)."""
+    valid = valid_depth(depth)
     rays = pixel_rays(intrinsics, depth.device)[valid]
     points_camera = rays * depth[valid].unsqueeze(-1)
     return points_camera @ c2w[:3, :3].T.to(points_camera) + c2w[:3, 3].to(points_camera)

@@ -30,7 +30,7 @@ from ogmapping.config import ConfigBounds, MapperConfig
 from ogmapping.decoders import Decoders
 from ogmapping.encoding import HashGridEncoding, feature_dim, initial_anchor_features
 from ogmapping.frame import Frame
-from ogmapping.gaussians import GaussianSet, anchors_in_view, generate
+from ogmapping.gaussians import GaussianSet, anchors_in_view, decoded_logits, generate
 from ogmapping.geometry import intrinsics_matrix, world_to_camera
 from ogmapping.keyframes import Keyframe, KeyframeSet, View
 from ogmapping.lazy_adam import LazyAdam
@@ -204,9 +204,7 @@ class Mapper:
         with torch.no_grad():
             if features is None:
                 features = self.encoding(positions, compiled=self.profile.compiled)
-            to_camera = c2w[:3, 3].to(positions) - positions
-            distances = to_camera.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-            _, colour, _ = self.decoders.logits(features, to_camera / distances, distances)
+            _, colour, _ = decoded_logits(self.decoders, features, positions, c2w[:3, 3])
             return colour.view(positions.shape[0], -1, 3).mean(1)
 
     def _footprint(self, keyframe: Keyframe) -> torch.Tensor:
