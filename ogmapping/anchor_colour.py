@@ -1,12 +1,13 @@
-"""Anchor colours started from the image: the colour a new anchor renders before its first step.
+"""Anchor colours: a learnable colour logit per anchor, next to the shared colour decoder.
 
-A new anchor's feature is random (sparse version) or whatever the hash grid holds there (dense),
-so the colour decoder first renders its Gaussians in an unrelated colour, and the few steps an
-online map gives each frame go into undoing that. With ``model.anchor_colour`` every anchor carries
-a learnable colour logit added to the decoder's output, started so that its Gaussians' mean
-logit is that of the mean colour of the allocating frame's depth points in its cell (a grown
-anchor takes its parent's). The mean, not the pixel at the cell's centre: on 7-Scenes one pixel
-carries the sensor's noise (bench/RESULTS.md).
+The decoder couples every anchor's colour through shared weights and a feature that a few online
+steps per frame move slowly; with ``model.anchor_colour`` each anchor also carries a colour logit
+added to the decoder's output for all n of its Gaussians, learned at its own, higher rate, and a
+grown anchor takes its parent's. It starts at zero (the decoder's colour) or, with
+``model.anchor_colour_start=cell``, so that its Gaussians' mean logit is that of the mean colour of
+the allocating frame's depth points in its cell: the better start where colour and depth are
+registered (Replica), a worse one where they are not (7-Scenes; bench/RESULTS.md). The mean, not
+the pixel at the cell's centre: on 7-Scenes one pixel carries the sensor's noise.
 """
 
 from __future__ import annotations

@@ -36,10 +36,16 @@ class ModelConfig:
     hash_log2_size: int = 19
     hash_min_resolution: float = 4.0  # cells per metre at the coarsest hash level
     hash_max_resolution: float = 128.0  # cells per metre at the finest hash level
-    # A learnable colour per anchor, added to the colour decoder's logits and started at its cell's
-    # mean colour in the frame that allocates it (not in the paper). Off by default: on Replica room0
-    # 0-19 at 600x340 `sparse` +1.9 dB, on 7-Scenes' Kinect frames 0.3-1.5 dB worse (bench/RESULTS.md).
-    anchor_colour: bool = False
+    # A learnable colour logit per anchor, added to the colour decoder's logits for its n Gaussians
+    # (not in the paper): a direct, fast-learning colour next to the shared decoder. Started at zero
+    # it gains on both benchmarks (7-Scenes 0-299 at 320x240 `sparse` +0.3 dB over four seeds,
+    # Replica room0 0-19 at 600x340 +1.1 dB; bench/RESULTS.md).
+    anchor_colour: bool = True
+    # Where a new anchor's colour starts: "zero" (the decoder's colour), or "cell", the mean colour
+    # of the allocating frame's depth points in its cell: +1.5 dB more on Replica, but worse on
+    # 7-Scenes, whose colour and depth cameras are not registered (cells at depth edges likely start
+    # in the wrong colour).
+    anchor_colour_start: str = "zero"
 
 
 @dataclass
@@ -96,7 +102,7 @@ class OptimConfig:
     opacity_mlp_lr: float = 0.008
     color_mlp_lr: float = 0.032
     cov_mlp_lr: float = 0.016
-    colour_lr: float = 0.02  # the anchors' own colours (model.anchor_colour)
+    colour_lr: float = 0.08  # the anchors' own colour logits (model.anchor_colour); 0.02 and 0.04 gained less
 
 
 @dataclass
@@ -138,10 +144,21 @@ def preset(name: str) -> MapperConfig:
         # Two steps per streamed frame keep 7-Scenes 0-299 at 320x240 above 5 FPS; three gave
         # +0.3 dB there (+0.6 dB on Replica room0 at 600x340) at 3.8-4.7 FPS (bench/RESULTS.md).
         config.keyframes.frame_iterations = 2
+        # With anchor colours, 80 steps on the first keyframe: Replica room0 0-19 at 600x340 (one
+        # keyframe) 33.47 / 33.50 dB against 32.97 / 33.05 at 60; 20 more steps in a 7-Scenes run of 836.
+        config.keyframes.first_iterations = 80
+        # Anchor colours grow more anchors at 2e-4 (7-Scenes 0-299 at 320x240: 11.0k against 8.6k);
+        # at 3e-4 as many as without them at the same held-out PSNR, and on Replica +0.25 dB.
+        config.refine.grad_threshold = 0.0003
         if name == "sparse-fast":
             # Half of sparse's iterations, as the paper's sparse-fast.
             config.keyframes.iterations = 6
             config.keyframes.frame_iterations = 1
+            config.keyframes.first_iterations = 60
+            config.refine.grad_threshold = 0.0002
+            # Anchor colours cost sparse-fast on 7-Scenes 0-299 at 320x240: 21.74 against 21.84 dB
+            # (seeds 0-1) at 7.1 against 8.5-9.0 FPS, 1.2x the anchors (bench/RESULTS.md).
+            config.model.anchor_colour = False
             # Fewer steps leave depth less converged; weighted up, held-out depth L1 on 7-Scenes
             # 0-299 at 320x240 is 2.85 cm against 3.31 cm, below TSDF fusion's 3.25 (bench/RESULTS.md).
             config.loss.depth = 1.0
@@ -238,6 +255,8 @@ def resolve(
     return config
 
 
+ANCHOR_COLOUR_STARTS = ("zero", "cell")  # model.anchor_colour_start
+
 # The ablation switches (paper section 4); the first value of each is the paper's method.
 ALLOCATIONS = ("octree", "unique", "projection")
 GROWTHS = ("anchor", "error", "none")
@@ -309,6 +328,7 @@ def validate(config: MapperConfig) -> None:
         if not ok:
             raise ValueError(f"config {key} is out of range: must be {allowed}, got {_value(config, key)!r}")
     for key, value, allowed in (
+        ("model.anchor_colour_start", config.model.anchor_colour_start, ANCHOR_COLOUR_STARTS),
         ("octree.allocation", config.octree.allocation, ALLOCATIONS),
         ("refine.growth", config.refine.growth, GROWTHS),
         ("keyframes.window", config.keyframes.window, WINDOWS),

@@ -179,7 +179,8 @@ class Mapper:
     def _add_coarse_anchors(self, codes: torch.Tensor, rgb: torch.Tensor, depth: torch.Tensor,
                             intrinsics: Intrinsics, c2w: torch.Tensor) -> None:
         """New coarsest-level anchors for ``codes``, observed in the frame of ``rgb`` and ``depth``
-        (each starts with the mean colour of the frame's points in its cell)."""
+        (with ``anchor_colour_start`` "cell", each starts with the mean colour of the frame's points
+        in its cell)."""
         count = int(codes.numel())
         if count == 0:
             return
@@ -191,7 +192,7 @@ class Mapper:
             if self.anchors.with_features else None
         )
         colours = None
-        if self.anchors.with_colours:
+        if self.anchors.with_colours and self.config.model.anchor_colour_start == "cell":
             stride = colour_sample_stride(self.config.octree.voxel_size, self.config.octree.depth_max, intrinsics)
             target, seen = cell_colour_logits(self.octree, codes, rgb, depth, intrinsics, c2w, stride)
             colours = torch.where(seen.unsqueeze(1), target - self._decoded_colour(positions, features, c2w), 0.0)

@@ -1,6 +1,7 @@
-"""Anchor colours (model.anchor_colour): started at their cell mean colour, learned, kept, off by default."""
+"""Anchor colours (model.anchor_colour): on in dense and sparse, started at zero or at the cell mean, learned, kept."""
 
 import numpy as np
+import pytest
 import torch
 
 from ogmapping.anchor_colour import cell_colour_logits, with_anchor_colours
@@ -55,10 +56,10 @@ def _first_frame_only(preset: str, **overrides) -> tuple[Mapper, object]:
 
 
 def test_new_anchors_start_at_their_cells_mean_colour_before_any_step():
-    """Decoder and anchor colour together give each new anchor's Gaussians, on average over its n
-    slots and seen from the allocating frame, the logit of its cell's mean colour."""
+    """With the "cell" start, decoder and anchor colour together give each new anchor's Gaussians,
+    on average over its n slots and seen from the allocating frame, the logit of its cell's mean colour."""
     for preset in ("sparse", "dense"):
-        mapper, frame = _first_frame_only(preset)
+        mapper, frame = _first_frame_only(preset, **{"model.anchor_colour_start": "cell"})
         anchors = mapper.anchors
         rows = torch.arange(len(anchors))
         c2w = torch.as_tensor(frame.c2w, dtype=torch.float32)
@@ -73,14 +74,27 @@ def test_new_anchors_start_at_their_cells_mean_colour_before_any_step():
         assert torch.allclose(colour, target, atol=1e-4), preset
 
 
-def test_off_by_default_the_map_has_no_anchor_colours():
-    assert not any(resolve(preset).model.anchor_colour for preset in ("dense", "sparse", "sparse-fast"))
+def test_dense_and_sparse_start_new_anchors_at_the_decoders_colour_and_sparse_fast_has_none():
+    assert not resolve("sparse-fast").model.anchor_colour
+    for preset in ("dense", "sparse"):
+        config = resolve(preset)
+        assert config.model.anchor_colour and config.model.anchor_colour_start == "zero", preset
+        mapper, _ = _first_frame_only(preset)
+        assert torch.equal(mapper.anchors.colours.detach(), torch.zeros(len(mapper.anchors), 3)), preset
+
+
+def test_switched_off_the_map_has_no_anchor_colours():
     source = SyntheticSource(n_frames=1, width=64, height=48)
-    mapper = Mapper(resolve("sparse", overrides={"keyframes.first_iterations": 0}))
+    mapper = Mapper(resolve("sparse", overrides={"keyframes.first_iterations": 0, "model.anchor_colour": False}))
     mapper.process(source[0])
     assert mapper.anchors.colours.shape == (len(mapper.anchors), 0)
     assert "anchors.colours" not in mapper.state().tensors
     assert "colours" not in {group["name"] for group in mapper.optimizer.param_groups}
+
+
+def test_an_unknown_start_is_refused_by_name():
+    with pytest.raises(ValueError, match=r"model\.anchor_colour_start must be one of zero, cell"):
+        resolve("sparse", overrides={"model.anchor_colour_start": "pixel"})
 
 
 def test_colours_learn_and_survive_a_snapshot_and_old_snapshots_still_load():
