@@ -147,15 +147,11 @@ def preset(name: str) -> MapperConfig:
         # With anchor colours, 80 steps on the first keyframe: Replica room0 0-19 at 600x340 (one
         # keyframe) 33.47 / 33.50 dB against 32.97 / 33.05 at 60; 20 more steps in a 7-Scenes run of 836.
         config.keyframes.first_iterations = 80
-        # Anchor colours grow more anchors at 2e-4 (7-Scenes 0-299 at 320x240: 11.0k against 8.6k);
-        # at 3e-4 as many as without them at the same held-out PSNR, and on Replica +0.25 dB.
-        config.refine.grad_threshold = 0.0003
         if name == "sparse-fast":
             # Half of sparse's iterations, as the paper's sparse-fast.
             config.keyframes.iterations = 6
             config.keyframes.frame_iterations = 1
             config.keyframes.first_iterations = 60
-            config.refine.grad_threshold = 0.0002
             # Anchor colours cost sparse-fast on 7-Scenes 0-299 at 320x240: 21.74 against 21.84 dB
             # (seeds 0-1) at 7.1 against 8.5-9.0 FPS, 1.2x the anchors (bench/RESULTS.md).
             config.model.anchor_colour = False

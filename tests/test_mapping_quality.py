@@ -17,17 +17,20 @@ RESULT_KEYS = {"streamed", "heldout", "processing_fps", "snapshot_bytes", "ancho
                "preset", "resolution"}
 SYNTHETIC_PSNR_FLOOR = 33.0  # measured 33.77 dB streamed (31.9 before every frame was optimised)
 TSDF_HELDOUT_PSNR_0_99_160 = 18.67  # Open3D TSDF fusion of frames 0-99 at 160x120 (SOURCE.md)
-# Measured 24.73 dB held-out, 24.55 streamed (seed 0). Seeds 0-2 give 23.97-25.07 held-out, mean 24.59; before the
-# alpha cap moved to 0.999 and keyframes were stored compact, 23.15-25.81, mean 24.42, and seed 0 gave 25.81 against the
-# old floor 24.9 (bench/RESULTS.md, "Issue 14 on the CPU"): the floor follows one trajectory, not the average.
-REAL_160_PSNR_FLOOR = 24.3
-REPLICA_STREAMED_PSNR_FLOOR = 31.6  # measured 32.07 dB (Intel), 31.86 (AMD); 22.39 before every frame was optimised
-REPLICA_HELDOUT_PSNR_FLOOR = 31.6  # measured 32.17 dB
-REPLICA_SSIM_FLOOR = 0.935  # measured 0.941
-# With model.anchor_colour: measured 34.68 / 34.69 dB streamed / held-out, SSIM 0.962 (bench/RESULTS.md).
-REPLICA_ANCHOR_COLOUR_PSNR_FLOOR = 34.0
-REPLICA_ANCHOR_COLOUR_SSIM_FLOOR = 0.955
-REAL_320_PSNR_FLOOR = 24.9  # measured 25.28 dB held-out, 25.36 streamed on frames 0-59
+# Measured 26.06 dB held-out, 26.14 streamed (seed 0, anchor colours; 24.73 / 24.55 without). These frames swing by a
+# decibel between seeds (anchor colours, 0-99: 26.11 seed 0, 23.61 seed 1; bench/RESULTS.md, "Ninth session"): the
+# floor follows one trajectory, not the average.
+REAL_160_PSNR_FLOOR = 25.6
+# The issue's bar: streamed >= 33, held-out >= 32, SSIM >= 0.95. Measured 33.47 / 33.50 dB, SSIM 0.953 (AMD, ninth
+# session); 31.86 / 31.96, 0.940 before anchor colours, 22.39 before every frame was optimised.
+REPLICA_STREAMED_PSNR_FLOOR = 33.0
+REPLICA_HELDOUT_PSNR_FLOOR = 33.0
+REPLICA_SSIM_FLOOR = 0.948
+# Anchor colours started at the cell's mean colour: measured 35.06 / 35.03 dB streamed / held-out, SSIM 0.964.
+REPLICA_CELL_START_PSNR_FLOOR = 34.5
+REPLICA_CELL_START_SSIM_FLOOR = 0.958
+# Measured 26.04 dB held-out, 26.13 streamed on frames 0-59 (25.28 / 25.36 before anchor colours).
+REAL_320_PSNR_FLOOR = 25.6
 
 
 def test_synthetic_scene_reaches_30_db(tmp_path):
@@ -74,16 +77,16 @@ def test_replica_room0_at_600x340_is_sharp_and_learns_from_every_frame(replica_r
     """The paper's own scene: every streamed frame teaches the map, so no floaters or washed-out colour."""
     results = run_sparse(replica_room0, "0:20", 0.5, tmp_path)
     assert results["resolution"] == [600, 340]
-    assert results["iterations"] > 60 + results["frames"]["streamed"], "non-keyframes are optimised too"
+    assert results["iterations"] > 80 + results["frames"]["streamed"], "non-keyframes are optimised too"
     assert results["streamed"]["psnr"] >= REPLICA_STREAMED_PSNR_FLOOR
     assert results["heldout"]["psnr"] >= REPLICA_HELDOUT_PSNR_FLOOR
     assert results["heldout"]["ssim"] >= REPLICA_SSIM_FLOOR
 
 
 @pytest.mark.realdata
-def test_replica_room0_with_anchor_colours_meets_the_issue_bar(replica_room0, tmp_path):
-    """Anchors that start in their cell's colour: Replica's newly seen surface is not washed out."""
-    results = run_sparse(replica_room0, "0:20", 0.5, tmp_path, {"model.anchor_colour": True})
-    assert results["streamed"]["psnr"] >= REPLICA_ANCHOR_COLOUR_PSNR_FLOOR
-    assert results["heldout"]["psnr"] >= REPLICA_ANCHOR_COLOUR_PSNR_FLOOR
-    assert results["heldout"]["ssim"] >= REPLICA_ANCHOR_COLOUR_SSIM_FLOOR
+def test_replica_room0_with_anchor_colours_started_at_the_cell_colour(replica_room0, tmp_path):
+    """Replica's colour and depth are registered, so the cell start is right there and gains more."""
+    results = run_sparse(replica_room0, "0:20", 0.5, tmp_path, {"model.anchor_colour_start": "cell"})
+    assert results["streamed"]["psnr"] >= REPLICA_CELL_START_PSNR_FLOOR
+    assert results["heldout"]["psnr"] >= REPLICA_CELL_START_PSNR_FLOOR
+    assert results["heldout"]["ssim"] >= REPLICA_CELL_START_SSIM_FLOOR
