@@ -38,8 +38,8 @@ class ModelConfig:
     hash_max_resolution: float = 128.0  # cells per metre at the finest hash level
     # A learnable colour logit per anchor, added to the colour decoder's logits for its n Gaussians
     # (not in the paper): a direct, fast-learning colour next to the shared decoder. Started at zero
-    # it gains on both benchmarks (7-Scenes 0-299 at 320x240 `sparse` +0.3 dB over four seeds,
-    # Replica room0 0-19 at 600x340 +1.1 dB; bench/RESULTS.md).
+    # it gains on both benchmarks (7-Scenes 0-299 at 320x240 `sparse` +0.3 dB over four seeds, at
+    # about 3/4 of the speed; Replica room0 0-19 at 600x340 +1.1 dB at the same speed; bench/RESULTS.md).
     anchor_colour: bool = True
     # Where a new anchor's colour starts: "zero" (the decoder's colour), or "cell", the mean colour
     # of the allocating frame's depth points in its cell: +1.5 dB more on Replica, but worse on
@@ -138,11 +138,11 @@ def preset(name: str) -> MapperConfig:
         config.model.encoding = "anchor"
         config.refine.prune_opacity = 0.05
         # The window's global keyframes at half size, 9 steps per keyframe: on 7-Scenes 0-299 at
-        # 320x240 above 5 FPS (bench/RESULTS.md).
+        # 320x240 about 5 FPS before anchor colours, about 3.5 with them (bench/RESULTS.md).
         config.keyframes.window_scale = 0.5
         config.keyframes.iterations = 9
-        # Two steps per streamed frame keep 7-Scenes 0-299 at 320x240 above 5 FPS; three gave
-        # +0.3 dB there (+0.6 dB on Replica room0 at 600x340) at 3.8-4.7 FPS (bench/RESULTS.md).
+        # Two steps per streamed frame; three gave +0.3 dB on 7-Scenes 0-299 at 320x240 (+0.6 dB
+        # on Replica room0 at 600x340) at about 20% less speed (fifth session, bench/RESULTS.md).
         config.keyframes.frame_iterations = 2
         # With anchor colours, 80 steps on the first keyframe: Replica room0 0-19 at 600x340 (one
         # keyframe) 33.47 / 33.50 dB against 32.97 / 33.05 at 60; 20 more steps in a 7-Scenes run of 836.
