@@ -40,6 +40,17 @@ def _scalar(value: float | int, dtype: torch.dtype) -> torch.Tensor:
     return torch.tensor([value], dtype=dtype)
 
 
+def _frame_index_as_int64(index: int) -> torch.Tensor:
+    """A frame index (the protocol's uint64) in an int64 tensor: indices from 2^63 on wrap to negative
+    values (two's complement), as a fuzzed client's 2^64 - 1 once made a checkpoint write fail."""
+    return _scalar(index - (1 << 64) if index >= 1 << 63 else index, torch.int64)
+
+
+def _frame_index_from_int64(value: torch.Tensor) -> int:
+    index = int(value[0])
+    return index + (1 << 64) if index < 0 else index
+
+
 def capture(mapper: Optimisation) -> dict[str, torch.Tensor]:
     """The training state in a mapper's parts (hold its lock), keyed ``training.*``, as copies on the CPU."""
     tensors: dict[str, torch.Tensor] = {f"anchors.{name}": getattr(mapper.anchors, name) for name in STATISTICS}
@@ -63,7 +74,7 @@ def capture(mapper: Optimisation) -> dict[str, torch.Tensor]:
     for position, keyframe in enumerate(keyframes.keyframes):
         camera = keyframe.intrinsics
         tensors.update({
-            f"keyframes.{position}.index": _scalar(keyframe.index, torch.int64),
+            f"keyframes.{position}.index": _frame_index_as_int64(keyframe.index),
             f"keyframes.{position}.rgb": keyframe.rgb,
             f"keyframes.{position}.depth": keyframe.depth,
             f"keyframes.{position}.intrinsics": torch.tensor(
@@ -122,7 +133,7 @@ def _restore_keyframes(mapper: Optimisation, section: dict[str, torch.Tensor]) -
         fx, fy, cx, cy, width, height = section[prefix + "intrinsics"].tolist()
         rgb, depth = section[prefix + "rgb"], section[prefix + "depth"]
         restored.append(Keyframe(
-            int(section[prefix + "index"][0]), rgb.pin_memory() if pinned else rgb,
+            _frame_index_from_int64(section[prefix + "index"]), rgb.pin_memory() if pinned else rgb,
             depth.pin_memory() if pinned else depth, Intrinsics(fx, fy, cx, cy, int(width), int(height)),
             section[prefix + "c2w"].to(mapper.device), section[prefix + "codes"].to(mapper.device), pinned,
         ))

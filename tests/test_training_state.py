@@ -37,3 +37,15 @@ def test_a_mapper_rebuilt_with_its_training_state_maps_on_exactly(preset: str) -
     reference = original.render(pose, camera)
     assert np.array_equal(resumed.render(pose, camera).color, reference.color)
     assert not np.array_equal(fresh_start.render(pose, camera).color, reference.color)
+
+
+def test_frame_indices_up_to_the_protocols_uint64_survive_a_checkpoint() -> None:
+    frames = open_frames("synthetic", "synthetic", "0:2", 1, 0.25, n_frames=40)
+    original = Mapper(resolve("sparse-fast", overrides=TINY))
+    for frame, index in zip((frames.load(0), frames.load(1)), (2**64 - 1, 2**63), strict=True):
+        frame.index = index
+        original.process(frame)
+    data = snapshot.encode(original.state(training_state=True), half=False)
+    resumed = Mapper.from_state(snapshot.decode(data), training_state=True)
+    assert [k.index for k in resumed.keyframes.keyframes] == [k.index for k in original.keyframes.keyframes]
+    assert resumed.keyframes.keyframes[0].index == 2**64 - 1

@@ -245,7 +245,9 @@ class Session:
         """After a frame is recorded, mapped and acknowledged: a checkpoint when one is due. Its position
         is the last mapped frame's, so a resume maps every recorded frame after it (a realtime session's
         frames skipped since then included). A failed write is logged and the previous checkpoint
-        stands (a resume replays more frames)."""
+        stands (a resume replays more frames). So does any other failure of the write: it is logged
+        with its traceback instead of ending the session's worker thread, which would leave every
+        later frame of the session waiting for ever."""
         with self._lock:
             position = self._mapped_position
         if (self.checkpoints is None or not self.checkpoints.due(position.sequence) or self.recorder.failure
@@ -256,6 +258,8 @@ class Session:
         except OSError as error:
             log.error("session %s: cannot write its checkpoint at sequence %d: %s", self.id, position.sequence,
                       error.strerror or error)
+        except Exception:  # a defect in capturing the state must not stop the session's mapping
+            log.exception("session %s: cannot capture its checkpoint at sequence %d", self.id, position.sequence)
 
     def _skip(self, job: Job) -> pb.FrameAck:
         """Record a frame passed over for a newer one, and its skipped ack (or why it could not be recorded)."""

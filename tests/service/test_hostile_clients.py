@@ -250,3 +250,22 @@ def test_restore_refuses_a_snapshot_whose_config_is_beyond_the_bounds(server: Se
 
 def test_the_session_still_maps_and_renders(server: ServerHandle, session: SessionRef) -> None:
     assert_still_maps_and_renders(server, session)
+
+
+def test_frame_numbers_up_to_uint64_max_are_mapped_and_checkpointed(tmp_path) -> None:
+    """A frame numbered 2^64 - 1 once made the checkpoint after it fail and stopped its session's mapping."""
+    local = start_local(tmp_path, "--checkpoint-interval", "1")
+    channel, stub = connect(local.address, timeout=60.0)
+    try:
+        server = ServerHandle(local.address, channel, stub, local)
+        session = SessionRef.from_credentials(stub.CreateSession(create_request(TINY, "uint64"), timeout=CALL_SECONDS))
+        largest = pb.Frame()
+        largest.CopyFrom(GOOD)
+        largest.index = 2**64 - 1
+        (ack,) = stream(server, session, [largest])
+        assert ack.accepted and ack.index == 2**64 - 1, ack
+        assert_still_maps_and_renders(server, session)
+        assert list(tmp_path.rglob("*checkpoint*")), "the checkpoints were written"
+    finally:
+        channel.close()
+        local.stop()
