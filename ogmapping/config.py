@@ -144,14 +144,14 @@ def preset(name: str) -> MapperConfig:
         # Two steps per streamed frame; three gave +0.3 dB on 7-Scenes 0-299 at 320x240 (+0.6 dB
         # on Replica room0 at 600x340) at about 20% less speed (fifth session, bench/RESULTS.md).
         config.keyframes.frame_iterations = 2
-        # With anchor colours, 80 steps on the first keyframe: Replica room0 0-19 at 600x340 (one
-        # keyframe) 33.47 / 33.50 dB against 32.97 / 33.05 at 60; 20 more steps in a 7-Scenes run of 836.
-        config.keyframes.first_iterations = 80
+        if name == "sparse":
+            # With anchor colours, 80 steps on the first keyframe: Replica room0 0-19 at 600x340 (one
+            # keyframe) 33.47 / 33.50 dB against 32.97 / 33.05 at 60; 20 more steps in a 7-Scenes run of 836.
+            config.keyframes.first_iterations = 80
         if name == "sparse-fast":
             # Half of sparse's iterations, as the paper's sparse-fast.
             config.keyframes.iterations = 6
             config.keyframes.frame_iterations = 1
-            config.keyframes.first_iterations = 60
             # Anchor colours cost sparse-fast on 7-Scenes 0-299 at 320x240: 21.74 against 21.84 dB
             # (seeds 0-1) at 7.1 against 8.5-9.0 FPS, 1.2x the anchors (bench/RESULTS.md).
             config.model.anchor_colour = False
