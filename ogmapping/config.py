@@ -67,6 +67,7 @@ class KeyframeConfig:
     iterations: int = 15  # k: optimisation iterations per new keyframe
     first_iterations: int = 60  # iterations on the very first keyframe
     frame_iterations: int = 2  # iterations on a streamed frame that is not a keyframe (window around it)
+    frame_renders: int = 0  # caps those steps at this many renders (view + window each), at least one; 0: no cap
     window_scale: float = 1.0  # image scale for the window's global keyframes (the view and local ones: full)
     window_min_width: int = 160  # ...but never narrower than this many pixels (or the keyframe itself)
     window: str = "dynamic"  # dynamic (paper), or a fixed window: random (ESLAM), overlap, coverage
@@ -133,12 +134,15 @@ def preset(name: str) -> MapperConfig:
     """The configuration of a named preset."""
     config = MapperConfig()
     if name == "dense":
+        # Two global keyframes in the window: 7-Scenes 0-299 at 320x240 24.46 / 24.01 dB held-out
+        # (seeds 0 / 1) against 23.82 / 23.75 with one, at about a tenth less speed (bench/RESULTS.md).
+        config.keyframes.global_count = 2
         return config
     if name in ("sparse", "sparse-fast"):
         config.model.encoding = "anchor"
         config.refine.prune_opacity = 0.05
-        # The window's global keyframes at half size, 9 steps per keyframe: on 7-Scenes 0-299 at
-        # 320x240 about 5 FPS before anchor colours, about 3.5 with them (bench/RESULTS.md).
+        # The window's global keyframes at half size (sparse-fast; sparse draws two at full size
+        # below), 9 steps per keyframe (bench/RESULTS.md).
         config.keyframes.window_scale = 0.5
         config.keyframes.iterations = 9
         # Two steps per streamed frame; three gave +0.3 dB on 7-Scenes 0-299 at 320x240 (+0.6 dB
@@ -148,6 +152,14 @@ def preset(name: str) -> MapperConfig:
             # With anchor colours, 80 steps on the first keyframe: Replica room0 0-19 at 600x340 (one
             # keyframe) 33.47 / 33.50 dB against 32.97 / 33.05 at 60; 20 more steps in a 7-Scenes run of 836.
             config.keyframes.first_iterations = 80
+            # Two global keyframes at full size, and a streamed frame's steps capped at four renders:
+            # once the window is full that is one step on the view, a local and two global keyframes
+            # instead of two on the view, a local and a half-size global one. 7-Scenes 0-299 at 320x240:
+            # 23.13 against 22.85 dB held-out (four seeds), depth L1 2.86 against 3.08 cm, at the same
+            # speed; Replica (one keyframe, so still two steps a frame) unchanged (bench/RESULTS.md).
+            config.keyframes.window_scale = 1.0
+            config.keyframes.global_count = 2
+            config.keyframes.frame_renders = 4
         if name == "sparse-fast":
             # Half of sparse's iterations, as the paper's sparse-fast.
             config.keyframes.iterations = 6
@@ -297,6 +309,7 @@ def _ranges(config: MapperConfig) -> dict[str, tuple[bool, str]]:
         "keyframes.iterations": (keyframes.iterations >= 0, ">= 0"),
         "keyframes.first_iterations": (keyframes.first_iterations >= 0, ">= 0"),
         "keyframes.frame_iterations": (keyframes.frame_iterations >= 0, ">= 0"),
+        "keyframes.frame_renders": (keyframes.frame_renders >= 0, ">= 0"),
         "keyframes.window_scale": (_within(keyframes.window_scale, 0, 1, open_low=True), "in (0, 1]"),
         "keyframes.window_min_width": (keyframes.window_min_width >= 1, ">= 1"),
         "refine.interval": (refine.interval >= 1, ">= 1"),

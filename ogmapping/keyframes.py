@@ -201,6 +201,13 @@ class KeyframeSet:
         one in its local set (overlap weight >= ``local_threshold``)."""
         return keyframe is self.keyframes[-1] or any(keyframe is self.keyframes[i] for i in self.local)
 
+    def window_size(self, view_is_newest: bool) -> int:
+        """How many keyframes ``draw_window(view_is_newest)`` returns now."""
+        if self.config.window != "dynamic":
+            return len(self.fixed)
+        local = len(self.local) + (0 if view_is_newest else 1)
+        return min(self.config.local_count, local) + min(self.config.global_count, len(self.global_))
+
     def draw_window(self, view_is_newest: bool) -> list[Keyframe]:
         """The keyframes trained beside the view: b1 local and b2 global ones drawn afresh without
         replacement.

@@ -213,11 +213,21 @@ class Mapper:
         return self.octree.seen_from(depth, keyframe.intrinsics, keyframe.c2w)
 
     def _iterations_for(self, is_keyframe: bool) -> int:
-        """k for a keyframe (more for the very first), ``frame_iterations`` for any other frame."""
+        """k for a keyframe (more for the very first), ``frame_iterations`` for any other frame, but
+        no more than ``frame_renders`` renders of the view and its window (at least one step).
+
+        The cap keeps a streamed frame's cost level as the window fills: a frame with a full window
+        (the view, a local and two global keyframes) takes one step, a frame whose only window
+        keyframe is the newest takes two (bench/RESULTS.md, tenth session)."""
         settings = self.config.keyframes
-        if not is_keyframe:
-            return settings.frame_iterations if self.keyframes else 0
-        return settings.first_iterations if not self.keyframes else settings.iterations
+        if is_keyframe:
+            return settings.first_iterations if not self.keyframes else settings.iterations
+        if not self.keyframes or settings.frame_iterations == 0:
+            return 0
+        if settings.frame_renders == 0:
+            return settings.frame_iterations
+        renders_per_step = 1 + self.keyframes.window_size(view_is_newest=False)
+        return min(settings.frame_iterations, max(1, settings.frame_renders // renders_per_step))
 
     def _optimise(
         self, iterations: int, view: View | None, view_is_newest: bool, budget: Budget, started: float

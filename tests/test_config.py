@@ -12,7 +12,8 @@ def test_presets_differ_as_the_paper_says():
     assert dense.model.encoding == "hash" and sparse.model.encoding == "anchor"
     assert sparse.refine.prune_opacity > dense.refine.prune_opacity
     assert fast.keyframes.iterations < sparse.keyframes.iterations < dense.keyframes.iterations
-    assert fast.keyframes.window_scale == sparse.keyframes.window_scale < dense.keyframes.window_scale == 1.0
+    assert fast.keyframes.window_scale < sparse.keyframes.window_scale == dense.keyframes.window_scale == 1.0
+    assert sparse.keyframes.global_count > fast.keyframes.global_count
 
 
 def test_overrides_are_typed_and_checked():

@@ -179,3 +179,39 @@ def test_local_keyframes_are_told_apart_from_global_ones():
     assert frames.is_local(frames.keyframes[0]), "overlaps K_new"
     assert not frames.is_local(frames.keyframes[1]), "sees none of what K_new sees"
     assert frames.is_local(frames.keyframes[2]), "the newest keyframe itself"
+
+
+def test_window_size_is_what_a_draw_returns():
+    config = KeyframeConfig(local_threshold=0.5, local_count=1, global_count=2)
+    frames = KeyframeSet(config, seed=4)
+    frames.insert(keyframe(0, [1, 2]))
+    sizes = [(frames.window_size(True), frames.window_size(False))]
+    for index, codes in enumerate(([100, 101], [200, 201], [1, 2]), start=1):
+        frames.insert(keyframe(index, codes))
+        sizes.append((frames.window_size(True), frames.window_size(False)))
+        for newest in (True, False):
+            assert frames.window_size(newest) == len(frames.draw_window(newest))
+    assert sizes == [(0, 1), (1, 2), (2, 3), (3, 3)]
+    fixed = fixed_set("random")
+    for index in range(4):
+        fixed.insert(keyframe(index, [index]))
+    assert fixed.window_size(False) == len(fixed.draw_window(False)) == 3
+
+
+def test_frame_renders_caps_a_streamed_frames_steps_as_the_window_fills():
+    from ogmapping.config import resolve
+    from ogmapping.mapper import Mapper
+
+    overrides = {"keyframes.frame_iterations": 3, "keyframes.frame_renders": 4, "keyframes.global_count": 2,
+                 "keyframes.local_threshold": 0.5}
+    mapper = Mapper(resolve("sparse", overrides=overrides))
+    assert mapper._iterations_for(is_keyframe=False) == 0, "nothing to train before the first keyframe"
+    mapper.keyframes.insert(keyframe(0, [1, 2]))
+    assert mapper._iterations_for(is_keyframe=False) == 2, "view + newest keyframe: 2 renders a step"
+    mapper.keyframes.insert(keyframe(1, [100, 101]))
+    mapper.keyframes.insert(keyframe(2, [200, 201]))
+    assert mapper._iterations_for(is_keyframe=False) == 1, "view + newest + two global: 4 renders a step"
+    mapper.config.keyframes.frame_renders = 1
+    assert mapper._iterations_for(is_keyframe=False) == 1, "never below one step"
+    mapper.config.keyframes.frame_renders = 0
+    assert mapper._iterations_for(is_keyframe=False) == 3, "0: frame_iterations as it is"
