@@ -216,9 +216,9 @@ class Mapper:
         """k for a keyframe (more for the very first), ``frame_iterations`` for any other frame, but
         no more than ``frame_renders`` renders of the view and its window (at least one step).
 
-        The cap keeps a streamed frame's cost level as the window fills: a frame with a full window
-        (the view, a local and two global keyframes) takes one step, a frame whose only window
-        keyframe is the newest takes two (bench/RESULTS.md, tenth session)."""
+        The cap bounds a streamed frame's cost as the window fills: with ``frame_renders`` 4 a frame
+        with a full window (the view, a local and two global keyframes) takes one step, a frame whose
+        only window keyframe is the newest takes two (bench/RESULTS.md, tenth session)."""
         settings = self.config.keyframes
         if is_keyframe:
             return settings.first_iterations if not self.keyframes else settings.iterations
