@@ -270,6 +270,9 @@ ALLOCATIONS = ("octree", "unique", "projection")
 GROWTHS = ("anchor", "error", "none")
 WINDOWS = ("dynamic", "random", "overlap", "coverage")
 MAX_OCTREE_LEVEL = 4
+# Pixels per axis between allocation samples: wider than any image samples at most one pixel; beyond int64 torch's
+# slicing fails (a fuzzed 2^70 once ended a session's frame in an INTERNAL error).
+MAX_ALLOCATION_STRIDE = 1 << 16
 MAX_HASH_LOG2_SIZE = 30  # 2^30 rows per level: far beyond any bound a server grants, short of int64 trouble
 MAX_HASH_RESOLUTION = 1e4  # cells per metre (0.1 mm cells); hashed corner coordinates stay far inside int64
 MAX_LOSS_WEIGHT = 1e3
@@ -301,7 +304,8 @@ def _ranges(config: MapperConfig) -> dict[str, tuple[bool, str]]:
         "octree.depth_min": (_within(octree.depth_min, 0), ">= 0 and finite"),
         "octree.depth_max": (_within(octree.depth_max, octree.depth_min, open_low=True),
                              f"> octree.depth_min ({octree.depth_min:g}) and finite"),
-        "octree.allocation_stride": (octree.allocation_stride >= 0, ">= 0"),
+        "octree.allocation_stride": (0 <= octree.allocation_stride <= MAX_ALLOCATION_STRIDE,
+                                     f"in [0, {MAX_ALLOCATION_STRIDE}]"),
         "keyframes.overlap_threshold": (_within(keyframes.overlap_threshold, 0, 1, open_low=True), "in (0, 1]"),
         "keyframes.local_threshold": (_within(keyframes.local_threshold, 0, 1), "in [0, 1]"),
         "keyframes.local_count": (keyframes.local_count >= 0, ">= 0"),
