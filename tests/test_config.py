@@ -16,6 +16,12 @@ def test_presets_differ_as_the_paper_says():
     assert sparse.keyframes.global_count > fast.keyframes.global_count
 
 
+def test_dense_and_sparse_refine_to_level_one_and_sparse_fast_to_two():
+    """Measured choices (bench/RESULTS.md, eleventh session), pinned so a change to them is deliberate."""
+    assert preset("dense").octree.max_level == preset("sparse").octree.max_level == 1
+    assert preset("sparse-fast").octree.max_level == MapperConfig().octree.max_level == 2
+
+
 def test_overrides_are_typed_and_checked():
     config = resolve("sparse", overrides=parse_override_args(["keyframes.iterations=7", "octree.voxel_size=0.2"]))
     assert config.keyframes.iterations == 7 and config.octree.voxel_size == 0.2
