@@ -139,11 +139,12 @@ def preset(name: str) -> MapperConfig:
     # against 24.46 at 1.26 against 1.13 FPS; Replica room0 0-19 at 600x340: sparse 33.64 against
     # 33.50, dense 33.78 against 34.04. sparse-fast measured the same either way and keeps level 2
     # (eleventh session, bench/RESULTS.md).
+    if name in ("dense", "sparse"):
+        config.octree.max_level = 1
     if name == "dense":
         # Two global keyframes in the window: 7-Scenes 0-299 at 320x240 24.46 / 24.01 dB held-out
         # (seeds 0 / 1) against 23.82 / 23.75 with one, at about a tenth less speed (bench/RESULTS.md).
         config.keyframes.global_count = 2
-        config.octree.max_level = 1
         return config
     if name in ("sparse", "sparse-fast"):
         config.model.encoding = "anchor"
@@ -167,7 +168,6 @@ def preset(name: str) -> MapperConfig:
             config.keyframes.window_scale = 1.0
             config.keyframes.global_count = 2
             config.keyframes.frame_renders = 4
-            config.octree.max_level = 1
         if name == "sparse-fast":
             # Half of sparse's iterations, as the paper's sparse-fast.
             config.keyframes.iterations = 6
