@@ -5,8 +5,9 @@ level so it is exact), a level l_v, a learnable log-scale s_v (3), n learnable o
 in the sparse version a learnable feature f_v and, with ``model.anchor_colour``, a learnable colour
 c_v (3, in logits) added to the colour decoder's output for its n Gaussians. Gaussians sit at
 p_v + s_v * o_v.
-Per-Gaussian statistics for refinement and pruning live here too, so that they follow the anchors
-whenever anchors are added or removed.
+Per-Gaussian statistics for refinement and pruning live here too, and the moving average of the
+learnable rows (``ogmapping.averaging``), so that they follow the anchors whenever anchors are added
+or removed.
 """
 
 from __future__ import annotations
@@ -38,6 +39,9 @@ class AnchorMap(nn.Module):
         self.reset_statistics()
         self.spawned = torch.zeros(0, n_offsets, dtype=torch.bool, device=device)
         self.observations = torch.zeros(0, dtype=torch.int64, device=device)
+        # The moving average of each learnable row, and how many steps each row has been averaged over.
+        self.averages = {name: torch.zeros_like(getattr(self, name).detach()) for name in LEARNABLE}
+        self.average_steps = torch.zeros(0, dtype=torch.int64, device=device)
 
     def __len__(self) -> int:
         return int(self.positions.shape[0])
@@ -91,14 +95,18 @@ class AnchorMap(nn.Module):
         self.spawned = torch.cat([self.spawned, torch.zeros(shape, dtype=torch.bool, device=device)])
         self.max_opacity = torch.cat([self.max_opacity, torch.full((count,), -torch.inf, device=device)])
         self.observations = torch.cat([self.observations, torch.zeros(count, dtype=torch.int64, device=device)])
+        for name in LEARNABLE:
+            self.averages[name] = torch.cat([self.averages[name], torch.zeros_like(new_values[name])])
+        self.average_steps = torch.cat([self.average_steps, torch.zeros(count, dtype=torch.int64, device=device)])
 
     def keep(self, mask: torch.Tensor, optimizer: torch.optim.Optimizer | None) -> None:
         """Keep only the rows where ``mask`` is True (pruning)."""
         for name in LEARNABLE:
             self._replace(name, getattr(self, name).detach()[mask], optimizer, lambda state: state[mask])
         for name in ("codes", "levels", "positions", "grad_sum", "grad_count", "spawned", "max_opacity",
-                     "observations"):
+                     "observations", "average_steps"):
             setattr(self, name, getattr(self, name)[mask])
+        self.averages = {name: average[mask] for name, average in self.averages.items()}
 
     def _replace(self, name: str, value: torch.Tensor, optimizer: torch.optim.Optimizer | None, follow) -> None:
         """Swap a learnable tensor for ``value``, carrying Adam's moments through ``follow``."""

@@ -15,7 +15,7 @@ import threading
 import time
 from collections import defaultdict
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,6 +24,7 @@ import torch
 from ogmapping import allocation, refine, snapshot, training
 from ogmapping.anchor_colour import cell_colour_logits, colour_sample_stride
 from ogmapping.anchors import AnchorMap
+from ogmapping.averaging import MapAverage
 from ogmapping.budget import Budget, Stop
 from ogmapping.camera import Intrinsics
 from ogmapping.config import ConfigBounds, MapperConfig
@@ -84,6 +85,7 @@ class Mapper:
         self.decoders = self.decoders.to(self.device)
         self.keyframes = KeyframeSet(config.keyframes, config.seed, self._footprint)
         self.optimizer = self._make_optimizer()
+        self.average = MapAverage(self.anchors, self.decoders, config.optim.average_decay)
         self.hash_optimizer = (LazyAdam(self.encoding.table, self.encoding.gradients, config.optim.hash_lr,
                                         compiled=self.profile.compiled)
                                if self.encoding is not None else None)
@@ -283,6 +285,7 @@ class Mapper:
             self.optimizer.step()
             if self.hash_optimizer is not None:
                 self.hash_optimizer.step()
+            self.average.update()
         self.last_gaussians = len(renders[0][0]) if renders else 0
         return total.detach()
 
@@ -322,7 +325,7 @@ class Mapper:
     def render(self, c2w: np.ndarray, intrinsics: Intrinsics) -> Rendered:
         """Colour, depth and alpha from any pose (camera-to-world) and intrinsics."""
         pose = torch.as_tensor(np.asarray(c2w), dtype=self.profile.precision, device=self.device)
-        with self.lock, torch.no_grad(), torch_threads(self.profile.threads):
+        with self.lock, torch.no_grad(), torch_threads(self.profile.threads), self.average.applied():
             _, output = self._render(pose, intrinsics)
         return Rendered(
             color=output.color.clamp(0, 1).cpu().numpy().astype(np.float32),
@@ -351,7 +354,7 @@ class Mapper:
         the viewpoint through the decoders); no frustum culling, no gradients. ``max_anchors`` > 0
         decodes only that many, evenly spread over the map, so a preview costs a bounded time."""
         center = torch.as_tensor(np.asarray(camera_center), dtype=torch.float32, device=self.device)
-        with self.lock, torch.no_grad(), torch_threads(self.profile.threads):
+        with self.lock, torch.no_grad(), torch_threads(self.profile.threads), self.average.applied():
             count = len(self.anchors)
             stride = -(-count // max_anchors) if max_anchors and count > max_anchors else 1
             rows = torch.arange(0, count, stride, device=self.device)
@@ -375,10 +378,11 @@ class Mapper:
     # ------------------------------------------------------------------ state
 
     def state(self, training_state: bool = False) -> MapState:
-        """The map as plain tensors and counters (see ``ogmapping.state``), detached copies; with
-        ``training_state`` also what its optimisation carries (``ogmapping.training``), so a mapper
-        rebuilt from it maps on exactly as this one would."""
-        with self.lock:
+        """The map as plain tensors and counters (see ``ogmapping.state``), detached copies: the map
+        that renders (its moving average, ``optim.average_decay``); with ``training_state`` the live
+        map instead and what its optimisation carries (``ogmapping.training``, the average included),
+        so a mapper rebuilt from it maps on exactly as this one would."""
+        with self.lock, nullcontext() if training_state else self.average.applied():
             anchors = self.anchors
             tensors: dict[str, torch.Tensor] = {
                 "anchors.codes": anchors.codes,
@@ -421,7 +425,7 @@ class Mapper:
 
     def _optimisation(self) -> training.Optimisation:
         return training.Optimisation(self.anchors, self.optimizer, self.hash_optimizer, self.generator, self.keyframes,
-                                     self.device, self.last_gaussians)
+                                     self.device, self.last_gaussians, self.average)
 
     def _load(self, state: MapState) -> None:
         self.octree.load_state_dict(state.section("octree"))

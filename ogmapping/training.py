@@ -14,7 +14,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ogmapping.anchors import AnchorMap
+from ogmapping.anchors import LEARNABLE, AnchorMap
+from ogmapping.averaging import MapAverage
 from ogmapping.camera import Intrinsics
 from ogmapping.keyframes import Keyframe, KeyframeSet
 from ogmapping.lazy_adam import LazyAdam
@@ -34,6 +35,7 @@ class Optimisation:
     keyframes: KeyframeSet
     device: torch.device
     last_gaussians: int
+    average: MapAverage
 
 
 def _scalar(value: float | int, dtype: torch.dtype) -> torch.Tensor:
@@ -54,6 +56,9 @@ def _frame_index_from_int64(value: torch.Tensor) -> int:
 def capture(mapper: Optimisation) -> dict[str, torch.Tensor]:
     """The training state in a mapper's parts (hold its lock), keyed ``training.*``, as copies on the CPU."""
     tensors: dict[str, torch.Tensor] = {f"anchors.{name}": getattr(mapper.anchors, name) for name in STATISTICS}
+    tensors["anchors.average_steps"] = mapper.anchors.average_steps
+    tensors.update({f"anchors.average.{name}": mapper.anchors.averages[name] for name in LEARNABLE})
+    tensors.update({f"average.{name}": value for name, value in mapper.average.state().items()})
     for group in mapper.optimizer.param_groups:
         for position, param in enumerate(group["params"]):
             for key, value in mapper.optimizer.state.get(param, {}).items():
@@ -102,6 +107,7 @@ def restore(mapper: Optimisation, tensors: dict[str, torch.Tensor]) -> int | Non
     anchors = mapper.anchors
     for name in STATISTICS:
         setattr(anchors, name, _shaped(section, f"anchors.{name}", getattr(anchors, name)))
+    _restore_average(mapper, section)
     optimizer = mapper.optimizer
     for group in optimizer.param_groups:
         for position, param in enumerate(group["params"]):
@@ -122,6 +128,20 @@ def restore(mapper: Optimisation, tensors: dict[str, torch.Tensor]) -> int | Non
     mapper.generator.set_state(section["generator"])
     _restore_keyframes(mapper, section)
     return int(section["last_gaussians"][0])
+
+
+def _restore_average(mapper: Optimisation, section: dict[str, torch.Tensor]) -> None:
+    """The map's moving average; a checkpoint written before it was kept has none, and the average
+    starts afresh from the live map."""
+    if "anchors.average_steps" not in section:
+        return
+    anchors = mapper.anchors
+    anchors.average_steps = _shaped(section, "anchors.average_steps", anchors.average_steps)
+    anchors.averages = {name: _shaped(section, f"anchors.average.{name}", anchors.averages[name])
+                        for name in LEARNABLE}
+    prefix = "average."
+    mapper.average.load({name[len(prefix):]: value.to(mapper.device)
+                         for name, value in section.items() if name.startswith(prefix)})
 
 
 def _restore_keyframes(mapper: Optimisation, section: dict[str, torch.Tensor]) -> None:

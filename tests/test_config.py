@@ -22,6 +22,12 @@ def test_dense_and_sparse_refine_to_level_one_and_sparse_fast_to_two():
     assert preset("sparse-fast").octree.max_level == MapperConfig().octree.max_level == 2
 
 
+def test_dense_and_sparse_render_the_average_and_sparse_fast_the_live_map():
+    """Measured choices (bench/RESULTS.md, twelfth session); the default is the paper's live map."""
+    assert preset("dense").optim.average_decay == preset("sparse").optim.average_decay == 0.85
+    assert preset("sparse-fast").optim.average_decay == MapperConfig().optim.average_decay == 0.0
+
+
 def test_overrides_are_typed_and_checked():
     config = resolve("sparse", overrides=parse_override_args(["keyframes.iterations=7", "octree.voxel_size=0.2"]))
     assert config.keyframes.iterations == 7 and config.octree.voxel_size == 0.2
@@ -78,6 +84,8 @@ def test_ablation_switches_default_to_the_paper_and_are_validated():
     ("loss.depth", "1e300"),  # an infinite float32 loss
     ("seed", str(1 << 70)),  # beyond what torch's generator takes
     ("octree.allocation_stride", str(1 << 70)),  # once an INTERNAL error in torch's slicing (fuzzer)
+    ("optim.average_decay", "1"),  # an average that never moves
+    ("optim.average_decay", "-0.5"),
 ])
 def test_every_range_check_names_its_own_key(key: str, value: str):
     with pytest.raises(ValueError, match=rf"^config {key} is out of range: must be "):

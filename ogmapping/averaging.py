@@ -1,0 +1,109 @@
+"""The map that renders: an exponential moving average of the learnable values over the last steps.
+
+An online map follows whichever views it trained on last (bench/RESULTS.md, seventh and eighth
+sessions); the average of its values over the last few steps (Polyak averaging) renders every view
+better. Training keeps stepping the live values; queries (renders, snapshots, exports) use the
+average. The average is debiased per row, so an anchor grown a few steps ago averages only its own
+steps, not the zeros before it: after k updates with decay d the newest value weighs
+(1 - d) / (1 - d^k), so the first update copies the value.
+
+What is averaged: the anchors' rows (kept in ``AnchorMap``, which carries them through growth and
+pruning) and the decoders. The dense version's hash table is not: it is stepped lazily, row by row,
+and averaging all of it would cost a pass over the whole table per step.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import torch
+from torch import nn
+
+from ogmapping.anchors import LEARNABLE, AnchorMap
+
+DECODER_PREFIX = "decoders."
+
+
+def newest_weight(steps: torch.Tensor, decay: float) -> torch.Tensor:
+    """Weight of the newest value in a debiased average after ``steps`` (>= 1) updates."""
+    return (1.0 - decay) / (1.0 - torch.pow(decay, steps.to(torch.float64))).to(torch.float32)
+
+
+def _blend(average: torch.Tensor, value: torch.Tensor, weight: torch.Tensor) -> None:
+    average.add_((value - average) * weight.view(-1, *([1] * (value.dim() - 1))))
+
+
+class MapAverage:
+    """The moving average of one mapper's anchors and decoders (``decay`` 0: off, queries see the live map)."""
+
+    def __init__(self, anchors: AnchorMap, decoders: nn.Module, decay: float) -> None:
+        self.anchors = anchors
+        self.decoders = decoders
+        self.decay = decay
+        self.decoder_values = {name: torch.zeros_like(value) for name, value in decoders.named_parameters()}
+        self.decoder_steps = 0
+
+    @property
+    def enabled(self) -> bool:
+        return self.decay > 0.0
+
+    @torch.no_grad()
+    def update(self) -> None:
+        """Fold the live values in, after an optimiser step."""
+        if not self.enabled:
+            return
+        anchors = self.anchors
+        anchors.average_steps += 1
+        weight = newest_weight(anchors.average_steps, self.decay)
+        for name in LEARNABLE:
+            _blend(anchors.averages[name], getattr(anchors, name), weight)
+        self.decoder_steps += 1
+        decoder_weight = newest_weight(torch.tensor([self.decoder_steps]), self.decay)
+        for name, value in self.decoders.named_parameters():
+            self.decoder_values[name].add_((value - self.decoder_values[name]) * decoder_weight)
+
+    def _averaged_values(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """(live parameter, its average) pairs; rows never averaged keep their live value."""
+        anchors = self.anchors
+        pairs = []
+        for name in LEARNABLE:
+            live = getattr(anchors, name)
+            seen = (anchors.average_steps > 0).view(-1, *([1] * (live.dim() - 1)))
+            pairs.append((live, torch.where(seen, anchors.averages[name], live.detach())))
+        if self.decoder_steps:
+            pairs.extend((value, self.decoder_values[name]) for name, value in self.decoders.named_parameters())
+        return pairs
+
+    @contextmanager
+    def applied(self) -> Iterator[None]:
+        """The averaged values in place of the live ones while the block runs (hold the mapper's lock)."""
+        if not self.enabled:
+            yield
+            return
+        with torch.no_grad():
+            swaps = [(param, param.detach().clone(), average) for param, average in self._averaged_values()]
+            for param, _, average in swaps:
+                param.copy_(average)
+        try:
+            yield
+        finally:
+            with torch.no_grad():
+                for param, live, _ in swaps:
+                    param.copy_(live)
+
+    def state(self) -> dict[str, torch.Tensor]:
+        """The decoders' averages and step count (the anchors' rows travel with the anchors)."""
+        tensors = {DECODER_PREFIX + name: value for name, value in self.decoder_values.items()}
+        tensors["decoder_steps"] = torch.tensor([self.decoder_steps], dtype=torch.int64)
+        return tensors
+
+    def load(self, tensors: dict[str, torch.Tensor]) -> None:
+        """Restore what ``state`` captured; ValueError when a shape does not fit the decoders."""
+        for name, value in self.decoder_values.items():
+            restored = tensors[DECODER_PREFIX + name]
+            if restored.shape != value.shape:
+                raise ValueError(f"average {DECODER_PREFIX}{name}: shape {tuple(restored.shape)}, "
+                                 f"expected {tuple(value.shape)}")
+            value.copy_(restored)
+        self.decoder_steps = int(tensors["decoder_steps"][0])

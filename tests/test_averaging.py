@@ -1,0 +1,105 @@
+"""The map's moving average (``optim.average_decay``): debiased per anchor row, carried through growth,
+pruning, snapshots and checkpoints, and what every query sees while training steps the live map."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from ogmapping import snapshot
+from ogmapping.anchors import AnchorMap
+from ogmapping.averaging import MapAverage, newest_weight
+from ogmapping.config import resolve
+from ogmapping.evaluation import open_frames
+from ogmapping.mapper import Mapper
+
+TINY = {"keyframes.first_iterations": "6", "keyframes.iterations": "2"}
+
+
+def _anchors(count: int, anchors: AnchorMap | None = None) -> AnchorMap:
+    anchors = anchors or AnchorMap(2, 4, True, torch.device("cpu"), with_colours=True)
+    codes = torch.arange(len(anchors), len(anchors) + count)
+    anchors.add(codes, torch.zeros(count, dtype=torch.int64), torch.zeros(count, 3), torch.ones(count),
+                torch.zeros(count, 4), None)
+    return anchors
+
+
+def test_the_first_update_copies_the_value_and_later_ones_weigh_as_a_debiased_average():
+    assert torch.allclose(newest_weight(torch.tensor([1, 2, 3]), 0.5), torch.tensor([1.0, 2 / 3, 4 / 7]))
+    anchors = _anchors(1)
+    average = MapAverage(anchors, torch.nn.Linear(1, 1), 0.5)
+    seen = []
+    for value in (4.0, 1.0, 7.0):
+        with torch.no_grad():
+            anchors.features.fill_(value)
+        average.update()
+        seen.append(value)
+        weights = [0.5 ** age for age in range(len(seen))][::-1]
+        expected = sum(w * v for w, v in zip(weights, seen, strict=True)) / sum(weights)
+        assert anchors.averages["features"][0, 0].item() == pytest.approx(expected)
+
+
+def test_rows_grown_later_average_only_their_own_steps_and_pruning_keeps_rows_in_step():
+    anchors = _anchors(2)
+    average = MapAverage(anchors, torch.nn.Linear(1, 1), 0.9)
+    with torch.no_grad():
+        anchors.offsets.fill_(1.0)
+    average.update()
+    _anchors(1, anchors)  # a grown row: never averaged, so queries see its live value
+    with torch.no_grad():
+        anchors.offsets.fill_(3.0)
+    with average.applied():
+        assert anchors.offsets[:2].eq(1.0).all() and anchors.offsets[2].eq(3.0).all()
+    assert anchors.offsets.eq(3.0).all()  # the live values are back after the block
+    average.update()
+    assert anchors.average_steps.tolist() == [2, 2, 1]
+    assert anchors.averages["offsets"][2].eq(3.0).all()  # its first update copied the value
+    anchors.keep(torch.tensor([False, True, True]), None)
+    assert anchors.average_steps.tolist() == [2, 1]
+    assert anchors.averages["offsets"].shape == anchors.offsets.shape
+
+
+def _mapped(overrides: dict[str, str], frames: int = 3) -> tuple[Mapper, list]:
+    source = open_frames("synthetic", "synthetic", f"0:{frames + 2}", 1, 0.25, n_frames=40)
+    loaded = [source.load(position) for position in range(frames + 2)]
+    mapper = Mapper(resolve("sparse-fast", overrides={**TINY, **overrides}))
+    for frame in loaded[:frames]:
+        mapper.process(frame)
+    return mapper, loaded
+
+
+def test_queries_and_snapshots_see_the_average_and_training_the_live_map():
+    mapper, loaded = _mapped({"optim.average_decay": "0.9"})
+    live = mapper.anchors.offsets.detach().clone()
+    pose, camera = loaded[1].c2w, loaded[1].color_intrinsics
+    rendered = mapper.render(pose, camera)
+    assert torch.equal(mapper.anchors.offsets, live)
+    with mapper.lock, torch.no_grad(), mapper.average.applied():
+        assert not torch.equal(mapper.anchors.offsets, live)
+    restored = Mapper.from_state(mapper.state())  # what a snapshot holds, at full precision
+    assert np.array_equal(restored.render(pose, camera).color, rendered.color)
+    off, _ = _mapped({})
+    assert not np.array_equal(off.render(pose, camera).color, rendered.color)
+
+
+def test_a_checkpoint_carries_the_average_and_resumes_it_exactly():
+    original, loaded = _mapped({"optim.average_decay": "0.8"})
+    data = snapshot.encode(original.state(training_state=True), half=False)
+    resumed = Mapper.from_state(snapshot.decode(data), training_state=True)
+    assert torch.equal(resumed.anchors.average_steps, original.anchors.average_steps)
+    for frame in loaded[3:]:
+        original.process(frame)
+        resumed.process(frame)
+    pose, camera = loaded[4].c2w, loaded[4].color_intrinsics
+    assert np.array_equal(resumed.render(pose, camera).color, original.render(pose, camera).color)
+
+
+def test_a_checkpoint_written_before_the_average_was_kept_starts_it_afresh():
+    original, loaded = _mapped({"optim.average_decay": "0.8"})
+    state = original.state(training_state=True)
+    state.tensors = {name: value for name, value in state.tensors.items() if "average" not in name}
+    resumed = Mapper.from_state(state, training_state=True)
+    assert int(resumed.anchors.average_steps.sum()) == 0 and resumed.average.decoder_steps == 0
+    steps = resumed.process(loaded[3]).iterations
+    assert resumed.average.decoder_steps == steps and int(resumed.anchors.average_steps.max()) == steps
