@@ -59,7 +59,8 @@ class MapAverage:
         for name in LEARNABLE:
             _blend(anchors.averages[name], getattr(anchors, name), weight)
         self.decoder_steps += 1
-        decoder_weight = newest_weight(torch.tensor([self.decoder_steps]), self.decay)
+        # A plain float: a CPU tensor would not multiply a CUDA one.
+        decoder_weight = (1.0 - self.decay) / (1.0 - self.decay**self.decoder_steps)
         for name, value in self.decoders.named_parameters():
             self.decoder_values[name].add_((value - self.decoder_values[name]) * decoder_weight)
 
