@@ -1,5 +1,6 @@
 """What a mapper's optimisation carries besides the map, as plain tensors: the keyframes, Adam's
-moments, the refinement statistics, the anchors' exact centres and the random states.
+moments, the map's moving average, the refinement statistics, the anchors' exact centres and the
+random states.
 
 A snapshot leaves these out (a map rebuilt from it renders the same, and maps on with fresh
 keyframes and moments); a checkpoint keeps them (``Mapper.state(training=True)``), so a session
