@@ -59,10 +59,10 @@ class MapAverage:
         for name in LEARNABLE:
             _blend(anchors.averages[name], getattr(anchors, name), weight)
         self.decoder_steps += 1
-        # A plain float: a CPU tensor would not multiply a CUDA one.
-        decoder_weight = (1.0 - self.decay) / (1.0 - self.decay**self.decoder_steps)
+        # Every decoder value shares one count, on the map's device (a CPU tensor would not multiply a CUDA one).
+        weight = newest_weight(torch.tensor([self.decoder_steps], device=anchors.device), self.decay)
         for name, value in self.decoders.named_parameters():
-            self.decoder_values[name].add_((value - self.decoder_values[name]) * decoder_weight)
+            _blend(self.decoder_values[name], value, weight)
 
     def _averaged_values(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """(live parameter, its average) pairs; rows never averaged keep their live value."""

@@ -340,16 +340,17 @@ def _ranges(config: MapperConfig) -> dict[str, tuple[bool, str]]:
         "refine.prune_min_observations": (refine.prune_min_observations >= 0, ">= 0"),
         "refine.max_new_anchors": (refine.max_new_anchors >= 0, ">= 0"),
         "seed": (SEED_RANGE[0] <= config.seed <= SEED_RANGE[1], f"in [{SEED_RANGE[0]}, {SEED_RANGE[1]}]"),
+        # A decay, below 1 (at 1 the average would never move).
+        "optim.average_decay": (_within(config.optim.average_decay, 0) and config.optim.average_decay < 1,
+                                "in [0, 1)"),
     }
     # Loss weights and learning rates: beyond these the float32 optimisation overflows into NaN or
     # throws Gaussians kilometres per step (Adam's steps are about the learning rate in size).
-    for section, high in (("loss", MAX_LOSS_WEIGHT), ("optim", MAX_LEARNING_RATE)):
+    for section, high, suffix in (("loss", MAX_LOSS_WEIGHT, ""), ("optim", MAX_LEARNING_RATE, "_lr")):
         for item in dataclasses.fields(getattr(config, section)):
-            value = getattr(getattr(config, section), item.name)
-            checks[f"{section}.{item.name}"] = (_within(value, 0, high), f"in [0, {high:g}]")
-    # Not a learning rate: a decay, below 1 (at 1 the average would never move).
-    checks["optim.average_decay"] = (_within(config.optim.average_decay, 0) and config.optim.average_decay < 1,
-                                     "in [0, 1)")
+            if item.name.endswith(suffix):
+                value = getattr(getattr(config, section), item.name)
+                checks[f"{section}.{item.name}"] = (_within(value, 0, high), f"in [0, {high:g}]")
     return checks
 
 
