@@ -439,5 +439,6 @@ class ConfigBounds:
 
 
 def hash_table_bytes(model: ModelConfig) -> int:
-    """The dense encoding's table (float32); its gradient rows and Adam moments take up to three times more."""
+    """The dense encoding's table (float32); its gradient (rows, or a buffer of the table's size on the CPU) and
+    Adam moments take about three times more."""
     return model.hash_levels * 2**model.hash_log2_size * model.hash_features_per_level * 4

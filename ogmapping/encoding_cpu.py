@@ -4,8 +4,9 @@ The torch encoding builds (anchors, levels, 8 corners, 3) integer and float tens
 fifteen ops over them each way; on two cores that was ~44 ms forward and most of a 100 ms backward
 per 320x240 dense iteration. Here one parallel loop over the anchors hashes each level's eight
 corners, interpolates the features in registers and keeps the rows and trilinear weights it used;
-the backward is one multiply per lookup, deposited in the same ``RowGradients`` sink as the torch
-path's ``SparseRowGather`` (so ``LazyAdam`` steps both alike). Anchor positions get no gradient.
+the backward is one multiply-add per lookup, summed in place into the same ``RowGradients`` sink as
+the torch path's ``SparseRowGather`` deposits its pairs in (so ``LazyAdam`` steps both alike).
+Anchor positions get no gradient.
 
 The arithmetic follows ``HashGridEncoding.forward`` in float32 (cell coordinates, fractions and
 weights), and the hash wraps int64 products as torch does, so the rows are identical and the
@@ -50,19 +51,6 @@ def _encode(points, resolutions, table, prime_y, prime_z, rows, weights, feature
                     features[m, level * width + f] += weight * table[level, row, f]
 
 
-@njit(parallel=True, cache=True, error_model="numpy")
-def _row_gradients(grad, weights, values):
-    """values (M*L*8, F): the gradient reaching each lookup's table row."""
-    count, levels, corners = weights.shape
-    width = values.shape[1]
-    for m in prange(count):
-        for level in range(levels):
-            for corner in range(corners):
-                lookup = (m * levels + level) * corners + corner
-                for f in range(width):
-                    values[lookup, f] = grad[m, level * width + f] * weights[m, level, corner]
-
-
 class HashEncode(torch.autograd.Function):
     """``HashGridEncoding.forward`` as one kernel; the table's gradient rows go to ``sink``."""
 
@@ -77,15 +65,13 @@ class HashEncode(torch.autograd.Function):
         features = np.empty((count, levels * width), np.float32)
         _encode(float32_array(points), float32_array(resolutions), float32_array(table),
                 np.int64(primes[1]), np.int64(primes[2]), rows, weights, features)
-        ctx.lookups = (torch.from_numpy(rows), weights)
+        ctx.lookups = (rows, weights)
+        ctx.table_shape = table.shape
         ctx.sink = sink
         return torch.from_numpy(features)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor) -> tuple[None, None, None, None, None]:
         rows, weights = ctx.lookups
-        width = grad.shape[1] // rows.shape[1]
-        values = np.empty((rows.numel(), width), np.float32)
-        _row_gradients(float32_array(grad), weights, values)
-        ctx.sink.add(rows, torch.from_numpy(values))
+        ctx.sink.accumulate_lookups(ctx.table_shape, rows, weights, float32_array(grad))
         return None, None, None, None, None

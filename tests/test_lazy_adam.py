@@ -58,3 +58,61 @@ def test_untouched_rows_keep_their_values_and_moments():
     optimizer.zero_grad()
     optimizer.step()
     assert optimizer.step_count == 1, "a step with no gradient rows changes nothing"
+
+
+def _lookups(levels: int, size: int, count: int, seed: int) -> tuple:
+    """Random hash-encoding lookups: flat rows (count, levels, 8) inside each level, weights, feature gradients."""
+    generator = torch.Generator().manual_seed(seed)
+    rows = torch.randint(0, size, (count, levels, 8), generator=generator) + torch.arange(levels).view(1, -1, 1) * size
+    weights = torch.rand(count, levels, 8, generator=generator)
+    grad = torch.randn(count, levels * 2, generator=generator)
+    return rows, weights, grad
+
+
+def _as_pairs(rows: torch.Tensor, weights: torch.Tensor, grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    levels = rows.shape[1]
+    values = grad.view(-1, levels, 1, 2) * weights.unsqueeze(-1)  # (count, levels, 8, F)
+    return rows.reshape(-1), values.reshape(-1, 2)
+
+
+def test_lookups_summed_in_place_equal_the_same_pairs_summed_by_sort():
+    shape = torch.Size((3, 64, 2))
+    in_place, by_pairs = RowGradients(), RowGradients()
+    for seed in range(2):  # two views' backward passes into one step
+        rows, weights, grad = _lookups(3, 64, 40, seed)
+        in_place.accumulate_lookups(shape, rows.numpy(), weights.numpy(), grad.numpy())
+        by_pairs.add(*_as_pairs(rows, weights, grad))
+    torch.testing.assert_close(in_place.dense(shape), by_pairs.dense(shape))
+    assert in_place.touched.counts.sum() == len(by_pairs.summed()[0])
+    in_place.clear()
+    assert in_place.summed() is None
+    assert not in_place.touched.values.any() and not in_place.touched.flags.any()
+
+
+def test_compiled_step_over_lookups_equals_the_torch_step_and_leaves_the_buffer_empty():
+    shape = torch.Size((3, 64, 2))
+    start = torch.randn(shape)
+    compiled_table, torch_table = torch.nn.Parameter(start.clone()), torch.nn.Parameter(start.clone())
+    in_place, by_pairs = RowGradients(), RowGradients()
+    compiled = LazyAdam(compiled_table, in_place, lr=0.01, compiled=True)
+    reference = LazyAdam(torch_table, by_pairs, lr=0.01, compiled=False)
+    for seed in range(4):
+        compiled.zero_grad()
+        reference.zero_grad()
+        rows, weights, grad = _lookups(3, 64, 30, seed)
+        in_place.accumulate_lookups(shape, rows.numpy(), weights.numpy(), grad.numpy())
+        by_pairs.add(*_as_pairs(rows, weights, grad))
+        compiled.step()
+        reference.step()
+        assert not in_place.touched.values.any() and not in_place.touched.flags.any()
+    torch.testing.assert_close(compiled_table, torch_table)
+    torch.testing.assert_close(compiled.exp_avg_sq, reference.exp_avg_sq)
+    assert compiled.step_count == reference.step_count == 4
+
+
+def test_a_buffer_is_for_one_table_shape():
+    sink = RowGradients()
+    rows, weights, grad = _lookups(3, 64, 5, 0)
+    sink.accumulate_lookups(torch.Size((3, 64, 2)), rows.numpy(), weights.numpy(), grad.numpy())
+    with pytest.raises(ValueError, match="gradient buffer"):
+        sink.accumulate_lookups(torch.Size((3, 32, 2)), rows.numpy(), weights.numpy(), grad.numpy())
