@@ -60,6 +60,13 @@ class Decoders(nn.Module):
     def forward(self, features: torch.Tensor, view_dirs: torch.Tensor, distances: torch.Tensor) -> DecodedAttributes:
         return activate(*self.logits(features, view_dirs, distances), self.n)
 
+    @torch.no_grad()
+    def start_visible(self, opacity_logits: torch.Tensor, share: float) -> None:
+        """Shift the opacity decoder's output bias per slot so that ``share`` of ``opacity_logits``
+        (V, n), the first anchors' logits, turn positive (visible): the map then starts with that
+        share of its Gaussians whatever the random start drew (config ``model.initial_visible``)."""
+        self.opacity[-1].bias -= torch.quantile(opacity_logits, 1 - share, dim=0)
+
 
 def activate(opacity: torch.Tensor, color: torch.Tensor, cov: torch.Tensor, n: int) -> DecodedAttributes:
     """tanh opacity, sigmoid colour and scale factor, identity-offset quaternion."""

@@ -193,22 +193,25 @@ class Mapper:
             initial_anchor_features(count, self.config.model.feature_dim, self.device, self.generator)
             if self.anchors.with_features else None
         )
+        if self.iterations == 0 and not len(self.anchors) and self.config.model.initial_visible > 0:
+            opacity, _, _ = self._decoded_logits(positions, features, c2w)
+            self.decoders.start_visible(opacity, self.config.model.initial_visible)
         colours = None
         if self.anchors.with_colours and self.config.model.anchor_colour_start == "cell":
             stride = colour_sample_stride(self.config.octree.voxel_size, self.config.octree.depth_max, intrinsics)
             target, seen = cell_colour_logits(self.octree, codes, rgb, depth, intrinsics, c2w, stride)
-            colours = torch.where(seen.unsqueeze(1), target - self._decoded_colour(positions, features, c2w), 0.0)
+            _, decoded, _ = self._decoded_logits(positions, features, c2w)
+            colours = torch.where(seen.unsqueeze(1), target - decoded.view(count, -1, 3).mean(1), 0.0)
         self.anchors.add(codes, levels, positions, sizes, features, self.optimizer, colours)
 
-    def _decoded_colour(self, positions: torch.Tensor, features: torch.Tensor | None,
-                        c2w: torch.Tensor) -> torch.Tensor:
-        """Mean colour logit (N, 3) the decoder gives new anchors at ``positions`` seen from ``c2w``,
-        from their ``features`` (the sparse version's) or the hash grid's."""
+    def _decoded_logits(self, positions: torch.Tensor, features: torch.Tensor | None,
+                        c2w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The decoders' logits for new anchors at ``positions`` seen from ``c2w``, from their
+        ``features`` (the sparse version's) or the hash grid's."""
         with torch.no_grad():
             if features is None:
                 features = self.encoding(positions, compiled=self.profile.compiled)
-            _, colour, _ = decoded_logits(self.decoders, features, positions, c2w[:3, 3])
-            return colour.view(positions.shape[0], -1, 3).mean(1)
+            return decoded_logits(self.decoders, features, positions, c2w[:3, 3])
 
     def _footprint(self, keyframe: Keyframe) -> torch.Tensor:
         depth = keyframe.depth.to(self.device, non_blocking=keyframe.pinned).to(torch.float32)

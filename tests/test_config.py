@@ -28,6 +28,13 @@ def test_dense_and_sparse_render_the_average_and_sparse_fast_the_live_map():
     assert preset("sparse-fast").optim.average_decay == MapperConfig().optim.average_decay == 0.0
 
 
+def test_only_dense_starts_its_first_gaussians_visible():
+    """Measured choice (bench/RESULTS.md, thirteenth session); the default is the paper's random start."""
+    assert preset("dense").model.initial_visible == 0.95
+    assert preset("sparse").model.initial_visible == preset("sparse-fast").model.initial_visible == 0.0
+    assert MapperConfig().model.initial_visible == 0.0
+
+
 def test_overrides_are_typed_and_checked():
     config = resolve("sparse", overrides=parse_override_args(["keyframes.iterations=7", "octree.voxel_size=0.2"]))
     assert config.keyframes.iterations == 7 and config.octree.voxel_size == 0.2
@@ -86,6 +93,8 @@ def test_ablation_switches_default_to_the_paper_and_are_validated():
     ("octree.allocation_stride", str(1 << 70)),  # once an INTERNAL error in torch's slicing (fuzzer)
     ("optim.average_decay", "1"),  # an average that never moves
     ("optim.average_decay", "-0.5"),
+    ("model.initial_visible", "1.5"),  # a share
+    ("model.initial_visible", "nan"),
 ])
 def test_every_range_check_names_its_own_key(key: str, value: str):
     with pytest.raises(ValueError, match=rf"^config {key} is out of range: must be "):
