@@ -14,7 +14,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import defaultdict
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 
@@ -266,10 +266,13 @@ class Mapper:
             self.hash_optimizer.zero_grad()
         with self._timed("window"):
             window = [view, *(self._drawn(keyframe) for keyframe in keyframes)]
+        with self._timed("decode"):
+            rows = [self._rows_in_view(drawn.c2w, drawn.intrinsics) for drawn in window]
+            features = self._window_features(rows)
         renders: list[tuple[GaussianSet, RenderOutput, View]] = []
         total = torch.zeros((), device=self.device)
-        for drawn in window:
-            gaussians, output = self._render(drawn.c2w, drawn.intrinsics)
+        for drawn, view_rows in zip(window, rows, strict=True):
+            gaussians, output = self._render(drawn.c2w, drawn.intrinsics, view_rows, features)
             with self._timed("loss"):
                 loss, _ = mapping_loss(output.color, output.depth, drawn.rgb, drawn.depth,
                                        gaussians.scales, self.config.loss, drawn.ssim_reference,
@@ -310,10 +313,27 @@ class Mapper:
             return self.encoding(self.anchors.positions.index_select(0, rows), compiled=self.profile.compiled)
         return self.anchors.features.index_select(0, rows)  # index_add_ backward: faster than [rows]
 
-    def _render(self, c2w: torch.Tensor, intrinsics: Intrinsics) -> tuple[GaussianSet, RenderOutput]:
+    def _window_features(self, rows: list[torch.Tensor]) -> Callable[[torch.Tensor], torch.Tensor]:
+        """Features for one step's renders of anchors ``rows`` (one tensor per view). The hash grid's
+        do not depend on the view, so every anchor the window sees is encoded once, and its gradient
+        from all the views goes back through the encoding once (not once per view: a dense step
+        renders four views of mostly the same anchors)."""
+        if self.encoding is None:
+            return self._features
+        seen = torch.unique(torch.cat(rows))  # sorted
+        encoded = self._features(seen)
+        return lambda view_rows: encoded.index_select(0, torch.searchsorted(seen, view_rows))
+
+    def _rows_in_view(self, c2w: torch.Tensor, intrinsics: Intrinsics) -> torch.Tensor:
+        return anchors_in_view(self.anchors, intrinsics, c2w, far=self.config.octree.depth_max * 2)
+
+    def _render(self, c2w: torch.Tensor, intrinsics: Intrinsics, rows: torch.Tensor | None = None,
+                features: Callable[[torch.Tensor], torch.Tensor] | None = None) -> tuple[GaussianSet, RenderOutput]:
+        """Decode and rasterize the anchors ``rows`` (default: those in view) with ``features``
+        (default: ``_features``)."""
         with self._timed("decode"):
-            rows = anchors_in_view(self.anchors, intrinsics, c2w, far=self.config.octree.depth_max * 2)
-            gaussians = generate(self.anchors, self._features, self.decoders, c2w[:3, 3], rows,
+            rows = self._rows_in_view(c2w, intrinsics) if rows is None else rows
+            gaussians = generate(self.anchors, features or self._features, self.decoders, c2w[:3, 3], rows,
                                  compiled=self.profile.compiled)
         with self._timed("rasterize"):
             output = rasterize(
