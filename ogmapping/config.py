@@ -159,7 +159,7 @@ def preset(name: str) -> MapperConfig:
     if name == "dense":
         # Its first Gaussians start 95% visible: 7-Scenes 0-299 at 320x240 24.80 dB held-out over
         # four seeds (24.53-24.99) against 24.41 (23.59-24.96) at 1.62-1.66 against 1.73-1.79 FPS;
-        # Replica room0 0-19 at 600x340 33.98 / 34.07 against 33.75 / 33.80. sparse gained 0.06 dB on
+        # Replica room0 0-19 at 600x340 33.98 / 34.07 against 33.75 / 33.80. sparse gained 0.07 dB on
         # 7-Scenes and 1.7 dB on Replica but lost 40% of its speed there, under the 2 FPS it must keep.
         config.model.initial_visible = 0.95
         # Two global keyframes in the window: 7-Scenes 0-299 at 320x240 24.46 / 24.01 dB held-out

@@ -162,14 +162,9 @@ class LazyAdam:
         if summed is None:
             return
         rows, values = summed
-        self.step_count += 1
-        width = self.table.shape[-1]
+        correction1, correction2 = self._advance()
         beta1, beta2 = self.betas
-        correction1 = 1 - beta1**self.step_count
-        correction2 = 1 - beta2**self.step_count
-        table = self.table.view(-1, width)
-        exp_avg = self.exp_avg.view(-1, width)
-        exp_avg_sq = self.exp_avg_sq.view(-1, width)
+        table, exp_avg, exp_avg_sq = self._flat()
         first = exp_avg.index_select(0, rows).mul_(beta1).add_(values, alpha=1 - beta1)
         second = exp_avg_sq.index_select(0, rows).mul_(beta2).addcmul_(values, values, value=1 - beta2)
         exp_avg.index_copy_(0, rows, first)
@@ -182,15 +177,22 @@ class LazyAdam:
         touched = self.gradients.folded(self.table.shape)
         if not touched.counts.any():
             return
-        self.step_count += 1
-        width = self.table.shape[-1]
-        beta1, beta2 = self.betas
-        correction1 = 1 - beta1**self.step_count
-        correction2 = 1 - beta2**self.step_count
-        _adam_touched(self.table.detach().view(-1, width).numpy(), self.exp_avg.view(-1, width).numpy(),
-                      self.exp_avg_sq.view(-1, width).numpy(), touched.values, touched.flags, get_num_threads(),
-                      self.lr / correction1, correction2, beta1, beta2, self.eps)
+        correction1, correction2 = self._advance()
+        table, exp_avg, exp_avg_sq = self._flat()
+        _adam_touched(table.numpy(), exp_avg.numpy(), exp_avg_sq.numpy(), touched.values, touched.flags,
+                      get_num_threads(), self.lr / correction1, correction2, *self.betas, self.eps)
         touched.counts[:] = 0
+
+    def _advance(self) -> tuple[float, float]:
+        """Count a step; Adam's bias corrections 1 - beta1^t and 1 - beta2^t for it."""
+        self.step_count += 1
+        beta1, beta2 = self.betas
+        return 1 - beta1**self.step_count, 1 - beta2**self.step_count
+
+    def _flat(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The table and its moments as (rows, F) views, updated in place."""
+        width = self.table.shape[-1]
+        return self.table.detach().view(-1, width), self.exp_avg.view(-1, width), self.exp_avg_sq.view(-1, width)
 
 
 # Rows per block of the scans over the whole table (the step, the reset). Blocks and levels are

@@ -5,6 +5,7 @@ import torch
 
 from ogmapping.config import resolve
 from ogmapping.datasets.synthetic import SyntheticSource
+from ogmapping.gaussians import decoded_logits
 from ogmapping.mapper import Mapper
 
 
@@ -18,11 +19,9 @@ def _mapped(preset: str, frames: int, **overrides) -> tuple[Mapper, list]:
 
 
 def _opacity_logits(mapper: Mapper, rows: torch.Tensor, c2w) -> torch.Tensor:
-    anchors = mapper.anchors
-    to_camera = torch.as_tensor(c2w[:3, 3], dtype=torch.float32) - anchors.positions[rows]
-    distances = to_camera.norm(dim=-1, keepdim=True)
     with torch.no_grad():
-        opacity, _, _ = mapper.decoders.logits(mapper._features(rows), to_camera / distances, distances)
+        opacity, _, _ = decoded_logits(mapper.decoders, mapper._features(rows), mapper.anchors.positions[rows],
+                                       torch.as_tensor(c2w[:3, 3], dtype=torch.float32))
     return opacity
 
 
