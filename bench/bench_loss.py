@@ -21,9 +21,9 @@ import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts
 import numba
 import torch
 
-from ogmapping.fused_loss import image_terms
-from ogmapping.losses import depth_l1
-from ogmapping.ssim import reference_statistics, ssim_map
+from ogmapping.optim.fused_loss import image_terms
+from ogmapping.optim.losses import depth_l1
+from ogmapping.optim.ssim import reference_statistics, ssim_map
 
 Terms = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, ...]]
 

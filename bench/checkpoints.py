@@ -28,8 +28,8 @@ from ogserver.checkpoint import Identity, Position
 from ogserver.recorder import Recorder, _Channels, frame_record
 
 from ogmapping.config import resolve
-from ogmapping.evaluation import open_frames
 from ogmapping.mapper import Mapper
+from ogmapping.quality.evaluation import open_frames
 
 
 def main() -> None:

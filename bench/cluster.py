@@ -34,7 +34,7 @@ from ogclient.streaming import stream_frames
 from ogserver.cluster.local import local_cluster
 
 from ogmapping.config import parse_override_args
-from ogmapping.evaluation import open_frames
+from ogmapping.quality.evaluation import open_frames
 
 NO_OPTIMISATION = {"keyframes.first_iterations": "0", "keyframes.iterations": "0"}
 

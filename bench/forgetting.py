@@ -18,7 +18,7 @@ import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts
 import numpy as np
 from sequence import add_sequence_arguments, load_sequence, map_setting
 
-from ogmapping.evaluation import ground_truth, score
+from ogmapping.quality.evaluation import ground_truth, score
 
 
 def main() -> None:

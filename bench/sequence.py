@@ -8,10 +8,10 @@ from dataclasses import dataclass
 
 from ogmapping.config import MapperConfig, parse_override_args, resolve
 from ogmapping.datasets import open_dataset
-from ogmapping.frame import Frame
+from ogmapping.frames.frame import Frame
+from ogmapping.frames.preprocess import resize_frame
+from ogmapping.frames.selection import Selection, select
 from ogmapping.mapper import Mapper
-from ogmapping.preprocess import resize_frame
-from ogmapping.selection import Selection, select
 
 
 @dataclass

@@ -21,7 +21,7 @@ if "torch" in sys.modules and os.environ.get("OMP_WAIT_POLICY", "").upper() != "
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("GOMP_SPINCOUNT", "300000")
 
-from ogmapping.allocator import keep_freed_memory
+from ogmapping.runtime.allocator import keep_freed_memory
 
 keep_freed_memory()
 

@@ -10,8 +10,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ogmapping.camera import validate_pose
 from ogmapping.config import parse_override_args, resolve
+from ogmapping.frames.camera import validate_pose
 from ogmapping.options import add_config_arguments, add_dataset_arguments, dataset_source, parse_intrinsics
 
 EPILOG = """examples:

@@ -111,7 +111,7 @@ class OptimConfig:
     cov_mlp_lr: float = 0.016
     colour_lr: float = 0.08  # the anchors' own colour logits (model.anchor_colour); 0.02 and 0.04 gained less
     # Queries see the moving average of the map over its last steps, with this decay per step
-    # (ogmapping.averaging); 0: the live map, as the paper.
+    # (ogmapping.optim.averaging); 0: the live map, as the paper.
     average_decay: float = 0.0
 
 

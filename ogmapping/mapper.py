@@ -6,7 +6,7 @@ window, growing and pruning anchors every m iterations.
 
 All public methods are thread-safe: ``lock`` is held per optimisation iteration, so a render or a
 stats request from another thread is served between iterations. Device, backend, torch threads and
-whether the compiled CPU kernels run are fixed once, in ``profile`` (``ogmapping.profile``).
+whether the compiled CPU kernels run are fixed once, in ``profile`` (``ogmapping.runtime.profile``).
 """
 
 from __future__ import annotations
@@ -21,29 +21,31 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ogmapping import allocation, refine, snapshot, training
-from ogmapping.anchor_colour import cell_colour_logits, colour_sample_stride
-from ogmapping.anchors import AnchorMap
-from ogmapping.averaging import MapAverage
-from ogmapping.budget import Budget, Stop
-from ogmapping.camera import Intrinsics
 from ogmapping.config import ConfigBounds, MapperConfig
-from ogmapping.decoders import Decoders
-from ogmapping.encoding import HashGridEncoding, feature_dim, initial_anchor_features
-from ogmapping.frame import Frame
-from ogmapping.gaussians import GaussianSet, anchors_in_view, decoded_logits, generate
-from ogmapping.geometry import intrinsics_matrix, world_to_camera
-from ogmapping.keyframes import Keyframe, KeyframeSet, View
-from ogmapping.lazy_adam import LazyAdam
-from ogmapping.losses import mapping_loss
-from ogmapping.octree import SparseVoxelOctree
-from ogmapping.preprocess import prepare
-from ogmapping.profile import execution_profile
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.frame import Frame
+from ogmapping.frames.geometry import intrinsics_matrix, world_to_camera
+from ogmapping.frames.preprocess import prepare
+from ogmapping.model.decoders import Decoders
+from ogmapping.model.encoding import HashGridEncoding, feature_dim, initial_anchor_features
+from ogmapping.model.gaussians import GaussianSet, anchors_in_view, decoded_logits, generate
+from ogmapping.model.lazy_adam import LazyAdam
+from ogmapping.optim import refine
+from ogmapping.optim.averaging import MapAverage
+from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
+from ogmapping.optim.losses import mapping_loss
+from ogmapping.persist import snapshot, training
+from ogmapping.persist.state import MapState
 from ogmapping.render import rasterize
 from ogmapping.render.output import RenderOutput
-from ogmapping.state import MapState
+from ogmapping.runtime.budget import Budget, Stop
+from ogmapping.runtime.profile import execution_profile
+from ogmapping.runtime.threads import torch_threads
 from ogmapping.stats import MapStats
-from ogmapping.threads import torch_threads
+from ogmapping.structure import allocation
+from ogmapping.structure.anchor_colour import cell_colour_logits, colour_sample_stride
+from ogmapping.structure.anchors import AnchorMap
+from ogmapping.structure.octree import SparseVoxelOctree
 
 
 @dataclass
@@ -401,9 +403,9 @@ class Mapper:
     # ------------------------------------------------------------------ state
 
     def state(self, training_state: bool = False) -> MapState:
-        """The map as plain tensors and counters (see ``ogmapping.state``), detached copies: the map
+        """The map as plain tensors and counters (see ``ogmapping.persist.state``), detached copies: the map
         that renders (its moving average, ``optim.average_decay``); with ``training_state`` the live
-        map instead and what its optimisation carries (``ogmapping.training``, the average included),
+        map instead and what its optimisation carries (``ogmapping.persist.training``, the average included),
         so a mapper rebuilt from it maps on exactly as this one would."""
         with self.lock, nullcontext() if training_state else self.average.applied():
             anchors = self.anchors
@@ -488,7 +490,7 @@ class Mapper:
             self.camera_position_sum, self.camera_positions = position_sum, positions
 
     def snapshot(self) -> bytes:
-        """The map as safetensors bytes (see ``ogmapping.snapshot``)."""
+        """The map as safetensors bytes (see ``ogmapping.persist.snapshot``)."""
         return snapshot.encode(self.state())
 
     @classmethod

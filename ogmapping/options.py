@@ -9,10 +9,10 @@ import argparse
 from dataclasses import fields
 from typing import Any
 
-from ogmapping.camera import Intrinsics
 from ogmapping.config import PRESETS
 from ogmapping.datasets import FORMATS, is_bag
 from ogmapping.datasets.rosbag.options import BagOptions
+from ogmapping.frames.camera import Intrinsics
 
 
 def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:

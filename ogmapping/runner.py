@@ -15,10 +15,10 @@ import torch
 from tqdm import tqdm
 
 from ogmapping.config import MapperConfig
-from ogmapping.evaluation import evaluate_views, open_frames
-from ogmapping.frame import Frame
+from ogmapping.frames.frame import Frame
 from ogmapping.mapper import Mapper
-from ogmapping.profile import resolve_device
+from ogmapping.quality.evaluation import evaluate_views, open_frames
+from ogmapping.runtime.profile import resolve_device
 from ogmapping.warmup import warm_up
 
 MEMORY_LOG_INTERVAL = 100  # streamed frames between peak-memory records

@@ -2,14 +2,14 @@
 
 import torch
 
-from ogmapping.allocation import allocate, projection_allocation, unexplained_pixels
-from ogmapping.camera import Intrinsics
 from ogmapping.config import resolve
 from ogmapping.datasets.synthetic import SyntheticSource
-from ogmapping.geometry import backproject
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.geometry import backproject
 from ogmapping.mapper import Mapper
-from ogmapping.octree import SparseVoxelOctree
 from ogmapping.render.output import RenderOutput
+from ogmapping.structure.allocation import allocate, projection_allocation, unexplained_pixels
+from ogmapping.structure.octree import SparseVoxelOctree
 
 VOXEL = 0.1
 # 8 x 4 pixels looking down +z; at depth 1 a pixel spans 0.1 m (one coarse cell).

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import ogmapping  # noqa: F401  (the import applies the setting)
-from ogmapping.allocator import keep_freed_memory
+from ogmapping.runtime.allocator import keep_freed_memory
 
 pytestmark = pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc",
                                 reason="mallopt thresholds are glibc's")

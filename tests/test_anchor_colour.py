@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 import torch
 
-from ogmapping.anchor_colour import cell_colour_logits, with_anchor_colours
-from ogmapping.camera import Intrinsics
 from ogmapping.config import resolve
 from ogmapping.datasets.synthetic import SyntheticSource
+from ogmapping.frames.camera import Intrinsics
 from ogmapping.mapper import Mapper
-from ogmapping.octree import SparseVoxelOctree
-from ogmapping.snapshot import decode, encode
+from ogmapping.persist.snapshot import decode, encode
+from ogmapping.structure.anchor_colour import cell_colour_logits, with_anchor_colours
+from ogmapping.structure.octree import SparseVoxelOctree
 
 CAMERA = Intrinsics(fx=40.0, fy=40.0, cx=32.0, cy=24.0, width=64, height=48)
 
@@ -116,7 +116,7 @@ def test_colours_learn_and_survive_a_snapshot_and_old_snapshots_still_load():
 
 
 def test_strided_intrinsics_see_each_kept_pixel_where_the_full_image_does():
-    from ogmapping.geometry import pixel_rays
+    from ogmapping.frames.geometry import pixel_rays
 
     full = Intrinsics(fx=500.0, fy=480.0, cx=321.3, cy=239.7, width=640, height=480)
     for stride, start in ((2, 1), (3, 1), (4, 2)):

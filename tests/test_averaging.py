@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import torch
 
-from ogmapping import snapshot
-from ogmapping.anchors import AnchorMap
-from ogmapping.averaging import MapAverage, newest_weight
 from ogmapping.config import resolve
-from ogmapping.evaluation import open_frames
 from ogmapping.mapper import Mapper
+from ogmapping.optim.averaging import MapAverage, newest_weight
+from ogmapping.persist import snapshot
+from ogmapping.quality.evaluation import open_frames
+from ogmapping.structure.anchors import AnchorMap
 
 TINY = {"keyframes.first_iterations": "6", "keyframes.iterations": "2"}
 

@@ -9,7 +9,6 @@ import cv2
 import numpy as np
 import pytest
 
-from ogmapping.camera import Intrinsics
 from ogmapping.datasets import FORMATS, open_dataset
 from ogmapping.datasets.base import decode_depth
 from ogmapping.datasets.replica import Replica
@@ -17,6 +16,7 @@ from ogmapping.datasets.scannet import ScanNet
 from ogmapping.datasets.sevenscenes import SevenScenes
 from ogmapping.datasets.synthetic import SyntheticSource
 from ogmapping.datasets.tum import TUM, associate_unique, quaternion_to_matrix
+from ogmapping.frames.camera import Intrinsics
 
 
 def random_pose(rng: np.random.Generator) -> np.ndarray:

@@ -3,7 +3,7 @@
 import torch
 
 from ogmapping.config import ModelConfig
-from ogmapping.encoding import HashGridEncoding
+from ogmapping.model.encoding import HashGridEncoding
 
 
 def encoding_and_points(count: int = 300) -> tuple[HashGridEncoding, torch.Tensor]:

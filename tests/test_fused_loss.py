@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from ogmapping.fused_loss import image_terms
-from ogmapping.losses import depth_l1
-from ogmapping.ssim import reference_statistics, ssim_map
+from ogmapping.optim.fused_loss import image_terms
+from ogmapping.optim.losses import depth_l1
+from ogmapping.optim.ssim import reference_statistics, ssim_map
 
 
 def _views(height: int, width: int, seed: int):

@@ -3,8 +3,8 @@
 import pytest
 import torch
 
-from ogmapping.anchors import AnchorMap
-from ogmapping.gaussians import _assemble_compiled, _assemble_torch
+from ogmapping.model.gaussians import _assemble_compiled, _assemble_torch
+from ogmapping.structure.anchors import AnchorMap
 
 N_OFFSETS = 10
 OUTPUTS = ("means", "quats", "scales", "opacities", "colors")

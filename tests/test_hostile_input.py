@@ -13,13 +13,14 @@ import pytest
 import torch
 from safetensors.torch import save as save_tensors
 
-from ogmapping import extent, snapshot
-from ogmapping.budget import Budget, Stop
-from ogmapping.camera import Intrinsics
 from ogmapping.config import ConfigBounds, OctreeConfig, resolve
 from ogmapping.datasets.synthetic import SyntheticSource
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.preprocess import reproject_depth
 from ogmapping.mapper import Mapper
-from ogmapping.preprocess import reproject_depth
+from ogmapping.persist import snapshot
+from ogmapping.runtime.budget import Budget, Stop
+from ogmapping.structure import extent
 
 SMALL = {"keyframes.first_iterations": 2, "keyframes.iterations": 1, "keyframes.frame_iterations": 1}
 

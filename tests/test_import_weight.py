@@ -17,14 +17,15 @@ NO_TORCH = "assert 'torch' not in sys.modules, sorted(m for m in sys.modules if 
 CHECKS = {
     "client": f"import ogclient.__main__, ogclient.commands, ogclient.demo, sys; {NO_TORCH}",
     "engine's torch-free modules": (
-        "import ogmapping.camera, ogmapping.config, ogmapping.datasets, ogmapping.evaluation, ogmapping.frame, "
-        f"ogmapping.options, ogmapping.preprocess, ogmapping.selection, sys; {NO_TORCH}"
+        "import ogmapping.config, ogmapping.datasets, ogmapping.frames.camera, ogmapping.frames.frame, "
+        "ogmapping.frames.preprocess, ogmapping.frames.selection, ogmapping.options, ogmapping.quality.evaluation, "
+        f"sys; {NO_TORCH}"
     ),
     "streaming a dataset": (
         "import sys\n"
         "from ogclient.messages import frame_to_proto\n"
         "from ogmapping.config import resolve\n"
-        "from ogmapping.evaluation import open_frames\n"
+        "from ogmapping.quality.evaluation import open_frames\n"
         "frames = open_frames('synthetic', 'synthetic', '0:3', scale=0.25)\n"
         "frame_to_proto(frames.load(frames.selection.streamed[0]))\n"
         "resolve('sparse', overrides={'keyframes.iterations': '3'})\n"

@@ -5,8 +5,8 @@ import torch
 
 from ogmapping.config import resolve
 from ogmapping.datasets.synthetic import SyntheticSource
-from ogmapping.gaussians import decoded_logits
 from ogmapping.mapper import Mapper
+from ogmapping.model.gaussians import decoded_logits
 
 
 def _mapped(preset: str, frames: int, **overrides) -> tuple[Mapper, list]:

@@ -8,8 +8,8 @@ import pytest
 
 from ogmapping.config import resolve
 from ogmapping.datasets import open_dataset
+from ogmapping.frames.preprocess import resize_frame
 from ogmapping.mapper import Mapper
-from ogmapping.preprocess import resize_frame
 
 NO_OPTIMISATION = {"keyframes.first_iterations": 0, "keyframes.iterations": 0, "keyframes.frame_iterations": 0}
 

@@ -2,9 +2,9 @@
 
 import torch
 
-from ogmapping.camera import Intrinsics
 from ogmapping.config import KeyframeConfig
-from ogmapping.keyframes import Keyframe, KeyframeSet, overlap_ratio
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.optim.keyframes import Keyframe, KeyframeSet, overlap_ratio
 
 INTRINSICS = Intrinsics(10, 10, 4, 3, 8, 6)
 

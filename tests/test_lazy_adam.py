@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from ogmapping.lazy_adam import LazyAdam, RowGradients, SparseRowGather
+from ogmapping.model.lazy_adam import LazyAdam, RowGradients, SparseRowGather
 
 
 def test_gather_matches_indexing_and_deposits_its_gradient_rows():

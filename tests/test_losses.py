@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from ogmapping.config import LossConfig
-from ogmapping.losses import mapping_loss
+from ogmapping.optim.losses import mapping_loss
 
 
 def _scene(seed: int = 0):
@@ -80,7 +80,7 @@ def test_weights_and_gradients(compiled):
 
 
 def test_cached_reference_statistics_give_the_same_ssim():
-    from ogmapping.ssim import reference_statistics, ssim_map
+    from ogmapping.optim.ssim import reference_statistics, ssim_map
 
     generator = torch.Generator().manual_seed(3)
     a, b = torch.rand(20, 24, 3, generator=generator), torch.rand(20, 24, 3, generator=generator)
@@ -91,7 +91,7 @@ def test_cached_reference_statistics_give_the_same_ssim():
 
 def test_compiled_blur_gives_the_autograd_ssim():
     """The Numba blur and torch's differentiable one give the same map; the Numba one refuses a gradient."""
-    from ogmapping.ssim import reference_statistics, ssim_map
+    from ogmapping.optim.ssim import reference_statistics, ssim_map
 
     generator = torch.Generator().manual_seed(4)
     a, b = torch.rand(37, 53, 3, generator=generator), torch.rand(37, 53, 3, generator=generator)

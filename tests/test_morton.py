@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from ogmapping import morton
+from ogmapping.structure import morton
 
 
 def interleave(x: int, y: int, z: int) -> int:

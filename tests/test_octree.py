@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from ogmapping import morton
-from ogmapping.camera import Intrinsics
 from ogmapping.config import OctreeConfig
-from ogmapping.octree import SparseVoxelOctree
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.structure import morton
+from ogmapping.structure.octree import SparseVoxelOctree
 
 VOXEL = 0.1
 

@@ -9,8 +9,8 @@ from ply_renderer import read_ply, render
 
 from ogmapping.cli import main as ogmap
 from ogmapping.datasets import open_dataset
-from ogmapping.metrics import psnr
-from ogmapping.preprocess import resize_frame
+from ogmapping.frames.preprocess import resize_frame
+from ogmapping.quality.metrics import psnr
 
 SCALE = 0.25  # 160x120
 STREAMED, HELDOUT = 30, 35

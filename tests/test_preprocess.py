@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import torch
 
-from ogmapping.camera import Intrinsics
 from ogmapping.datasets.sevenscenes import SevenScenes
-from ogmapping.frame import Frame
-from ogmapping.geometry import backproject, project
-from ogmapping.preprocess import clip_depth, register_depth, reproject_depth, resize_frame
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.frame import Frame
+from ogmapping.frames.geometry import backproject, project
+from ogmapping.frames.preprocess import clip_depth, register_depth, reproject_depth, resize_frame
 
 
 def make_frame(depth: np.ndarray, depth_k: Intrinsics, color_k: Intrinsics, transform: np.ndarray | None) -> Frame:

@@ -13,17 +13,17 @@ import torch
 from ogmapping.config import resolve
 from ogmapping.datasets.synthetic import SyntheticSource
 from ogmapping.mapper import Mapper
-from ogmapping.profile import execution_profile, resolve_device
 from ogmapping.render import gsplat_backend
 from ogmapping.render.rules import ALPHA_MIN
+from ogmapping.runtime.profile import execution_profile, resolve_device
 
 SETTINGS = {"keyframes.first_iterations": 3, "keyframes.iterations": 1, "keyframes.frame_iterations": 1,
             "model.hash_log2_size": 12}
 # Rasterizer, Gaussian assembly, fused loss, SSIM blur; a dense map adds the hash encoding and lazy Adam.
-SPARSE_KERNELS = {"ogmapping.render.cpu_projection", "ogmapping.render.cpu_kernels", "ogmapping.gaussians_cpu",
-                  "ogmapping.fused_loss", "ogmapping.ssim"}
+SPARSE_KERNELS = {"ogmapping.render.cpu_projection", "ogmapping.render.cpu_kernels", "ogmapping.model.gaussians_cpu",
+                  "ogmapping.optim.fused_loss", "ogmapping.optim.ssim"}
 COMPILED_MODULES = {"sparse": SPARSE_KERNELS,
-                    "dense": SPARSE_KERNELS | {"ogmapping.encoding_cpu", "ogmapping.lazy_adam"}}
+                    "dense": SPARSE_KERNELS | {"ogmapping.model.encoding_cpu", "ogmapping.model.lazy_adam"}}
 
 
 def test_compiled_kernels_run_on_the_cpu_with_the_cpu_backend_only(monkeypatch):

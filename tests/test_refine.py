@@ -4,11 +4,11 @@ import math
 
 import torch
 
-from ogmapping.anchors import AnchorMap
 from ogmapping.config import RefineConfig
-from ogmapping.gaussians import GaussianSet
-from ogmapping.octree import SparseVoxelOctree
-from ogmapping.refine import accumulate, grow, propose, propose_error, prune
+from ogmapping.model.gaussians import GaussianSet
+from ogmapping.optim.refine import accumulate, grow, propose, propose_error, prune
+from ogmapping.structure.anchors import AnchorMap
+from ogmapping.structure.octree import SparseVoxelOctree
 
 VOXEL = 0.4
 CONFIG = RefineConfig(grad_threshold=1.0, min_observations=1, max_new_anchors=100)

@@ -16,8 +16,8 @@ from test_rosbag_reader import N, stamp, write_frames
 from ogmapping import cli
 from ogmapping.datasets import open_dataset
 from ogmapping.datasets.synthetic import SyntheticSource
-from ogmapping.evaluation import FrameSet
 from ogmapping.options import dataset_source
+from ogmapping.quality.evaluation import FrameSet
 
 
 @pytest.fixture

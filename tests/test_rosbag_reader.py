@@ -391,7 +391,7 @@ def test_seven_scenes_frames_through_a_ros1_bag(tmp_path: Path, seven_scenes: Pa
 def test_depth_of_another_size_needs_its_own_camera_info(tmp_path: Path, frames) -> None:
     """Half-resolution depth with only the colour camera's CameraInfo is refused naming the flag; with its own
     CameraInfo it is a depth camera of its own, registered onto colour like any dataset's."""
-    from ogmapping.preprocess import register_depth
+    from ogmapping.frames.preprocess import register_depth
 
     for with_info in (False, True):
         path = tmp_path / f"half_{with_info}.mcap"

@@ -7,7 +7,7 @@ import torch
 from ogmapping.config import resolve
 from ogmapping.datasets.synthetic import SyntheticSource
 from ogmapping.mapper import Mapper
-from ogmapping.snapshot import read_metadata
+from ogmapping.persist.snapshot import read_metadata
 
 
 @pytest.fixture(scope="module", params=["dense", "sparse"])

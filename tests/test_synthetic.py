@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from ogmapping.camera import validate_pose
 from ogmapping.datasets.synthetic import SyntheticSource, trajectory
-from ogmapping.geometry import backproject, project
+from ogmapping.frames.camera import validate_pose
+from ogmapping.frames.geometry import backproject, project
 
 
 @pytest.fixture(scope="module")

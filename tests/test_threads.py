@@ -4,8 +4,8 @@ import threading
 
 import torch
 
-from ogmapping.profile import execution_profile
-from ogmapping.threads import torch_threads
+from ogmapping.runtime.profile import execution_profile
+from ogmapping.runtime.threads import torch_threads
 
 
 def test_sparse_cpu_maps_use_one_thread_others_keep_the_callers():

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ogmapping import snapshot
 from ogmapping.config import resolve
-from ogmapping.evaluation import open_frames
 from ogmapping.mapper import Mapper
+from ogmapping.persist import snapshot
+from ogmapping.quality.evaluation import open_frames
 
 TINY = {"keyframes.first_iterations": "6", "keyframes.iterations": "2"}
 SMALL_HASH = {"model.hash_log2_size": "12"}  # the default 2^19-row table costs a minute here, to no purpose

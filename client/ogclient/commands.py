@@ -22,10 +22,10 @@ from ogclient.evaluation import evaluate, snapshot_bytes
 from ogclient.messages import frame_to_proto, intrinsics_to_proto
 from ogclient.resuming import Backoff, stream_resuming
 from ogclient.streaming import paced, stream_frames
-from ogmapping.camera import validate_pose
 from ogmapping.config import load_file, parse_override_args, resolve
-from ogmapping.evaluation import FrameSet, open_frames
+from ogmapping.frames.camera import validate_pose
 from ogmapping.options import dataset_source, parse_intrinsics
+from ogmapping.quality.evaluation import FrameSet, open_frames
 
 COLOR_CHOICES = {"png": pb.COLOR_PNG, "jpeg": pb.COLOR_JPEG, "raw": pb.COLOR_RAW_RGB8}
 DEPTH_CHOICES = {"png16": pb.DEPTH_PNG16, "raw": pb.DEPTH_RAW_F32}

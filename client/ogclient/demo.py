@@ -24,7 +24,7 @@ from ogclient.local_server import LocalServer
 from ogclient.messages import frame_to_proto
 from ogclient.streaming import stream_frames
 from ogmapping.config import parse_override_args, resolve
-from ogmapping.evaluation import open_frames
+from ogmapping.quality.evaluation import open_frames
 
 # Sized for a 2-core CPU: 160x120 images, 40 frames (36 streamed, 4 held out), 40 iterations on the
 # first keyframe and 8 on each later one (window keyframes stay full size at this width:

@@ -1,7 +1,7 @@
 """Score a session through the server with the loop ``ogmap run`` scores a local map with.
 
 Streamed and held-out poses are rendered by the server (raw float32, so nothing is lost in
-transit) and ``ogmapping.evaluation.evaluate_views`` scores them against the dataset frames and
+transit) and ``ogmapping.quality.evaluation.evaluate_views`` scores them against the dataset frames and
 picks the same previews.
 """
 
@@ -19,9 +19,9 @@ from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 
 from ogclient.connection import SessionRef
 from ogclient.messages import intrinsics_to_proto
-from ogmapping.camera import Intrinsics
 from ogmapping.config import MapperConfig
-from ogmapping.evaluation import FrameSet, evaluate_views
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.quality.evaluation import FrameSet, evaluate_views
 
 
 @dataclass

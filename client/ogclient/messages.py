@@ -9,8 +9,8 @@ from ogapi.convert import FrameEncoding, matrix_to_list
 from ogapi.images import encode_color, encode_depth
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogmapping.camera import Intrinsics
-from ogmapping.frame import Frame
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.frame import Frame
 
 DEFAULT_ENCODING = FrameEncoding()  # lossless PNG colour, millimetre PNG depth
 

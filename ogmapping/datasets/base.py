@@ -4,7 +4,7 @@ Readers index frames by position in their own sorted frame list, never by the nu
 names, so that skipped or renumbered frames cannot shift poses against images.
 
 Intrinsics files of the public datasets follow OpenCV's convention (pixel centres at integers);
-``opencv_intrinsics`` moves them to ours (centres at +0.5, see ``ogmapping.camera``) in one place.
+``opencv_intrinsics`` moves them to ours (centres at +0.5, see ``ogmapping.frames.camera``) in one place.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ogmapping.camera import Intrinsics
-from ogmapping.frame import Frame
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.frame import Frame
 
 # Sensors write these raw values where they have no measurement.
 INVALID_RAW_DEPTH = (0, 65535)

@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ogmapping.camera import Intrinsics
 from ogmapping.datasets.base import (
     FrameSource,
     IntrinsicsOption,
@@ -23,7 +22,8 @@ from ogmapping.datasets.base import (
     read_depth,
     read_rgb,
 )
-from ogmapping.frame import Frame
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.frame import Frame
 
 REPLICA_K = (600.0, 600.0, 599.5, 339.5)
 REPLICA_SIZE = (1200, 680)

@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ogmapping.camera import Intrinsics
 from ogmapping.datasets.base import (
     FrameSource,
     IntrinsicsOption,
@@ -25,7 +24,8 @@ from ogmapping.datasets.base import (
     read_matrix,
     read_rgb,
 )
-from ogmapping.frame import Frame
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.frame import Frame
 
 FOLDERS = ("color", "depth", "pose", "intrinsic")
 

@@ -7,7 +7,7 @@ The colour camera differs from the depth camera. ``color_intrinsics="measured"``
 fx = fy = 528, cx = 314.5, cy = 238.5 at 640x480, fitted by matching depth edges to colour edges
 (shared/data/7scenes-redkitchen/SOURCE.md); ``"depth"`` reuses the depth K for colour. The small
 depth-to-colour baseline is ignored (``depth_to_color`` stays None, i.e. identity), so frames are
-unregistered and ``ogmapping.preprocess.register_depth`` resamples depth onto the colour grid.
+unregistered and ``ogmapping.frames.preprocess.register_depth`` resamples depth onto the colour grid.
 
 Pixel convention: every K here, the file's and the measured one, was used with integer pixel
 centres (the measurement was made relative to the file's K, with the file's tools), so both get
@@ -21,7 +21,6 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from ogmapping.camera import Intrinsics, validate_pose
 from ogmapping.datasets.base import (
     FrameSource,
     IntrinsicsOption,
@@ -32,7 +31,8 @@ from ogmapping.datasets.base import (
     read_matrix,
     read_rgb,
 )
-from ogmapping.frame import Frame
+from ogmapping.frames.camera import Intrinsics, validate_pose
+from ogmapping.frames.frame import Frame
 
 DEPTH_PATTERN = re.compile(r"^frame-(\d+)\.depth\.png$")
 DEFAULT_DEPTH_K = (585.0, 585.0, 320.0, 240.0)

@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ogmapping.camera import Intrinsics
 from ogmapping.datasets.base import FrameSource
-from ogmapping.frame import Frame
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.frame import Frame
 
 ROOM_LO = np.array([-3.0, -2.5, 0.0])
 ROOM_HI = np.array([3.0, 2.5, 3.0])

@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ogmapping.camera import Intrinsics
 from ogmapping.datasets.base import (
     FrameSource,
     IntrinsicsOption,
@@ -24,7 +23,8 @@ from ogmapping.datasets.base import (
     read_depth,
     read_rgb,
 )
-from ogmapping.frame import Frame
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.frame import Frame
 
 FR1_K = (517.3, 516.5, 318.6, 255.3)
 MAX_DT = 0.02

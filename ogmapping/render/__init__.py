@@ -63,7 +63,7 @@ def rasterize(
     ``means`` (N, 3) world positions, ``quats`` (N, 4) (w, x, y, z) unnormalised rotations,
     ``scales`` (N, 3) standard deviations in metres, ``opacities`` (N,) in [0, 1], ``colors``
     (N, 3), ``viewmat`` (4, 4) world-to-camera, ``K`` (3, 3) pixel intrinsics (pixel centres at
-    +0.5, see ``ogmapping.camera``).
+    +0.5, see ``ogmapping.frames.camera``).
     """
     name = resolve_backend(backend, means.device)
     module = importlib.import_module(f"ogmapping.render.{name}_backend")

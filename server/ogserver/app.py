@@ -15,7 +15,7 @@ import torch
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from ogapi import SERVICE_NAME
 
-from ogmapping.profile import resolve_device
+from ogmapping.runtime.profile import resolve_device
 from ogmapping.warmup import warm_up
 from ogserver import reflection, storage, transport, wire
 from ogserver.callers import Callers

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import threading
 
-from ogmapping.frame import Frame
+from ogmapping.frames.frame import Frame
 
 POLL_SECONDS = 0.2
 

@@ -1,8 +1,8 @@
 """Session checkpoints: a session's map and what resuming it after a crash needs, in one file.
 
 ``<session>.checkpoint.safetensors`` lies next to the session's recording. It is a snapshot
-(``ogmapping.snapshot``: the map's tensors, its config) in float32 and with the map's training state
-(``ogmapping.training``: keyframes, Adam's moments, random states), so the resumed session maps the
+(``ogmapping.persist.snapshot``: the map's tensors, its config) in float32 and with the map's training state
+(``ogmapping.persist.training``: keyframes, Adam's moments, random states), so the resumed session maps the
 frames after it as the uninterrupted one would have. Its safetensors metadata also holds, as
 JSON, the session's identity (id, owner, the recorded ``SessionConfig`` with label and resolved
 config, a salted hash of its token, never the token) and the position of the map in the recording:
@@ -26,9 +26,9 @@ from typing import Protocol
 from google.protobuf import json_format
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogmapping import snapshot
 from ogmapping.config import ConfigBounds
-from ogmapping.state import MapState
+from ogmapping.persist import snapshot
+from ogmapping.persist.state import MapState
 from ogserver.auth import TokenHash
 
 log = logging.getLogger(__name__)

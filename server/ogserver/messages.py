@@ -15,8 +15,8 @@ import grpc
 from ogapi.images import encode_color, encode_depth
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogmapping.budget import Stop
 from ogmapping.mapper import FrameResult, Rendered
+from ogmapping.runtime.budget import Stop
 from ogmapping.stats import MapStats
 from ogserver.counters import SessionCounters
 from ogserver.errors import ServiceError

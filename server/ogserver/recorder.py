@@ -40,8 +40,8 @@ from ogapi import recording as layout
 from ogapi.images import encode_color, encode_depth
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogmapping.camera import Intrinsics
-from ogmapping.frame import Frame
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.frame import Frame
 from ogserver.errors import ServiceError
 from ogserver.storage import StorageError, storage_error
 

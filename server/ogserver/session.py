@@ -34,9 +34,9 @@ import grpc
 from ogapi import SESSION_METADATA_KEY
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogmapping.budget import Budget
-from ogmapping.frame import Frame
+from ogmapping.frames.frame import Frame
 from ogmapping.mapper import Mapper, Rendered
+from ogmapping.runtime.budget import Budget
 from ogmapping.stats import MapStats
 from ogserver import messages, validation
 from ogserver.auth import TokenHash

@@ -28,11 +28,11 @@ from ogapi.images import (
 )
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogmapping import extent
-from ogmapping.camera import Intrinsics, validate_pose
 from ogmapping.config import OctreeConfig
-from ogmapping.frame import Frame
-from ogmapping.preprocess import MAX_FOOTPRINT
+from ogmapping.frames.camera import Intrinsics, validate_pose
+from ogmapping.frames.frame import Frame
+from ogmapping.frames.preprocess import MAX_FOOTPRINT
+from ogmapping.structure import extent
 from ogserver.errors import exhausted, invalid
 
 SESSION_ID_PATTERN = re.compile(r"[0-9a-f]{32}")

@@ -20,9 +20,9 @@ from ogapi import recording as layout
 from ogapi.images import encode_color
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogmapping.camera import Intrinsics
 from ogmapping.export import ColoredPoints
-from ogmapping.frame import Frame
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.frame import Frame
 from ogmapping.mapper import Mapper
 from ogserver.recorder import FrameRecord, timestamp
 

@@ -9,7 +9,7 @@ from ogapi.convert import FrameEncoding
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.messages import frame_to_proto
 
-from ogmapping.evaluation import FrameSet, open_frames
+from ogmapping.quality.evaluation import FrameSet, open_frames
 
 REPO = Path(__file__).resolve().parents[2]
 TEST_SERVER_CONFIG = REPO / "docker" / "test-server.yaml"

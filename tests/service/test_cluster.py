@@ -35,7 +35,7 @@ from ogclient.streaming import StreamResult, stream_frames
 from ogserver.cluster.local import LocalCluster, local_cluster
 
 from ogmapping.mapper import Mapper
-from ogmapping.metrics import psnr
+from ogmapping.quality.metrics import psnr
 
 from .inprocess import serving, settings
 from .scene import TEST_SERVER_CONFIG, TINY, create_request, messages, scene

@@ -11,9 +11,9 @@ from ogclient.connection import SessionRef
 from ogclient.evaluation import render
 from safetensors.numpy import load_file
 
-from ogmapping.camera import Intrinsics
+from ogmapping.frames.camera import Intrinsics
 from ogmapping.mapper import Mapper
-from ogmapping.metrics import psnr
+from ogmapping.quality.metrics import psnr
 
 COMPAT = Path(__file__).resolve().parents[1] / "compat"
 

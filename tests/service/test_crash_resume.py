@@ -18,8 +18,8 @@ from ogclient.connection import SessionRef, connect
 from ogclient.evaluation import render
 from ogclient.messages import frame_to_proto
 
-from ogmapping.evaluation import open_frames
-from ogmapping.metrics import psnr
+from ogmapping.quality.evaluation import open_frames
+from ogmapping.quality.metrics import psnr
 
 from .conftest import start_local
 from .scene import PRESET, TINY, create_request

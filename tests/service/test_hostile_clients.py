@@ -24,7 +24,7 @@ from safetensors.torch import save as save_tensors
 
 from ogmapping.config import MapperConfig, flatten, resolve
 from ogmapping.mapper import Mapper
-from ogmapping.snapshot import read_metadata
+from ogmapping.persist.snapshot import read_metadata
 
 from .conftest import ServerHandle, start_local
 from .scene import PRESET, TINY, create_request, scene

@@ -30,9 +30,9 @@ from ogclient.messages import frame_to_proto, intrinsics_to_proto
 from ogclient.streaming import StreamResult, stream_frames
 from ogserver import healthcheck
 
-from ogmapping.evaluation import FrameSet
 from ogmapping.mapper import Mapper
-from ogmapping.metrics import psnr
+from ogmapping.quality.evaluation import FrameSet
+from ogmapping.quality.metrics import psnr
 
 from .bad_frames import CASES, broken
 from .conftest import ServerHandle

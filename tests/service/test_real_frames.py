@@ -21,7 +21,7 @@ from ogclient.__main__ import main as ogclient_main
 from ogclient.connection import SessionRef
 from ogclient.evaluation import evaluate, render
 
-from ogmapping.evaluation import FrameSet, open_frames
+from ogmapping.quality.evaluation import FrameSet, open_frames
 
 from .conftest import ServerHandle
 from .scene import TINY

@@ -11,7 +11,8 @@ import sys
 
 WARM_UP_CHECK = """
 import sys
-from ogmapping import blur, gaussians_cpu
+from ogmapping.model import gaussians_cpu
+from ogmapping.optim import blur
 from ogmapping.render import cpu_kernels, cpu_projection
 from ogmapping.warmup import warm_up
 kernels = [cpu_kernels.bin_tiles, cpu_kernels.render_forward, cpu_kernels.render_backward, cpu_kernels.reduce_pairs,

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ogmapping.camera import Intrinsics
 from ogmapping.datasets.base import opencv_intrinsics
+from ogmapping.frames.camera import Intrinsics
 
 UNDISTORTED_MODELS = ("plumb_bob", "rational_polynomial")
 

@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ogmapping.camera import Intrinsics, validate_pose
 from ogmapping.datasets.base import FrameSource
 from ogmapping.datasets.rosbag import images
 from ogmapping.datasets.rosbag.bagfile import BagFile
@@ -26,7 +25,8 @@ from ogmapping.datasets.rosbag.options import BagOptions
 from ogmapping.datasets.rosbag.pairing import StampedImage, pair_images
 from ogmapping.datasets.rosbag.poses import choose_pose_source, read_tf
 from ogmapping.datasets.rosbag.topics import COMPRESSED, choose_images, topic_error
-from ogmapping.frame import Frame
+from ogmapping.frames.camera import Intrinsics, validate_pose
+from ogmapping.frames.frame import Frame
 
 OPTICAL_SUFFIXES = ("optical_frame", "_optical")
 

@@ -22,7 +22,7 @@ from ogapi.v1 import mapping_pb2 as pb
 from ray.actor import ActorHandle
 
 from ogmapping.mapper import Rendered
-from ogmapping.profile import resolve_device
+from ogmapping.runtime.profile import resolve_device
 from ogmapping.stats import MapStats
 from ogserver import LOG_FORMAT, checkpoint
 from ogserver.counters import SessionCounters

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from ogmapping.device_constants import on_device
+from ogmapping.runtime.device_constants import on_device
 
 # Added to the decoded rotation so an untrained decoder yields valid, unrotated Gaussians.
 IDENTITY_QUAT = torch.tensor([1.0, 0.0, 0.0, 0.0])

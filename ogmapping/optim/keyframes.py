@@ -21,10 +21,10 @@ from dataclasses import dataclass, field
 import cv2
 import torch
 
-from ogmapping.camera import Intrinsics
 from ogmapping.config import KeyframeConfig
-from ogmapping.preprocess import resize_depth
-from ogmapping.ssim import ReferenceStatistics, reference_statistics
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.preprocess import resize_depth
+from ogmapping.optim.ssim import ReferenceStatistics, reference_statistics
 
 
 @dataclass

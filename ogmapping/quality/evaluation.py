@@ -20,18 +20,18 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from ogmapping.camera import Intrinsics
 from ogmapping.config import MapperConfig
 from ogmapping.datasets import FrameSource, open_dataset
-from ogmapping.frame import Frame
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.frame import Frame
+from ogmapping.frames.preprocess import prepare, resize_frame
+from ogmapping.frames.selection import Selection, select
 from ogmapping.options import dataset_source
-from ogmapping.preprocess import prepare, resize_frame
-from ogmapping.selection import Selection, select
 
 if TYPE_CHECKING:
     import torch
 
-    from ogmapping.metrics import Lpips
+    from ogmapping.quality.metrics import Lpips
 
 PREVIEW_COUNT = 3  # side-by-side previews per split
 
@@ -83,7 +83,7 @@ def ground_truth(frame: Frame, config: MapperConfig) -> Frame:
 
 def score(rendered: Rendering, truth: Frame, lpips: Lpips | None = None) -> dict:
     """PSNR, SSIM, depth L1 and, with an available ``lpips``, LPIPS (None otherwise)."""
-    from ogmapping.metrics import depth_l1_cm, psnr, ssim
+    from ogmapping.quality.metrics import depth_l1_cm, psnr, ssim
 
     return {
         "psnr": psnr(rendered.color, truth.rgb),
@@ -132,7 +132,7 @@ def evaluate_views(
 
     ``device`` is where LPIPS runs; previews are ``out/{split}_{position:06d}.png``.
     """
-    from ogmapping.metrics import Lpips, summarise
+    from ogmapping.quality.metrics import Lpips, summarise
 
     selection = frames.selection
     previews = set(spread(selection.streamed, PREVIEW_COUNT)) | set(spread(selection.heldout, PREVIEW_COUNT))

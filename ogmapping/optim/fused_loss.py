@@ -8,7 +8,7 @@ the values are); autograd's backward only scales the stored gradients.
 
 SSIM gradient: with mu = G*x, e_xx = G*(x^2), e_xy = G*(x y) (G the zero-padded Gaussian window,
 symmetric, so its adjoint is itself), dS/dx = G*(dS/dmu) + 2x G*(dS/de_xx) + y G*(dS/de_xy).
-The rules are exactly those of ``ogmapping.ssim`` and ``ogmapping.losses`` (tests compare both).
+The rules are exactly those of ``ogmapping.optim.ssim`` and ``ogmapping.optim.losses`` (tests compare both).
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ import torch
 from numba import njit, prange
 
 from ogmapping.arrays import float32_array, image_planes
-from ogmapping.blur import blur
-from ogmapping.ssim import C1, C2, TAPS, ReferenceStatistics, reference_statistics
+from ogmapping.optim.blur import blur
+from ogmapping.optim.ssim import C1, C2, TAPS, ReferenceStatistics, reference_statistics
 
 _C1 = np.float32(C1)
 _C2 = np.float32(C2)
@@ -157,7 +157,7 @@ def image_terms(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Colour L1, 1 - mean SSIM and valid-pixel depth L1 of one view, differentiable in the render.
 
-    Shapes and rules as ``ogmapping.losses.mapping_loss``; ``reference`` is
+    Shapes and rules as ``ogmapping.optim.losses.mapping_loss``; ``reference`` is
     ``reference_statistics(gt_color)`` when the caller has it cached.
     """
     reference = reference if reference is not None else reference_statistics(gt_color, compiled=True)

@@ -1,4 +1,4 @@
-"""Torch geometry on the conventions of ``ogmapping.camera``: poses, pixel rays, projection, frustum tests."""
+"""Torch geometry on the conventions of ``ogmapping.frames.camera``: poses, pixel rays, projection, frustum tests."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import functools
 
 import torch
 
-from ogmapping.camera import Intrinsics
+from ogmapping.frames.camera import Intrinsics
 
 
 @functools.lru_cache(maxsize=64)

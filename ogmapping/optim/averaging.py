@@ -20,7 +20,7 @@ from contextlib import contextmanager
 import torch
 from torch import nn
 
-from ogmapping.anchors import LEARNABLE, AnchorMap
+from ogmapping.structure.anchors import LEARNABLE, AnchorMap
 
 DECODER_PREFIX = "decoders."
 

@@ -23,11 +23,11 @@ from collections.abc import Callable
 
 import torch
 
-from ogmapping.camera import Intrinsics
 from ogmapping.config import OctreeConfig
-from ogmapping.geometry import backproject
-from ogmapping.octree import SparseVoxelOctree
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.geometry import backproject
 from ogmapping.render.output import RenderOutput
+from ogmapping.structure.octree import SparseVoxelOctree
 
 SILHOUETTE_THRESHOLD = 0.5  # SplaTAM's sil_thres
 DEPTH_ERROR_FACTOR = 50.0  # SplaTAM: depth error above 50x its median marks a pixel as unexplained

@@ -16,7 +16,7 @@ from safetensors.torch import load as load_tensors
 from safetensors.torch import save as save_tensors
 
 from ogmapping.config import ConfigBounds, MapperConfig
-from ogmapping.state import MapState
+from ogmapping.persist.state import MapState
 
 FORMAT = "ogmapping-snapshot"
 VERSION = "1"

@@ -17,10 +17,10 @@ from dataclasses import dataclass
 
 import torch
 
-from ogmapping.anchors import AnchorMap, cell_size
 from ogmapping.config import RefineConfig
-from ogmapping.gaussians import GaussianSet
-from ogmapping.octree import SparseVoxelOctree
+from ogmapping.model.gaussians import GaussianSet
+from ogmapping.structure.anchors import AnchorMap, cell_size
+from ogmapping.structure.octree import SparseVoxelOctree
 
 
 def accumulate(anchors: AnchorMap, gaussians: GaussianSet, means2d_grad: torch.Tensor | None,

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ogmapping.camera import Intrinsics
+from ogmapping.frames.camera import Intrinsics
 
 
 @dataclass

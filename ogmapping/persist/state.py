@@ -1,7 +1,7 @@
 """A map's state as plain data: what defines the map, apart from how it is being optimised.
 
 ``Mapper.state()`` produces it and ``Mapper.from_state`` rebuilds a mapper from it; snapshots
-(``ogmapping.snapshot``) are this record written as safetensors, and anything else that stores or
+(``ogmapping.persist.snapshot``) are this record written as safetensors, and anything else that stores or
 moves a map (export, checkpoints, a session placed elsewhere) goes through the same two calls
 rather than into the mapper's parts.
 """
@@ -24,7 +24,7 @@ class MapState:
     images and optimiser moments are not part of it: a map rebuilt from it renders the same
     images, and mapping continues with a fresh keyframe set and fresh Adam moments. Unless it was
     taken with ``training_state`` (a server's checkpoint): then ``training.*`` tensors hold them
-    (``ogmapping.training``) and a mapper rebuilt with them maps on exactly as the original."""
+    (``ogmapping.persist.training``) and a mapper rebuilt with them maps on exactly as the original."""
 
     config: MapperConfig
     tensors: dict[str, torch.Tensor]

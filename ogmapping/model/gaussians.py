@@ -7,12 +7,12 @@ from dataclasses import dataclass
 
 import torch
 
-from ogmapping.anchor_colour import with_anchor_colours
-from ogmapping.anchors import AnchorMap
-from ogmapping.camera import Intrinsics
-from ogmapping.decoders import Decoders, activate
-from ogmapping.gaussians_cpu import AssembleGaussians
-from ogmapping.geometry import in_frustum
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.geometry import in_frustum
+from ogmapping.model.decoders import Decoders, activate
+from ogmapping.model.gaussians_cpu import AssembleGaussians
+from ogmapping.structure.anchor_colour import with_anchor_colours
+from ogmapping.structure.anchors import AnchorMap
 
 FRUSTUM_MARGIN = 0.15  # fraction of the image size; anchors just outside still cast Gaussians inside
 

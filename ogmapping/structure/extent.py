@@ -1,6 +1,6 @@
 """How far from the origin a map can reach, and how far one frame's points can land.
 
-Anchor cells are Morton-coded (``ogmapping.morton``): each axis holds 2^21 cells of a level, so the
+Anchor cells are Morton-coded (``ogmapping.structure.morton``): each axis holds 2^21 cells of a level, so the
 finest level (``voxel_size / 4**max_level``) spans +-2^20 of its cells around the origin, about
 +-6.5 km at the default 0.1 m and level 2. A frame whose points land outside cannot be mapped, and
 growth places anchors a little beyond the observed surface, so frames must keep inside a share
@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ogmapping import morton
-from ogmapping.camera import Intrinsics
 from ogmapping.config import OctreeConfig
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.structure import morton
 
 USABLE_SHARE = 0.9  # of the octree's range; the rest is margin for anchors grown beyond the observed surface
 

@@ -2,8 +2,8 @@
 
 Each term is returned on its own as well, so the mapper can log them and tests can check that
 every term reacts to its own input only. In a compiled execution profile (the CPU with the ``cpu``
-backend, ``ogmapping.profile``) the three image terms come from one compiled pass
-(``ogmapping.fused_loss``); otherwise from the autograd definitions below.
+backend, ``ogmapping.runtime.profile``) the three image terms come from one compiled pass
+(``ogmapping.optim.fused_loss``); otherwise from the autograd definitions below.
 """
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from __future__ import annotations
 import torch
 
 from ogmapping.config import LossConfig
-from ogmapping.fused_loss import image_terms
-from ogmapping.ssim import ReferenceStatistics, ssim_map
+from ogmapping.optim.fused_loss import image_terms
+from ogmapping.optim.ssim import ReferenceStatistics, ssim_map
 
 
 def depth_l1(render_depth: torch.Tensor, gt_depth: torch.Tensor) -> torch.Tensor:

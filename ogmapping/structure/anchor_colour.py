@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import torch
 
-from ogmapping.camera import Intrinsics
-from ogmapping.geometry import backproject, valid_depth
-from ogmapping.octree import SparseVoxelOctree
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.geometry import backproject, valid_depth
+from ogmapping.structure.octree import SparseVoxelOctree
 
 COLOUR_MARGIN = 1.0 / 255.0  # keeps the logit finite for black and white pixels
 

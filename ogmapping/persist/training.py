@@ -15,11 +15,11 @@ from dataclasses import dataclass
 
 import torch
 
-from ogmapping.anchors import LEARNABLE, AnchorMap
-from ogmapping.averaging import MapAverage
-from ogmapping.camera import Intrinsics
-from ogmapping.keyframes import Keyframe, KeyframeSet
-from ogmapping.lazy_adam import LazyAdam
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.model.lazy_adam import LazyAdam
+from ogmapping.optim.averaging import MapAverage
+from ogmapping.optim.keyframes import Keyframe, KeyframeSet
+from ogmapping.structure.anchors import LEARNABLE, AnchorMap
 
 PREFIX = "training."
 STATISTICS = ("positions", "grad_sum", "grad_count", "max_opacity")

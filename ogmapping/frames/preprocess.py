@@ -11,8 +11,8 @@ import dataclasses
 import cv2
 import numpy as np
 
-from ogmapping.camera import Intrinsics
-from ogmapping.frame import Frame
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.frame import Frame
 
 # Registration spreads one depth pixel over at most this many colour pixels per axis: colour
 # cameras sampling more than 8x as densely as their depth camera are refused by the server, and a

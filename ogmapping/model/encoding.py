@@ -8,9 +8,9 @@ import torch
 from torch import nn
 
 from ogmapping.config import ModelConfig
-from ogmapping.device_constants import on_device
-from ogmapping.encoding_cpu import HashEncode
-from ogmapping.lazy_adam import RowGradients, SparseRowGather
+from ogmapping.model.encoding_cpu import HashEncode
+from ogmapping.model.lazy_adam import RowGradients, SparseRowGather
+from ogmapping.runtime.device_constants import on_device
 
 # Large primes of the spatial hash (Teschner et al.), the first left at 1 as instant-NGP does.
 HASH_PRIMES = (1, 2654435761, 805459861)

@@ -1,0 +1,1 @@
+"""Frames and cameras: the conventions, torch geometry on them, preprocessing, which frames a run streams."""

@@ -1,0 +1,1 @@
+"""A map kept or moved: its state as plain tensors, snapshots, and the optimisation's training state."""
