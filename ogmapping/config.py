@@ -162,6 +162,11 @@ def preset(name: str) -> MapperConfig:
         # Replica room0 0-19 at 600x340 33.98 / 34.07 against 33.75 / 33.80. sparse gained 0.07 dB on
         # 7-Scenes and 1.7 dB on Replica but lost 40% of its speed there, under the 2 FPS it must keep.
         config.model.initial_visible = 0.95
+        # Grows anchors at a lower screen-gradient mean (tau_0 1.5e-4, not 2e-4): 7-Scenes 0-299 at
+        # 320x240 25.05 dB held-out over four seeds (24.77-25.27) against 24.90 (24.75-25.05), every
+        # seed level or better, ~18k anchors against ~15k, 1.53-1.69 FPS; Replica room0 0-19 at
+        # 600x340 34.46 / 34.53 against 33.98 / 34.07 (fourteenth session, bench/RESULTS.md).
+        config.refine.grad_threshold = 1.5e-4
         # Two global keyframes in the window: 7-Scenes 0-299 at 320x240 24.46 / 24.01 dB held-out
         # (seeds 0 / 1) against 23.82 / 23.75 with one, at about a tenth less speed (bench/RESULTS.md).
         config.keyframes.global_count = 2

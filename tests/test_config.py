@@ -35,6 +35,13 @@ def test_only_dense_starts_its_first_gaussians_visible():
     assert MapperConfig().model.initial_visible == 0.0
 
 
+def test_only_dense_grows_at_a_lower_gradient():
+    """Measured choice (bench/RESULTS.md, fourteenth session); the others keep Scaffold-GS's 2e-4."""
+    assert preset("dense").refine.grad_threshold == 1.5e-4
+    assert preset("sparse").refine.grad_threshold == preset("sparse-fast").refine.grad_threshold == 2e-4
+    assert MapperConfig().refine.grad_threshold == 2e-4
+
+
 def test_overrides_are_typed_and_checked():
     config = resolve("sparse", overrides=parse_override_args(["keyframes.iterations=7", "octree.voxel_size=0.2"]))
     assert config.keyframes.iterations == 7 and config.octree.voxel_size == 0.2
