@@ -116,3 +116,23 @@ def test_imports_flow_one_way() -> None:
                     if not may_import(importer, target))
     assert upward == []
     assert all(not graph[leaf] for leaf in RENDER_MAY_USE), "render's shared engine modules stay leaves"
+
+
+def stage_of(module: str) -> str:
+    """The engine's stage a module belongs to: its subpackage of ogmapping (``ogmapping.optim``), or
+    the module itself when it sits at the top level."""
+    parts = module.split(".")
+    return ".".join(parts[:2])
+
+
+def test_the_engine_stages_import_each_other_without_cycles() -> None:
+    """The subpackages of ogmapping (frames, structure, model, optim, persist, quality, runtime, render,
+    datasets) stay layered: collapsed to one node each, no group imports one that imports it back."""
+    graph: dict[str, set[str]] = {}
+    for importer, targets in import_graph().items():
+        if importer.startswith("ogmapping."):
+            stage = stage_of(importer)
+            graph.setdefault(stage, set()).update(
+                stage_of(target) for target in targets if target.startswith("ogmapping.") and stage_of(target) != stage)
+    assert {"ogmapping.frames", "ogmapping.structure", "ogmapping.model", "ogmapping.optim"} <= graph.keys()
+    assert cycles(graph) == []
