@@ -113,6 +113,9 @@ class OptimConfig:
     # Queries see the moving average of the map over its last steps, with this decay per step
     # (ogmapping.optim.averaging); 0: the live map, as the paper.
     average_decay: float = 0.0
+    # The average's horizon grows with the map: it covers max(1 / (1 - average_decay), average_growth x
+    # steps so far) steps, so an old map averages longer than a young one still converging; 0: fixed.
+    average_growth: float = 0.0
 
 
 @dataclass
@@ -360,6 +363,8 @@ def _ranges(config: MapperConfig) -> dict[str, tuple[bool, str]]:
         # A decay, below 1 (at 1 the average would never move).
         "optim.average_decay": (_within(config.optim.average_decay, 0) and config.optim.average_decay < 1,
                                 "in [0, 1)"),
+        # A share of the map's steps; 1 would average every step the map has taken.
+        "optim.average_growth": (_within(config.optim.average_growth, 0, 1), "in [0, 1]"),
     }
     # Loss weights and learning rates: beyond these the float32 optimisation overflows into NaN or
     # throws Gaussians kilometres per step (Adam's steps are about the learning rate in size).

@@ -87,7 +87,7 @@ class Mapper:
         self.decoders = self.decoders.to(self.device)
         self.keyframes = KeyframeSet(config.keyframes, config.seed, self._footprint)
         self.optimizer = self._make_optimizer()
-        self.average = MapAverage(self.anchors, self.decoders, config.optim.average_decay)
+        self.average = MapAverage(self.anchors, self.decoders, config.optim.average_decay, config.optim.average_growth)
         self.hash_optimizer = (LazyAdam(self.encoding.table, self.encoding.gradients, config.optim.hash_lr,
                                         compiled=self.profile.compiled)
                                if self.encoding is not None else None)

@@ -40,6 +40,17 @@ def test_the_first_update_copies_the_value_and_later_ones_weigh_as_a_debiased_av
         assert anchors.averages["features"][0, 0].item() == pytest.approx(expected)
 
 
+def test_the_horizon_grows_with_the_map_once_it_is_old_enough():
+    """With ``growth`` the average covers max(1 / (1 - decay), growth x steps) steps: a young map keeps
+    the fixed decay, an old one averages over a share of its steps; without it the decay never moves."""
+    growing = MapAverage(_anchors(1), torch.nn.Linear(1, 1), 0.8, growth=0.01)
+    assert growing.decay_at(1) == growing.decay_at(500) == 0.8  # 0.01 x 500 steps = 5 = 1 / (1 - 0.8)
+    assert growing.decay_at(1000) == pytest.approx(0.9)  # a horizon of 10 steps
+    assert growing.decay_at(2000) == pytest.approx(0.95)
+    fixed = MapAverage(_anchors(1), torch.nn.Linear(1, 1), 0.8)
+    assert fixed.decay_at(1) == fixed.decay_at(10**6) == 0.8
+
+
 def test_rows_grown_later_average_only_their_own_steps_and_pruning_keeps_rows_in_step():
     anchors = _anchors(2)
     average = MapAverage(anchors, torch.nn.Linear(1, 1), 0.9)

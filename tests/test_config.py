@@ -100,6 +100,8 @@ def test_ablation_switches_default_to_the_paper_and_are_validated():
     ("octree.allocation_stride", str(1 << 70)),  # once an INTERNAL error in torch's slicing (fuzzer)
     ("optim.average_decay", "1"),  # an average that never moves
     ("optim.average_decay", "-0.5"),
+    ("optim.average_growth", "1.5"),  # a share of the map's steps
+    ("optim.average_growth", "-0.1"),
     ("model.initial_visible", "1.5"),  # a share
     ("model.initial_visible", "nan"),
 ])

@@ -37,10 +37,11 @@ def _blend(average: torch.Tensor, value: torch.Tensor, weight: torch.Tensor) -> 
 class MapAverage:
     """The moving average of one mapper's anchors and decoders (``decay`` 0: off, queries see the live map)."""
 
-    def __init__(self, anchors: AnchorMap, decoders: nn.Module, decay: float) -> None:
+    def __init__(self, anchors: AnchorMap, decoders: nn.Module, decay: float, growth: float = 0.0) -> None:
         self.anchors = anchors
         self.decoders = decoders
         self.decay = decay
+        self.growth = growth
         self.decoder_values = {name: torch.zeros_like(value) for name, value in decoders.named_parameters()}
         self.decoder_steps = 0
 
@@ -48,19 +49,31 @@ class MapAverage:
     def enabled(self) -> bool:
         return self.decay > 0.0
 
+    def decay_at(self, step: int) -> float:
+        """The decay of the map's ``step``-th update: ``decay``, until ``growth`` times the map's steps
+        exceeds its horizon of 1 / (1 - decay) steps; from then on the horizon is that many steps.
+
+        A young map is still converging and an average lagging it loses (Replica room0, 94-114 steps),
+        while an old one gains from a longer average (7-Scenes, 700-1000 steps; bench/RESULTS.md).
+        """
+        if self.growth <= 0.0:
+            return self.decay
+        return max(self.decay, 1.0 - 1.0 / (self.growth * step))
+
     @torch.no_grad()
     def update(self) -> None:
         """Fold the live values in, after an optimiser step."""
         if not self.enabled:
             return
+        decay = self.decay_at(self.decoder_steps + 1)
         anchors = self.anchors
         anchors.average_steps += 1
-        weight = newest_weight(anchors.average_steps, self.decay)
+        weight = newest_weight(anchors.average_steps, decay)
         for name in LEARNABLE:
             _blend(anchors.averages[name], getattr(anchors, name), weight)
         self.decoder_steps += 1
         # Every decoder value shares one count, on the map's device (a CPU tensor would not multiply a CUDA one).
-        weight = newest_weight(torch.tensor([self.decoder_steps], device=anchors.device), self.decay)
+        weight = newest_weight(torch.tensor([self.decoder_steps], device=anchors.device), decay)
         for name, value in self.decoders.named_parameters():
             _blend(self.decoder_values[name], value, weight)
 
