@@ -26,6 +26,8 @@ def test_dense_and_sparse_render_the_average_and_sparse_fast_the_live_map():
     """Measured choices (bench/RESULTS.md, twelfth session); the default is the paper's live map."""
     assert preset("dense").optim.average_decay == preset("sparse").optim.average_decay == 0.85
     assert preset("sparse-fast").optim.average_decay == MapperConfig().optim.average_decay == 0.0
+    assert preset("dense").optim.average_growth == preset("sparse").optim.average_growth == 0.015
+    assert MapperConfig().optim.average_growth == 0.0
 
 
 def test_only_dense_starts_its_first_gaussians_visible():
