@@ -5,8 +5,10 @@
 Topics: JPEG colour (``/camera/color/image_raw/compressed``), compressedDepth PNG
 (``/camera/depth/image_rect_raw/compressedDepth``), both cameras' ``camera_info`` (7-Scenes' measured
 colour K and its depth K), an IR camera (mono8, so the colour topic needs ``--color-topic``), and TF:
-``map -> odom`` and ``base_link -> camera_link -> camera_color_optical_frame`` on ``/tf_static``,
-``odom -> base_link`` moving on ``/tf`` so that the camera's pose is the recorded one.
+``map -> odom``, ``base_link -> camera_link -> camera_color_optical_frame`` and the depth camera
+beside it (``camera_color_optical_frame -> camera_depth_optical_frame``, the reader's measured
+baseline) on ``/tf_static``, ``odom -> base_link`` moving on ``/tf`` so that the colour camera's pose is
+the recorded one.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ PERIOD = 33_333_333
 BASE_CAMERA = rigid(np.array([0.1, 0.0, 1.2]), np.array([0.0, 0.0, 0.0, 1.0]))
 OPTICAL = rigid(np.zeros(3), np.array([-0.5, 0.5, -0.5, 0.5]))
 CAMERA = "camera_color_optical_frame"
+DEPTH_CAMERA = "camera_depth_optical_frame"
 
 
 def main() -> None:
@@ -42,7 +45,8 @@ def main() -> None:
     depth_k = source.depth_intrinsics
     with BagRecorder(Path(args.out), ros2=True) as bag:
         bag.write("/tf_static", T0, bag.tf(T0, [("map", "odom", np.eye(4)), ("base_link", "camera_link", BASE_CAMERA),
-                                               ("camera_link", CAMERA, OPTICAL)]))
+                                               ("camera_link", CAMERA, OPTICAL),
+                                               (CAMERA, DEPTH_CAMERA, source.depth_to_color)]))
         for i in range(args.frames):
             frame, t = source[i], T0 + i * PERIOD
             rgb = (frame.rgb * 255).round().astype(np.uint8)
@@ -52,9 +56,9 @@ def main() -> None:
                       bag.compressed(t, CAMERA, jpeg, "rgb8; jpeg compressed bgr8"))
             bag.write("/camera/color/camera_info", t, bag.camera_info(t, CAMERA, 640, 480, MEASURED_COLOR_K))
             bag.write("/camera/depth/image_rect_raw/compressedDepth", t,
-                      bag.compressed(t, CAMERA, compressed_depth_16(depth), "16UC1; compressedDepth png"))
+                      bag.compressed(t, DEPTH_CAMERA, compressed_depth_16(depth), "16UC1; compressedDepth png"))
             bag.write("/camera/depth/camera_info", t, bag.camera_info(
-                t, CAMERA, 640, 480, (depth_k.fx, depth_k.fy, depth_k.cx - 0.5, depth_k.cy - 0.5)))
+                t, DEPTH_CAMERA, 640, 480, (depth_k.fx, depth_k.fy, depth_k.cx - 0.5, depth_k.cy - 0.5)))
             bag.write("/tf", t, bag.tf(t, [("odom", "base_link", frame.c2w @ invert(BASE_CAMERA @ OPTICAL))]))
             bag.write("/camera/infra1/image_rect_raw", t,
                       bag.image(t, "camera_infra1_optical_frame", rgb[:, :, 1], "mono8"))

@@ -13,7 +13,7 @@ from ogmapping.datasets import FORMATS, open_dataset
 from ogmapping.datasets.base import decode_depth
 from ogmapping.datasets.replica import Replica
 from ogmapping.datasets.scannet import ScanNet
-from ogmapping.datasets.sevenscenes import SevenScenes
+from ogmapping.datasets.sevenscenes import MEASURED_BASELINE, SevenScenes
 from ogmapping.datasets.synthetic import SyntheticSource
 from ogmapping.datasets.tum import TUM, associate_unique, quaternion_to_matrix
 from ogmapping.frames.camera import Intrinsics
@@ -84,7 +84,7 @@ def test_sevenscenes_reads_sorted_frames(sevenscenes_dir: tuple[Path, list[np.nd
     for position, number in enumerate((0, 2, 10)):
         frame = source[position]
         assert frame.index == position
-        np.testing.assert_allclose(frame.c2w, poses[position], atol=1e-12)
+        np.testing.assert_allclose(frame.c2w @ frame.depth_to_color, poses[position], atol=1e-12)  # the depth camera's
         assert frame.c2w.dtype == np.float64
         assert frame.timestamp == pytest.approx(number / 30.0)
         assert frame.rgb.dtype == np.float32 and frame.rgb.shape == (48, 64, 3)
@@ -101,15 +101,30 @@ def test_sevenscenes_intrinsics_conventions(sevenscenes_dir: tuple[Path, list[np
     measured = SevenScenes(path)
     # The file's K (integer pixel centres) moves by +0.5 to our convention.
     assert measured.depth_intrinsics == Intrinsics(58.5, 58.5, 32.5, 24.5, 64, 48)
-    # Measured colour K is given at 640x480 (528, 314.5, 238.5) and scaled to the image size.
-    assert astuple(measured.intrinsics) == pytest.approx((52.8, 52.8, 31.5, 23.9, 64, 48))
+    # Measured colour K is given at 640x480 (526.5, 321.625, 238.125) and scaled to the image size.
+    assert astuple(measured.intrinsics) == pytest.approx((52.65, 52.65, 32.2125, 23.8625, 64, 48))
     same = SevenScenes(path, color_intrinsics="depth")
     assert same.intrinsics == same.depth_intrinsics
     assert same[0].registered
     explicit = SevenScenes(path, color_intrinsics=(50.0, 51.0, 30.0, 22.0))
     assert explicit.intrinsics == Intrinsics(50.0, 51.0, 30.5, 22.5, 64, 48)
+    assert explicit[0].depth_to_color is None
     with pytest.raises(ValueError, match="color_intrinsics"):
         SevenScenes(path, color_intrinsics="guess")
+
+
+def test_sevenscenes_measured_colour_camera_sits_beside_the_depth_camera(
+    sevenscenes_dir: tuple[Path, list[np.ndarray]],
+) -> None:
+    path, _ = sevenscenes_dir
+    measured, same = SevenScenes(path)[1], SevenScenes(path, color_intrinsics="depth")[1]
+    # The files' poses are the depth camera's: a depth-camera point lands on the same world point
+    # through either camera's pose.
+    point = np.array([0.3, -0.2, 1.5, 1.0])
+    np.testing.assert_allclose(measured.c2w @ measured.depth_to_color @ point, same.c2w @ point, atol=1e-12)
+    np.testing.assert_allclose(measured.depth_to_color[:3, 3], [-MEASURED_BASELINE, 0.0, 0.0])
+    # The colour camera's centre is the baseline along the depth camera's x axis.
+    np.testing.assert_allclose(measured.c2w[:3, 3], same.c2w[:3, 3] + MEASURED_BASELINE * same.c2w[:3, 0])
 
 
 def test_frame_source_indexing(sevenscenes_dir: tuple[Path, list[np.ndarray]]) -> None:
@@ -126,9 +141,10 @@ def test_sevenscenes_real_data(seven_scenes: Path) -> None:
     assert isinstance(source, SevenScenes)
     assert len(source) == 600
     assert source.depth_intrinsics == Intrinsics(585.0, 585.0, 320.5, 240.5, 640, 480)
-    assert source.intrinsics == Intrinsics(528.0, 528.0, 315.0, 239.0, 640, 480)
+    assert source.intrinsics == Intrinsics(526.5, 526.5, 322.125, 238.625, 640, 480)
     frame = source[10]
-    np.testing.assert_allclose(frame.c2w, np.loadtxt(seven_scenes / "data" / "frame-000010.pose.txt"))
+    depth_pose = np.loadtxt(seven_scenes / "data" / "frame-000010.pose.txt")
+    np.testing.assert_allclose(frame.c2w @ frame.depth_to_color, depth_pose, atol=1e-12)
     valid = frame.depth[frame.depth > 0]
     assert frame.depth.shape == (480, 640) and frame.rgb.shape == (480, 640, 3)
     assert valid.min() > 0.7 and valid.max() < 4.5  # 65535 never leaks through as 65.5 m

@@ -354,8 +354,9 @@ def test_images_beyond_the_poses_are_dropped(tmp_path: Path, frames) -> None:
 
 @pytest.mark.realdata
 def test_seven_scenes_frames_through_a_ros1_bag(tmp_path: Path, seven_scenes: Path) -> None:
-    """Real 7-Scenes frames with their colour and depth cameras' own CameraInfo (as a Kinect driver publishes them)
-    and TF poses read back as the 7-Scenes reader reads them: same pixels, intrinsics and poses."""
+    """Real 7-Scenes frames with their colour and depth cameras' own CameraInfo and optical frames (as a Kinect
+    driver publishes them) and TF poses read back as the 7-Scenes reader reads them: same pixels, intrinsics,
+    poses and depth-to-colour transform."""
     from ogmapping.datasets.sevenscenes import MEASURED_COLOR_K, SevenScenes
 
     reference = SevenScenes(seven_scenes)
@@ -370,11 +371,14 @@ def test_seven_scenes_frames_through_a_ros1_bag(tmp_path: Path, seven_scenes: Pa
             bag.write("/camera/rgb/image_color", t, bag.image(t, "camera_rgb_optical_frame", rgb, "rgb8"))
             bag.write("/camera/rgb/camera_info", t, bag.camera_info(t, "camera_rgb_optical_frame", 640, 480,
                                                                     MEASURED_COLOR_K))
-            bag.write("/camera/depth/image_raw", t + 1_000_000, bag.image(t + 1_000_000, "camera_rgb_optical_frame",
+            bag.write("/camera/depth/image_raw", t + 1_000_000, bag.image(t + 1_000_000, "camera_depth_optical_frame",
                                                                           depth, "16UC1"))
-            bag.write("/camera/depth/camera_info", t, bag.camera_info(
-                t, "camera_rgb_optical_frame", 640, 480, (depth_k.fx, depth_k.fy, depth_k.cx - 0.5, depth_k.cy - 0.5)))
-            bag.write("/tf", t, bag.tf(t, [("world", "camera_rgb_optical_frame", frame.c2w)]))
+            published_depth_k = (depth_k.fx, depth_k.fy, depth_k.cx - 0.5, depth_k.cy - 0.5)
+            bag.write("/camera/depth/camera_info", t,
+                      bag.camera_info(t, "camera_depth_optical_frame", 640, 480, published_depth_k))
+            bag.write("/tf", t, bag.tf(t, [("world", "camera_rgb_optical_frame", frame.c2w),
+                                           ("camera_rgb_optical_frame", "camera_depth_optical_frame",
+                                            frame.depth_to_color)]))
     source = open_dataset(str(path))
     assert len(source) == count
     for i in range(count):
@@ -382,7 +386,8 @@ def test_seven_scenes_frames_through_a_ros1_bag(tmp_path: Path, seven_scenes: Pa
         np.testing.assert_array_equal(read.rgb, expected.rgb)
         np.testing.assert_array_equal(read.depth, expected.depth)
         assert read.color_intrinsics == expected.color_intrinsics
-        assert read.depth_intrinsics == expected.depth_intrinsics and read.depth_to_color is None
+        assert read.depth_intrinsics == expected.depth_intrinsics
+        np.testing.assert_allclose(read.depth_to_color, expected.depth_to_color, atol=1e-12)
         # 7-Scenes rotations are orthonormal to ~1e-4 only; a quaternion carries the nearest rotation.
         np.testing.assert_allclose(read.c2w[:3, 3], expected.c2w[:3, 3], atol=1e-12)
         np.testing.assert_allclose(read.c2w[:3, :3], expected.c2w[:3, :3], atol=2e-4)
