@@ -109,6 +109,8 @@ def test_sevenscenes_intrinsics_conventions(sevenscenes_dir: tuple[Path, list[np
     explicit = SevenScenes(path, color_intrinsics=(50.0, 51.0, 30.0, 22.0))
     assert explicit.intrinsics == Intrinsics(50.0, 51.0, 30.5, 22.5, 64, 48)
     assert explicit[0].depth_to_color is None
+    as_array = SevenScenes(path, color_intrinsics=np.array([50.0, 51.0, 30.0, 22.0]))
+    assert as_array.intrinsics == explicit.intrinsics and as_array[0].depth_to_color is None
     with pytest.raises(ValueError, match="color_intrinsics"):
         SevenScenes(path, color_intrinsics="guess")
 

@@ -95,16 +95,17 @@ class SevenScenes(FrameSource):
         self.depth_intrinsics = opencv_intrinsics(*depth_k, depth_w, depth_h)
         self._color_intrinsics = self._resolve_color(color_intrinsics, color_w, color_h)
         # Colour-camera coordinates from depth-camera coordinates; None: the same optical centre.
-        self.depth_to_color = _translation(-MEASURED_BASELINE) if color_intrinsics == "measured" else None
+        measured = isinstance(color_intrinsics, str) and color_intrinsics == "measured"
+        self.depth_to_color = _translation(-MEASURED_BASELINE) if measured else None
 
     def _resolve_color(self, option: str | IntrinsicsOption, width: int, height: int) -> Intrinsics:
+        if not isinstance(option, str):
+            return explicit_intrinsics(option, width, height)
         if option == "depth":
             return self.depth_intrinsics.resized(width, height)
         if option == "measured":
             return opencv_intrinsics(*MEASURED_COLOR_K, *MEASURED_SIZE).resized(width, height)
-        if isinstance(option, str):
-            raise ValueError(f"color_intrinsics must be 'measured', 'depth' or explicit values, got {option!r}")
-        return explicit_intrinsics(option, width, height)
+        raise ValueError(f"color_intrinsics must be 'measured', 'depth' or explicit values, got {option!r}")
 
     @staticmethod
     def _scan(root: Path) -> list[_Entry]:
@@ -140,7 +141,7 @@ class SevenScenes(FrameSource):
             depth_intrinsics=self.depth_intrinsics,
             c2w=c2w,
             timestamp=entry.number / self.fps,
-            depth_to_color=self.depth_to_color,
+            depth_to_color=None if self.depth_to_color is None else self.depth_to_color.copy(),
         )
 
 
