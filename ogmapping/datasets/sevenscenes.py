@@ -93,18 +93,22 @@ class SevenScenes(FrameSource):
         k = read_matrix(k_file, (3, 3)) if k_file.exists() else None
         depth_k = DEFAULT_DEPTH_K if k is None else (k[0, 0], k[1, 1], k[0, 2], k[1, 2])
         self.depth_intrinsics = opencv_intrinsics(*depth_k, depth_w, depth_h)
-        self._color_intrinsics = self._resolve_color(color_intrinsics, color_w, color_h)
-        # Colour-camera coordinates from depth-camera coordinates; None: the same optical centre.
-        measured = isinstance(color_intrinsics, str) and color_intrinsics == "measured"
-        self.depth_to_color = _translation(-MEASURED_BASELINE) if measured else None
+        # depth_to_color: colour-camera coordinates from depth-camera ones; None: the same optical centre.
+        self._color_intrinsics, self.depth_to_color = self._resolve_color(color_intrinsics, color_w, color_h)
+        self._color_to_depth = None if self.depth_to_color is None else np.linalg.inv(self.depth_to_color)
 
-    def _resolve_color(self, option: str | IntrinsicsOption, width: int, height: int) -> Intrinsics:
+    def _resolve_color(
+        self, option: str | IntrinsicsOption, width: int, height: int,
+    ) -> tuple[Intrinsics, np.ndarray | None]:
+        """The colour camera's intrinsics and its depth_to_color transform, for the option."""
         if not isinstance(option, str):
-            return explicit_intrinsics(option, width, height)
+            return explicit_intrinsics(option, width, height), None
         if option == "depth":
-            return self.depth_intrinsics.resized(width, height)
+            return self.depth_intrinsics.resized(width, height), None
         if option == "measured":
-            return opencv_intrinsics(*MEASURED_COLOR_K, *MEASURED_SIZE).resized(width, height)
+            depth_to_color = np.eye(4)
+            depth_to_color[0, 3] = -MEASURED_BASELINE
+            return opencv_intrinsics(*MEASURED_COLOR_K, *MEASURED_SIZE).resized(width, height), depth_to_color
         raise ValueError(f"color_intrinsics must be 'measured', 'depth' or explicit values, got {option!r}")
 
     @staticmethod
@@ -132,7 +136,7 @@ class SevenScenes(FrameSource):
     def _load(self, position: int) -> Frame:
         entry = self._entries[position]
         depth_c2w = validate_pose(read_matrix(entry.pose, (4, 4)), name=str(entry.pose))
-        c2w = depth_c2w if self.depth_to_color is None else depth_c2w @ np.linalg.inv(self.depth_to_color)
+        c2w = depth_c2w if self._color_to_depth is None else depth_c2w @ self._color_to_depth
         return Frame(
             index=position,
             rgb=read_rgb(entry.color),
@@ -143,9 +147,3 @@ class SevenScenes(FrameSource):
             timestamp=entry.number / self.fps,
             depth_to_color=None if self.depth_to_color is None else self.depth_to_color.copy(),
         )
-
-
-def _translation(x: float) -> np.ndarray:
-    transform = np.eye(4)
-    transform[0, 3] = x
-    return transform
