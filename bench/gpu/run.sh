@@ -2,11 +2,13 @@
 # GPU benchmark in steps, each one call that fits a 10-minute limit (see README.md here).
 #
 # usage: bench/gpu/run.sh install
+#        bench/gpu/run.sh wheels
 #        bench/gpu/run.sh tests
 #        bench/gpu/run.sh preset NAME DATA_DIR OUT_DIR
 #        bench/gpu/run.sh table OUT_DIR
 #   install  carried wheels (.whl/) into .gpu/site, no network; then gsplat's CUDA kernels built for
 #            this GPU, with MAX_JOBS (default: the CPU count) parallel compiler jobs
+#   wheels   only the carried wheels (the first half of install)
 #   tests    pytest -m gpu (gsplat against the pure-torch reference)
 #   preset   ogmap run of one preset (dense, sparse, sparse-fast) on DATA_DIR (a 7-Scenes folder);
 #            only its results.json is kept, as OUT_DIR/NAME/results.json
@@ -24,7 +26,7 @@ export PYTHONPATH=$SITE:$PWD
 export TORCH_EXTENSIONS_DIR=$PWD/.gpu/torch_extensions
 
 usage() {
-    sed -n '2,16p' "$0" >&2
+    sed -n '2,18p' "$0" >&2
     exit 2
 }
 
@@ -46,13 +48,18 @@ gsplat_status() {
     "$PY" -c "from ogmapping.render.gsplat_backend import unavailable_reason as why; r = why(); print(r or 'gsplat usable'); raise SystemExit(r is not None)"
 }
 
-install() {
-    versions
-    mkdir -p "$SITE" .gpu/wheels
+wheels() {
+    mkdir -p "$SITE"
     if compgen -G ".whl/*.whl" >/dev/null; then
         echo "== installing $(ls .whl/*.whl | wc -l) carried wheels into $SITE"
         "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$SITE" .whl/*.whl
     fi
+}
+
+install() {
+    versions
+    wheels
+    mkdir -p .gpu/wheels
     export MAX_JOBS=${MAX_JOBS:-$(nproc)}
     if [ -z "${TORCH_CUDA_ARCH_LIST:-}" ]; then
         TORCH_CUDA_ARCH_LIST=$("$PY" -c "import torch; print('%d.%d' % torch.cuda.get_device_capability(0))")
@@ -101,6 +108,7 @@ step=$1
 shift
 case $step in
     install) install ;;
+    wheels) wheels ;;
     tests) tests ;;
     preset) preset "$@" ;;
     table) table "$@" ;;
