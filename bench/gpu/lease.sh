@@ -5,18 +5,18 @@
 #   DATA_DIR     a 7-Scenes folder holding frames 0-299 (frame-*.color.jpg, *.depth.png, *.pose.txt)
 #   RESULTS_TGZ  where to write every log and results.json, packed (rewritten after each step)
 #   SECONDS      the budget: a step whose usual cost would overrun it is skipped and said so
-# Steps: install (run.sh install; meanwhile the suite runs on CUDA through the pure-torch fallback),
-# pytest -m gpu, `ogmap run` of sparse-fast / sparse / dense on frames 0-299 at 640x480, sparse at
-# 320x240 (to set beside the CPU's figures), the service on CUDA (ogserver + ogclient stream/eval),
+# Steps: install (run.sh wheels, then run.sh kernels while the suite runs on CUDA through the pure-torch
+# fallback), pytest -m gpu, `run.sh preset` of sparse / sparse-fast / dense on frames 0-299 at 640x480
+# and of sparse at 320x240 (to set beside the CPU's figures; results in OUT/640/NAME and OUT/320/NAME),
+# the service on CUDA (ogserver + ogclient stream/eval),
 # then the suite again with gsplat. A step that succeeded leaves a marker in .gpu/done, so a second
 # call on the same warm machine goes on where the first stopped.
-# environment: PYTHON (python3), OGMAP_LPIPS_WEIGHTS (LPIPS weights file, optional), FRAMES (0:300),
-# DEVICE (cuda).
+# environment: PYTHON (python3), OGMAP_LPIPS_WEIGHTS (LPIPS weights file, optional), FRAMES (0:300).
 set -uo pipefail
 cd "$(dirname "$0")/../.."
-[ $# -eq 3 ] || { sed -n '2,15p' "$0" >&2; exit 2; }
+[ $# -eq 3 ] || { sed -n '2,14p' "$0" >&2; exit 2; }
 export DATA=$1 TGZ=$2 BUDGET=$3
-export PY=${PYTHON:-python3} FRAMES=${FRAMES:-0:300} DEVICE=${DEVICE:-cuda}
+export PY=${PYTHON:-python3} FRAMES=${FRAMES:-0:300}
 export WORK=$PWD/.gpu/out
 DONE=$PWD/.gpu/done
 mkdir -p "$WORK" "$DONE"
@@ -64,25 +64,17 @@ install_with_fallback_suite() {
     OMP_NUM_THREADS=2 nice -n 19 timeout -s INT "$((STEP_LEFT - 60))" bash -c 'pytest_interruptible "$@"' suite \
         -m "not gpu" tests >"$WORK/suite-torch-fallback.log" 2>&1 &
     local suite_pid=$!
-    bench/gpu/run.sh install
+    bench/gpu/run.sh kernels
     local status=$?
     kill -INT "$suite_pid" 2>/dev/null
     wait "$suite_pid"
     return $status
 }
 
-ogmap_run() {
-    local name=$1 preset=$2 scale=$3
-    "$PY" -m ogmapping.cli run --data "$DATA" --frames "$FRAMES" --scale "$scale" --device "$DEVICE" --preset "$preset" \
-        --out "$WORK/run-$name" --quiet || return
-    rm -rf "$WORK/run-$name"/*.png "$WORK/run-$name/map.safetensors"
-    "$PY" bench/gpu/table.py "$WORK/run-$name"
-}
-
 service() {
     local port server status
     port=$("$PY" -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
-    "$PY" -m ogserver --address "127.0.0.1:$port" --record-dir "$PWD/.gpu/recordings" --device "$DEVICE" \
+    "$PY" -m ogserver --address "127.0.0.1:$port" --record-dir "$PWD/.gpu/recordings" --device cuda \
         >"$WORK/ogserver.log" 2>&1 &
     server=$!
     for _ in $(seq 120); do
@@ -100,15 +92,15 @@ service() {
     return $status
 }
 
-export -f pytest_interruptible suite install_with_fallback_suite ogmap_run service
+export -f pytest_interruptible suite install_with_fallback_suite service
 log "lease: budget ${BUDGET} s, data $DATA"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee -a "$WORK/lease.log"
 step install 420 install_with_fallback_suite || { log "gsplat is not usable: the GPU steps stop here"; pack; exit 1; }
 step gpu-tests 45 bench/gpu/run.sh tests
-step sparse-640 90 ogmap_run sparse-640 sparse 1.0
-step sparse-fast-640 60 ogmap_run sparse-fast-640 sparse-fast 1.0
-step sparse-320 45 ogmap_run sparse-320 sparse 0.5
-step dense-640 120 ogmap_run dense-640 dense 1.0
+step sparse-640 90 bench/gpu/run.sh preset sparse "$DATA" "$WORK/640"
+step sparse-fast-640 60 bench/gpu/run.sh preset sparse-fast "$DATA" "$WORK/640"
+SCALE=0.5 step sparse-320 45 bench/gpu/run.sh preset sparse "$DATA" "$WORK/320"
+step dense-640 120 bench/gpu/run.sh preset dense "$DATA" "$WORK/640"
 step service-sparse-640 120 service
 step suite-gsplat 150 suite
 log "lease: end"

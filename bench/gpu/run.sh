@@ -3,12 +3,14 @@
 #
 # usage: bench/gpu/run.sh install
 #        bench/gpu/run.sh wheels
+#        bench/gpu/run.sh kernels
 #        bench/gpu/run.sh tests
 #        bench/gpu/run.sh preset NAME DATA_DIR OUT_DIR
 #        bench/gpu/run.sh table OUT_DIR
 #   install  carried wheels (.whl/) into .gpu/site, no network; then gsplat's CUDA kernels built for
 #            this GPU, with MAX_JOBS (default: the CPU count) parallel compiler jobs
 #   wheels   only the carried wheels (the first half of install)
+#   kernels  only gsplat's build (the second half of install)
 #   tests    pytest -m gpu (gsplat against the pure-torch reference)
 #   preset   ogmap run of one preset (dense, sparse, sparse-fast) on DATA_DIR (a 7-Scenes folder);
 #            only its results.json is kept, as OUT_DIR/NAME/results.json
@@ -26,7 +28,7 @@ export PYTHONPATH=$SITE:$PWD
 export TORCH_EXTENSIONS_DIR=$PWD/.gpu/torch_extensions
 
 usage() {
-    sed -n '2,18p' "$0" >&2
+    sed -n '2,20p' "$0" >&2
     exit 2
 }
 
@@ -56,10 +58,9 @@ wheels() {
     fi
 }
 
-install() {
+kernels() {
     versions
-    wheels
-    mkdir -p .gpu/wheels
+    mkdir -p "$SITE" .gpu/wheels
     export MAX_JOBS=${MAX_JOBS:-$(nproc)}
     if [ -z "${TORCH_CUDA_ARCH_LIST:-}" ]; then
         TORCH_CUDA_ARCH_LIST=$("$PY" -c "import torch; print('%d.%d' % torch.cuda.get_device_capability(0))")
@@ -75,6 +76,11 @@ install() {
     fi
     gsplat_status
     echo "gsplat ready after $((SECONDS - start)) s"
+}
+
+install() {
+    wheels
+    kernels
 }
 
 tests() {
@@ -109,6 +115,7 @@ shift
 case $step in
     install) install ;;
     wheels) wheels ;;
+    kernels) kernels ;;
     tests) tests ;;
     preset) preset "$@" ;;
     table) table "$@" ;;
