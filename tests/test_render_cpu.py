@@ -15,6 +15,7 @@ import math
 import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts its thread pool)
 
 # isort: split
+import numpy as np
 import pytest
 import torch
 
@@ -167,3 +168,13 @@ def test_background_gradient() -> None:
         out.color.sum().backward()
         expected = (1.0 - out.alpha.detach()).sum().double()
         torch.testing.assert_close(background.grad.double(), expected.expand(3), rtol=1e-5, atol=1e-3)
+
+
+def test_depth_order_is_a_stable_sort() -> None:
+    """Ties (float32 depths tie often), negative depths and -0.0 order as a stable argsort does."""
+    rng = np.random.default_rng(3)
+    depths = rng.choice(np.array([-2.5, -0.0, 0.0, 0.25, 1.0, 1.0000001, 3.0], np.float32), 5000)
+    depths[::3] = rng.random(len(depths[::3]), dtype=np.float32) * 4.0
+    visible = np.flatnonzero(rng.random(depths.size) > 0.3)
+    expected = visible[np.argsort(depths[visible], kind="stable")]
+    assert np.array_equal(cpu_backend._depth_order(depths, visible), expected)
