@@ -273,13 +273,14 @@ class Mapper:
             features = self._window_features(rows)
         renders: list[tuple[GaussianSet, RenderOutput, View]] = []
         total = torch.zeros((), device=self.device)
-        for drawn, view_rows in zip(window, rows, strict=True):
+        weights = self._window_weights(keyframes)
+        for drawn, view_rows, weight in zip(window, rows, weights, strict=True):
             gaussians, output = self._render(drawn.c2w, drawn.intrinsics, view_rows, features)
             with self._timed("loss"):
                 loss, _ = mapping_loss(output.color, output.depth, drawn.rgb, drawn.depth,
                                        gaussians.scales, self.config.loss, drawn.ssim_reference,
                                        compiled=self.profile.compiled)
-            total = total + loss / len(window)
+            total = total + loss * weight / sum(weights)
             renders.append((gaussians, output, drawn))
         with self._timed("backward"):
             if total.requires_grad:
@@ -296,6 +297,13 @@ class Mapper:
             self.average.update()
         self.last_gaussians = len(renders[0][0]) if renders else 0
         return total.detach()
+
+    def _window_weights(self, keyframes: list[Keyframe]) -> list[float]:
+        """Loss weights of a step's view and its window ``keyframes``: ``loss.view`` for the view once
+        the window is full, else 1, and 1 for each keyframe. Keyframes hold what the map has to keep;
+        a streamed view, what the camera sees now (bench/RESULTS.md, seventeenth session)."""
+        view = self.config.loss.view if self.keyframes.is_full() else 1.0
+        return [view, *(1.0 for _ in keyframes)]
 
     def _drawn(self, keyframe: Keyframe) -> View:
         """A drawn keyframe as a view on the device: full size if it is local, else downscaled."""

@@ -215,3 +215,20 @@ def test_frame_renders_caps_a_streamed_frames_steps_as_the_window_fills():
     assert mapper._iterations_for(is_keyframe=False) == 1, "never below one step"
     mapper.config.keyframes.frame_renders = 0
     assert mapper._iterations_for(is_keyframe=False) == 3, "0: frame_iterations as it is"
+
+
+def test_loss_view_weighs_the_view_once_the_window_is_full():
+    from ogmapping.config import resolve
+    from ogmapping.mapper import Mapper
+
+    overrides = {"keyframes.local_threshold": 0.5, "keyframes.global_count": 2, "loss.view": 0.5}
+    mapper = Mapper(resolve("sparse", overrides=overrides))
+    mapper.keyframes.footprint = None  # compare the codes given here, not footprints on the (empty) map
+    mapper.keyframes.insert(keyframe(0, [1, 2]))
+    mapper.keyframes.insert(keyframe(1, [100, 101]))
+    assert not mapper.keyframes.is_full(), "one global keyframe of two"
+    assert mapper._window_weights(mapper.keyframes.draw_window(True)) == [1.0, 1.0]
+    mapper.keyframes.insert(keyframe(2, [200, 201]))
+    assert mapper.keyframes.is_full()
+    assert mapper._window_weights(mapper.keyframes.draw_window(False)) == [0.5, 1.0, 1.0, 1.0]
+    assert mapper._window_weights([]) == [0.5], "the view alone (a window that draws nothing)"

@@ -208,6 +208,13 @@ class KeyframeSet:
         local = len(self.local) + (0 if view_is_newest else 1)
         return min(self.config.local_count, local) + min(self.config.global_count, len(self.global_))
 
+    def is_full(self) -> bool:
+        """Whether every draw now holds as many global keyframes as the window asks for (a fixed
+        window: as many keyframes as it asks for)."""
+        if self.config.window != "dynamic":
+            return len(self.fixed) >= self.config.local_count + self.config.global_count
+        return len(self.global_) >= self.config.global_count
+
     def draw_window(self, view_is_newest: bool) -> list[Keyframe]:
         """The keyframes trained beside the view: b1 local and b2 global ones drawn afresh without
         replacement.
