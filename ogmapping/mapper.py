@@ -274,13 +274,14 @@ class Mapper:
         renders: list[tuple[GaussianSet, RenderOutput, View]] = []
         total = torch.zeros((), device=self.device)
         weights = self._window_weights(keyframes)
+        weight_sum = sum(weights)
         for drawn, view_rows, weight in zip(window, rows, weights, strict=True):
             gaussians, output = self._render(drawn.c2w, drawn.intrinsics, view_rows, features)
             with self._timed("loss"):
                 loss, _ = mapping_loss(output.color, output.depth, drawn.rgb, drawn.depth,
                                        gaussians.scales, self.config.loss, drawn.ssim_reference,
                                        compiled=self.profile.compiled)
-            total = total + loss * weight / sum(weights)
+            total = total + loss * weight / weight_sum
             renders.append((gaussians, output, drawn))
         with self._timed("backward"):
             if total.requires_grad:
@@ -303,7 +304,7 @@ class Mapper:
         the window is full, else 1, and 1 for each keyframe. Keyframes hold what the map has to keep;
         a streamed view, what the camera sees now (bench/RESULTS.md, seventeenth session)."""
         view = self.config.loss.view if self.keyframes.is_full() else 1.0
-        return [view, *(1.0 for _ in keyframes)]
+        return [view] + [1.0] * len(keyframes)
 
     def _drawn(self, keyframe: Keyframe) -> View:
         """A drawn keyframe as a view on the device: full size if it is local, else downscaled."""
