@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# Everything one short GPU lease should check, in order of value, within a time budget.
+# Everything a short run on a GPU machine should check, in order of value, within a time budget.
 #
-# usage: bench/gpu/lease.sh DATA_DIR RESULTS_TGZ SECONDS
+# usage: bench/gpu/check.sh DATA_DIR RESULTS_TGZ SECONDS
 #   DATA_DIR     a 7-Scenes folder holding frames 0-299 (frame-*.color.jpg, *.depth.png, *.pose.txt)
 #   RESULTS_TGZ  where to write every log and results.json, packed (rewritten after each step)
 #   SECONDS      the budget: a step whose usual cost would overrun it is skipped and said so
@@ -24,7 +24,7 @@ export PYTHONUNBUFFERED=1
 export PYTHONPATH=$PWD/.gpu/site:$PWD:$PWD/proto:$PWD/server:$PWD/client
 export TORCH_EXTENSIONS_DIR=$PWD/.gpu/torch_extensions
 
-log() { echo "[$(date +%T) +${SECONDS}s] $*" | tee -a "$WORK/lease.log"; }
+log() { echo "[$(date +%T) +${SECONDS}s] $*" | tee -a "$WORK/check.log"; }
 pack() { tar czf "$TGZ" -C "$WORK" . 2>/dev/null; }
 
 # step NAME ESTIMATE_SECONDS FUNCTION [ARGS...]: run once, unless done before or the budget cannot hold
@@ -39,7 +39,7 @@ step() {
         >"$WORK/$name.log" 2>&1
     status=$?
     log "$name: exit $status after $((SECONDS - start)) s"
-    tail -n 5 "$WORK/$name.log" | sed 's/^/    /' | tee -a "$WORK/lease.log"
+    tail -n 5 "$WORK/$name.log" | sed 's/^/    /' | tee -a "$WORK/check.log"
     [ $status -eq 0 ] && touch "$DONE/$name"
     pack
     return $status
@@ -93,8 +93,8 @@ service() {
 }
 
 export -f pytest_interruptible suite install_with_fallback_suite service
-log "lease: budget ${BUDGET} s, data $DATA"
-nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee -a "$WORK/lease.log"
+log "check: budget ${BUDGET} s, data $DATA"
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee -a "$WORK/check.log"
 step install 420 install_with_fallback_suite || { log "gsplat is not usable: the GPU steps stop here"; pack; exit 1; }
 step gpu-tests 45 bench/gpu/run.sh tests
 step sparse-640 90 bench/gpu/run.sh preset sparse "$DATA" "$WORK/640"
@@ -103,5 +103,5 @@ SCALE=0.5 step sparse-320 45 bench/gpu/run.sh preset sparse "$DATA" "$WORK/320"
 step dense-640 120 bench/gpu/run.sh preset dense "$DATA" "$WORK/640"
 step service-sparse-640 120 service
 step suite-gsplat 150 suite
-log "lease: end"
+log "check: end"
 pack
