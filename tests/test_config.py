@@ -1,11 +1,27 @@
 """Presets and overrides."""
 
+import dataclasses
 import json
 from pathlib import Path
+from typing import get_args
 
 import pytest
 
-from ogmapping.config import PRESETS, ConfigBounds, MapperConfig, load_file, parse_override_args, preset, resolve
+from ogmapping.backends import BACKENDS
+from ogmapping.config import (
+    PRESETS,
+    Backend,
+    ConfigBounds,
+    Growth,
+    MapperConfig,
+    Window,
+    load_file,
+    parse_override_args,
+    preset,
+    resolve,
+)
+from ogmapping.optim.keyframes import FIXED_WINDOWS
+from ogmapping.optim.refine import GROWTH
 
 GOLDEN = Path(__file__).parent / "golden" / "presets.json"
 
@@ -57,9 +73,33 @@ def test_ablation_switches_default_to_the_paper_and_are_validated():
         resolve("sparse", overrides={key: value})
     for key, allowed in (("octree.allocation", "octree, unique, projection"),
                          ("refine.growth", "anchor, error, none"),
-                         ("keyframes.window", "dynamic, random, overlap, coverage")):
+                         ("keyframes.window", "dynamic, random, overlap, coverage"),
+                         ("model.encoding", "hash, anchor"),
+                         ("model.anchor_colour_start", "zero, cell"),
+                         ("backend", "auto, torch, cpu, gsplat")):
         with pytest.raises(ValueError, match=f"config {key} must be one of {allowed}, got 'bogus'"):
             resolve("sparse", overrides={key: "bogus"})
+
+
+def test_the_dispatch_tables_cover_their_choices_exactly():
+    assert tuple(GROWTH) == get_args(Growth)
+    assert ("dynamic", *FIXED_WINDOWS) == get_args(Window)
+    assert get_args(Backend) == ("auto", *BACKENDS)
+
+
+def test_every_number_has_its_range_beside_it():
+    def numbers(section: object, prefix: str = "") -> list[tuple[str, dataclasses.Field]]:
+        found = []
+        for item in dataclasses.fields(section):
+            value = getattr(section, item.name)
+            if dataclasses.is_dataclass(value):
+                found += numbers(value, f"{prefix}{item.name}.")
+            elif isinstance(value, int | float) and not isinstance(value, bool):
+                found.append((f"{prefix}{item.name}", item))
+        return found
+
+    unbounded = [key for key, item in numbers(MapperConfig()) if "range" not in item.metadata]
+    assert not unbounded
 
 
 @pytest.mark.parametrize(("key", "value"), [
