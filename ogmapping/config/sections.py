@@ -15,13 +15,13 @@ from ogmapping.backends import RasterizerBackend
 from ogmapping.config.fields import check, ranged
 from ogmapping.config.overrides import assign, flatten
 
-# The ablation switches (paper section 4); the first value of each is the paper's method.
 Encoding = Literal["hash", "anchor"]  # the dense version's hash grid, or the sparse version's feature per anchor
 AnchorColourStart = Literal["zero", "cell"]
+Backend = Literal["auto", RasterizerBackend]
+# The ablation switches (paper section 4); the first value of each is the paper's method.
 Allocation = Literal["octree", "unique", "projection"]  # map densification: the paper's, naive, SplaTAM's
 Window = Literal["dynamic", "random", "overlap", "coverage"]  # the paper's, or a fixed window (random: ESLAM's)
 Growth = Literal["anchor", "error", "none"]  # the paper's progressive growth, Scaffold-GS's error-based, none
-Backend = Literal["auto", RasterizerBackend]
 
 MAX_OCTREE_LEVEL = 4
 # Pixels per axis between allocation samples: wider than any image samples at most one pixel; beyond int64
