@@ -1,53 +1,40 @@
 """Presets and overrides."""
 
+import dataclasses
 import json
+from pathlib import Path
+from typing import get_args
 
 import pytest
 
-from ogmapping.config import PRESETS, ConfigBounds, MapperConfig, load_file, parse_override_args, preset, resolve
+from ogmapping.backends import BACKENDS
+from ogmapping.config import (
+    PRESETS,
+    Backend,
+    ConfigBounds,
+    Growth,
+    MapperConfig,
+    Window,
+    load_file,
+    parse_override_args,
+    preset,
+    resolve,
+)
+from ogmapping.optim.keyframes import FIXED_WINDOWS
+from ogmapping.optim.refine import GROWTH
+
+GOLDEN = Path(__file__).parent / "golden" / "presets.json"
 
 
-def test_presets_differ_as_the_paper_says():
-    dense, sparse, fast = preset("dense"), preset("sparse"), preset("sparse-fast")
-    assert dense.model.encoding == "hash" and sparse.model.encoding == "anchor"
-    assert sparse.refine.prune_opacity > dense.refine.prune_opacity
-    assert fast.keyframes.iterations < sparse.keyframes.iterations < dense.keyframes.iterations
-    assert fast.keyframes.window_scale < sparse.keyframes.window_scale == dense.keyframes.window_scale == 1.0
-    assert sparse.keyframes.global_count > fast.keyframes.global_count
+def resolved_presets() -> str:
+    """Every preset resolved with no overrides, as the golden file holds them."""
+    return json.dumps({name: resolve(name).to_dict() for name in PRESETS}, indent=2, sort_keys=True) + "\n"
 
 
-def test_dense_and_sparse_refine_to_level_one_and_sparse_fast_to_two():
-    """Measured choices (bench/RESULTS.md, eleventh session), pinned so a change to them is deliberate."""
-    assert preset("dense").octree.max_level == preset("sparse").octree.max_level == 1
-    assert preset("sparse-fast").octree.max_level == MapperConfig().octree.max_level == 2
-
-
-def test_dense_and_sparse_render_the_average_and_sparse_fast_the_live_map():
-    """Measured choices (bench/RESULTS.md, twelfth session); the default is the paper's live map."""
-    assert preset("dense").optim.average_decay == preset("sparse").optim.average_decay == 0.85
-    assert preset("sparse-fast").optim.average_decay == MapperConfig().optim.average_decay == 0.0
-    assert preset("dense").optim.average_growth == preset("sparse").optim.average_growth == 0.015
-    assert MapperConfig().optim.average_growth == 0.0
-
-
-def test_only_dense_starts_its_first_gaussians_visible():
-    """Measured choice (bench/RESULTS.md, thirteenth session); the default is the paper's random start."""
-    assert preset("dense").model.initial_visible == 0.95
-    assert preset("sparse").model.initial_visible == preset("sparse-fast").model.initial_visible == 0.0
-    assert MapperConfig().model.initial_visible == 0.0
-
-
-def test_dense_and_sparse_grow_at_a_lower_gradient():
-    """Measured choices (bench/RESULTS.md, fourteenth and fifteenth sessions); sparse-fast keeps Scaffold-GS's 2e-4."""
-    assert preset("dense").refine.grad_threshold == preset("sparse").refine.grad_threshold == 1.5e-4
-    assert preset("sparse-fast").refine.grad_threshold == MapperConfig().refine.grad_threshold == 2e-4
-
-
-def test_sparse_draws_three_global_keyframes_and_halves_the_ssim_term():
-    """Measured choice (bench/RESULTS.md, fifteenth session); the others keep the paper's loss weights."""
-    sparse = preset("sparse")
-    assert sparse.keyframes.global_count == 3 and sparse.loss.ssim == 0.1
-    assert preset("dense").loss.ssim == preset("sparse-fast").loss.ssim == MapperConfig().loss.ssim == 0.2
+def test_presets_resolve_to_the_golden_file():
+    """Each preset's every value, compared as text so that 1 and 1.0 differ; a change to a preset is
+    deliberate: rewrite the file with ``python tests/test_config.py`` and say why in the commit."""
+    assert resolved_presets() == GOLDEN.read_text()
 
 
 def test_overrides_are_typed_and_checked():
@@ -86,9 +73,33 @@ def test_ablation_switches_default_to_the_paper_and_are_validated():
         resolve("sparse", overrides={key: value})
     for key, allowed in (("octree.allocation", "octree, unique, projection"),
                          ("refine.growth", "anchor, error, none"),
-                         ("keyframes.window", "dynamic, random, overlap, coverage")):
+                         ("keyframes.window", "dynamic, random, overlap, coverage"),
+                         ("model.encoding", "hash, anchor"),
+                         ("model.anchor_colour_start", "zero, cell"),
+                         ("backend", "auto, torch, cpu, gsplat")):
         with pytest.raises(ValueError, match=f"config {key} must be one of {allowed}, got 'bogus'"):
             resolve("sparse", overrides={key: "bogus"})
+
+
+def test_the_dispatch_tables_cover_their_choices_exactly():
+    assert tuple(GROWTH) == get_args(Growth)
+    assert ("dynamic", *FIXED_WINDOWS) == get_args(Window)
+    assert get_args(Backend) == ("auto", *BACKENDS)
+
+
+def test_every_number_has_its_range_beside_it():
+    def numbers(section: object, prefix: str = "") -> list[tuple[str, dataclasses.Field]]:
+        found = []
+        for item in dataclasses.fields(section):
+            value = getattr(section, item.name)
+            if dataclasses.is_dataclass(value):
+                found += numbers(value, f"{prefix}{item.name}.")
+            elif isinstance(value, int | float) and not isinstance(value, bool):
+                found.append((f"{prefix}{item.name}", item))
+        return found
+
+    unbounded = [key for key, item in numbers(MapperConfig()) if "range" not in item.metadata]
+    assert not unbounded
 
 
 @pytest.mark.parametrize(("key", "value"), [
@@ -136,3 +147,7 @@ def test_server_bounds_refuse_costly_configs_and_can_be_tightened():
         resolve("dense", bounds=tightened)
     with pytest.raises(ValueError, match=r"config_bounds.max_iterations must be a positive int"):
         ConfigBounds(max_iterations=0).validate()
+
+
+if __name__ == "__main__":
+    GOLDEN.write_text(resolved_presets())

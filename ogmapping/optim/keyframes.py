@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import cv2
 import torch
 
-from ogmapping.config import KeyframeConfig
+from ogmapping.config import KeyframeConfig, Window
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.preprocess import resize_depth
 from ogmapping.optim.ssim import ReferenceStatistics, reference_statistics
@@ -144,7 +144,10 @@ def coverage_window(earlier: list[Keyframe], new: Keyframe, weights: list[float]
     return chosen
 
 
-FIXED_WINDOWS = {"random": random_window, "overlap": overlap_window, "coverage": coverage_window}
+# Every value of ``keyframes.window`` but ``dynamic``, and how it chooses.
+FIXED_WINDOWS: dict[Window, Callable[[list[Keyframe], Keyframe, list[float], int, random.Random], list[int]]] = {
+    "random": random_window, "overlap": overlap_window, "coverage": coverage_window,
+}
 
 
 class KeyframeSet:

@@ -13,11 +13,12 @@ the rule above (``propose``), ``error`` Scaffold-GS's error-based growth (``prop
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 
-from ogmapping.config import RefineConfig
+from ogmapping.config import Growth, RefineConfig
 from ogmapping.model.gaussians import GaussianSet
 from ogmapping.structure.anchors import AnchorMap, cell_size
 from ogmapping.structure.octree import SparseVoxelOctree
@@ -137,7 +138,10 @@ def propose_error(anchors: AnchorMap, octree: SparseVoxelOctree, config: RefineC
     return Proposals(codes=torch.cat(codes), levels=torch.cat(levels), parents=torch.cat(parents))
 
 
-GROWTH = {"anchor": propose, "error": propose_error}
+# Every value of ``refine.growth`` and its rule; ``none`` has none.
+GROWTH: dict[Growth, Callable[[AnchorMap, SparseVoxelOctree, RefineConfig], Proposals] | None] = {
+    "anchor": propose, "error": propose_error, "none": None,
+}
 
 
 def _first_occurrence(codes: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -155,9 +159,10 @@ def grow(anchors: AnchorMap, octree: SparseVoxelOctree, config: RefineConfig, vo
          optimizer: torch.optim.Optimizer | None) -> int:
     """Insert the anchors ``refine.growth`` proposes into the octree and the map; returns how many
     were added (none with ``growth = "none"``)."""
-    if config.growth == "none":
+    rule = GROWTH[config.growth]
+    if rule is None:
         return 0
-    proposals = GROWTH[config.growth](anchors, octree, config)
+    proposals = rule(anchors, octree, config)
     total = int(proposals.codes.numel())
     if total == 0:
         return 0

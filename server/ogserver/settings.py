@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
 import re
@@ -11,11 +10,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
-from ogmapping.config import ConfigBounds
-
-MIB = 1 << 20
+from ogmapping.config import MIB, ConfigBounds
+from ogmapping.config.overrides import assign, read_mapping
 
 
 @dataclass
@@ -178,39 +174,20 @@ class Settings:
         return self.torch_threads or max(1, min(os.cpu_count() or 1, 8))
 
 
-def _assign(target: Any, data: dict[str, Any], prefix: str = "") -> None:
-    names = {item.name: item for item in dataclasses.fields(target)}
-    for key, value in data.items():
-        if key not in names:
-            raise ValueError(f"unknown server setting '{prefix}{key}'")
-        current = getattr(target, key)
-        if dataclasses.is_dataclass(current):
-            if not isinstance(value, dict):
-                raise ValueError(f"server setting {prefix}{key} must be a mapping")
-            _assign(current, value, f"{prefix}{key}.")
-        else:
-            expected = type(current)
-            if expected is float and isinstance(value, int) and not isinstance(value, bool):
-                value = float(value)
-            if type(value) is not expected:
-                raise ValueError(f"server setting {prefix}{key} must be {expected.__name__} (got {value!r})")
-            setattr(target, key, value)
+LABEL = "settings"  # names the settings in refusals: "unknown settings key 'limits.max_sesions'"
+FLAG_SECTIONS = ("limits", "access", "live")  # the sections whose fields are flags of their own name
 
 
 def load(path: str | Path | None = None, flags: dict[str, Any] | None = None) -> Settings:
-    """Defaults, then the file (YAML or JSON, same names, limits nested), then flags not None."""
+    """Defaults, then the file (YAML or JSON, same names, sections nested), then flags not None."""
     settings = Settings()
     if path is not None:
-        text = Path(path).read_text()
-        data = json.loads(text) if str(path).endswith(".json") else yaml.safe_load(text)
-        if not isinstance(data, dict):
-            raise ValueError(f"server config {path} must hold a mapping")
-        _assign(settings, data)
+        assign(settings, read_mapping(path, LABEL), LABEL)
     for key, value in (flags or {}).items():
         if value is None:
             continue
-        sections = (settings.limits, settings.access, settings.live)
-        target = next((section for section in sections if hasattr(section, key)), settings)
-        _assign(target, {key: value})
+        section = next((name for name in FLAG_SECTIONS
+                        if key in {item.name for item in dataclasses.fields(getattr(settings, name))}), "")
+        assign(settings, {f"{section}.{key}" if section else key: value}, LABEL)
     settings.validate()
     return settings

@@ -1,0 +1,178 @@
+"""The config's sections as dataclasses: each field's default, its choices (a ``Literal`` type) or
+its range (``ranged``), and why where that is not obvious.
+
+Values the paper does not give follow Scaffold-GS / H2-Mapping, tuned for this engine where noted
+(the measurements are in bench/RESULTS.md, under the section named).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from ogmapping.backends import RasterizerBackend
+from ogmapping.config.fields import check, ranged
+from ogmapping.config.overrides import assign, flatten
+
+Encoding = Literal["hash", "anchor"]  # the dense version's hash grid, or the sparse version's feature per anchor
+AnchorColourStart = Literal["zero", "cell"]
+Backend = Literal["auto", RasterizerBackend]
+# The ablation switches (paper section 4); the first value of each is the paper's method.
+Allocation = Literal["octree", "unique", "projection"]  # map densification: the paper's, naive, SplaTAM's
+Window = Literal["dynamic", "random", "overlap", "coverage"]  # the paper's, or a fixed window (random: ESLAM's)
+Growth = Literal["anchor", "error", "none"]  # the paper's progressive growth, Scaffold-GS's error-based, none
+
+MAX_OCTREE_LEVEL = 4
+# Pixels per axis between allocation samples: wider than any image samples at most one pixel; beyond int64
+# torch's slicing fails.
+MAX_ALLOCATION_STRIDE = 1 << 16
+MAX_HASH_LOG2_SIZE = 30  # 2^30 rows per level: far beyond any bound a server grants, short of int64 trouble
+MAX_HASH_RESOLUTION = 1e4  # cells per metre (0.1 mm cells); hashed corner coordinates stay far inside int64
+# Loss weights and learning rates: beyond these the float32 optimisation overflows into NaN or throws
+# Gaussians kilometres per step (Adam's steps are about the learning rate in size).
+MAX_LOSS_WEIGHT = 1e3
+MAX_LEARNING_RATE = 1.0
+SEED_RANGE = (-(1 << 63), (1 << 64) - 1)  # what torch.Generator.manual_seed accepts
+
+
+def _weight(default: float) -> Any:
+    return ranged(default, 0, MAX_LOSS_WEIGHT)
+
+
+def _learning_rate(default: float) -> Any:
+    return ranged(default, 0, MAX_LEARNING_RATE)
+
+
+@dataclass
+class ModelConfig:
+    encoding: Encoding = "hash"
+    n_offsets: int = ranged(5, 1)  # Scaffold-GS uses 10; 5 renders as well here at half the cost
+    feature_dim: int = ranged(32, 1)
+    hidden_dim: int = ranged(32, 1)
+    hash_levels: int = ranged(8, 1)
+    hash_features_per_level: int = ranged(4, 1)
+    hash_log2_size: int = ranged(19, 1, MAX_HASH_LOG2_SIZE)
+    # Cells per metre at the coarsest and the finest hash level.
+    hash_min_resolution: float = ranged(4.0, 0, MAX_HASH_RESOLUTION, open_low=True)
+    hash_max_resolution: float = ranged(128.0, 0, MAX_HASH_RESOLUTION, open_low=True)
+    # A learnable colour logit per anchor, added to the colour decoder's logits for its n Gaussians (not in
+    # the paper): a direct, fast-learning colour next to the shared decoder ("Anchor colours").
+    anchor_colour: bool = True
+    # Where a new anchor's colour starts: "zero" (the decoder's colour), or "cell", the mean colour of the
+    # allocating frame's depth points in its cell, which gains on Replica but loses on 7-Scenes, whose colour
+    # and depth cameras are not registered ("Anchor colours").
+    anchor_colour_start: AnchorColourStart = "zero"
+    # The share of the map's first Gaussians that start visible: the opacity decoder's output bias is shifted
+    # per slot to that quantile of the first anchors' logits. 0 keeps nn.Linear's random start (the paper's),
+    # under which the share is a lottery of the seed ("Visible start").
+    initial_visible: float = ranged(0.0, 0, 1)
+
+
+@dataclass
+class OctreeConfig:
+    voxel_size: float = ranged(0.1, 0, open_low=True)  # gamma_0, metres: the coarsest anchor level
+    max_level: int = ranged(2, 0, MAX_OCTREE_LEVEL)  # finest anchor level; gamma_{l+1} = gamma_l / 4
+    depth_min: float = ranged(0.1, 0)
+    depth_max: float = ranged(5.0, "depth_min", open_low=True)
+    # Back-project every n-th pixel per axis when allocating; 0: by resolution.
+    allocation_stride: int = ranged(0, 0, MAX_ALLOCATION_STRIDE)
+    allocation: Allocation = "octree"
+
+
+@dataclass
+class KeyframeConfig:
+    # A frame becomes a keyframe when N_overlap / N_union is below this.
+    overlap_threshold: float = ranged(0.8, 0, 1, open_low=True)
+    local_threshold: float = ranged(0.3, 0, 1)  # rho_w: keyframes overlapping K_new at least this much are "local"
+    local_count: int = ranged(1, 0)  # b1
+    global_count: int = ranged(1, 0)  # b2
+    iterations: int = ranged(15, 0)  # k: optimisation iterations per new keyframe
+    first_iterations: int = ranged(60, 0)  # iterations on the very first keyframe
+    frame_iterations: int = ranged(2, 0)  # iterations on a streamed frame that is not a keyframe (window around it)
+    # Caps those steps at this many renders (view + window each), at least one; 0: no cap.
+    frame_renders: int = ranged(0, 0)
+    # Image scale for the window's global keyframes (the view and local ones: full)...
+    window_scale: float = ranged(1.0, 0, 1, open_low=True)
+    window_min_width: int = ranged(160, 1)  # ...but never narrower than this many pixels (or the keyframe itself)
+    window: Window = "dynamic"
+
+
+@dataclass
+class RefineConfig:
+    interval: int = ranged(10, 1)  # m: grow and prune every m iterations
+    # tau_0 on the mean screen-space gradient (NDC units, as 3DGS and Scaffold-GS).
+    grad_threshold: float = ranged(0.0002, 0)
+    min_observations: int = ranged(3, 0)  # a Gaussian's gradient is trusted after this many renders
+    # rho: an anchor whose Gaussians all stay below it is removed.
+    prune_opacity: float = ranged(0.01, 0, 1, open_high=True)
+    prune_min_observations: int = ranged(10, 0)  # anchors seen fewer times are never pruned
+    max_new_anchors: int = ranged(20000, 0)  # cap per growth step, keeps one step bounded
+    growth: Growth = "anchor"
+
+
+@dataclass
+class LossConfig:
+    color: float = _weight(0.8)
+    ssim: float = _weight(0.2)
+    depth: float = _weight(0.5)
+    scale: float = _weight(0.01)
+    # Weight of a step's view (the streamed frame or the new keyframe) in its loss against each window
+    # keyframe's 1, once the window is full (it draws all its global keyframes); before, 1 like them.
+    # It divides the step's loss, which a view alone would make 0 / 0 at 0.
+    view: float = ranged(1.0, 0, MAX_LOSS_WEIGHT, open_low=True)
+
+
+@dataclass
+class OptimConfig:
+    # Four times Scaffold-GS's rates: it trains for 30k iterations, an online map gets a few per frame
+    # ("Learning rates").
+    offsets_lr: float = _learning_rate(0.04)
+    features_lr: float = _learning_rate(0.03)
+    scaling_lr: float = _learning_rate(0.028)
+    hash_lr: float = _learning_rate(0.01)
+    opacity_mlp_lr: float = _learning_rate(0.008)
+    color_mlp_lr: float = _learning_rate(0.032)
+    cov_mlp_lr: float = _learning_rate(0.016)
+    colour_lr: float = _learning_rate(0.08)  # the anchors' own colour logits (model.anchor_colour)
+    # Queries see the moving average of the map over its last steps, with this decay per step
+    # (ogmapping.optim.averaging); 0: the live map, as the paper. Below 1: at 1 the average never moves.
+    average_decay: float = ranged(0.0, 0, 1, open_high=True)
+    # The average's horizon grows with the map: it covers max(1 / (1 - average_decay), average_growth x
+    # steps so far) steps, so an old map averages longer than a young one still converging; 0: fixed.
+    average_growth: float = ranged(0.0, 0, 1)
+
+
+@dataclass
+class MapperConfig:
+    model: ModelConfig = field(default_factory=ModelConfig)
+    octree: OctreeConfig = field(default_factory=OctreeConfig)
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    refine: RefineConfig = field(default_factory=RefineConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    backend: Backend = "auto"  # on the CPU only "cpu" runs the compiled kernels
+    seed: int = ranged(0, *SEED_RANGE)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> MapperConfig:
+        config = cls()
+        apply_overrides(config, flatten(data))
+        return config
+
+
+def apply_overrides(config: MapperConfig, overrides: dict[str, Any]) -> MapperConfig:
+    """Set dotted keys (values typed or as text) on ``config`` in place, then ``validate`` it; unknown
+    keys, wrong types and values out of range raise ValueError naming the key."""
+    assign(config, overrides, "config", text=True)
+    validate(config)
+    return config
+
+
+def validate(config: MapperConfig) -> None:
+    """Reject values the engine cannot run with, naming the key and its choices or range."""
+    check(config, "config")
+
