@@ -84,10 +84,6 @@ class Track:
         translation = translations[left] + alpha * (translations[right] - translations[left])
         return rigid(translation, slerp(rotations[left], rotations[right], alpha))
 
-    def span(self) -> tuple[int, int]:
-        stamps = self._arrays()[0]
-        return int(stamps[0]), int(stamps[-1])
-
 
 class TransformTree:
     """The TF tree of a bag: one track per (parent, child) edge, each child with one parent."""
