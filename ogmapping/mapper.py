@@ -1,4 +1,4 @@
-"""The online mapper: frames in, an optimised anchor map out (the data flow of DESIGN.md).
+"""The online mapper: frames in, an optimised anchor map out (its place in the data flow: docs/architecture.md).
 
 process(frame): register depth, allocate coarse anchors for newly observed space, decide whether
 the frame is a keyframe, and if so optimise k iterations, each on a freshly drawn keyframe
@@ -225,7 +225,7 @@ class Mapper:
 
         The cap bounds a streamed frame's cost as the window fills: with ``frame_renders`` 4 a frame
         with a full window (the view, a local and two global keyframes) takes one step, a frame whose
-        only window keyframe is the newest takes two (bench/RESULTS.md, tenth session)."""
+        only window keyframe is the newest takes two (bench/RESULTS.md; commit b0334d6, 2026-11-24)."""
         settings = self.config.keyframes
         if is_keyframe:
             return settings.first_iterations if not self.keyframes else settings.iterations
@@ -302,7 +302,7 @@ class Mapper:
     def _window_weights(self, keyframes: list[Keyframe]) -> list[float]:
         """Loss weights of a step's view and its window ``keyframes``: ``loss.view`` for the view once
         the window is full, else 1, and 1 for each keyframe. Keyframes hold what the map has to keep;
-        a streamed view, what the camera sees now (bench/RESULTS.md, seventeenth session)."""
+        a streamed view, what the camera sees now (bench/RESULTS.md; commit c6257e9, 2026-11-26)."""
         view = self.config.loss.view if self.keyframes.is_full() else 1.0
         return [view] + [1.0] * len(keyframes)
 

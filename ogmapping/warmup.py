@@ -2,7 +2,7 @@
 
 A fresh process loads each compiled kernel from Numba's cache on its first call, and torch imports
 its compiler stack the first time an optimiser is built: together about 2 s on the development
-machine (bench/RESULTS.md), which would otherwise land on the first session's first frame.
+machine (bench/RESULTS.md), which would otherwise land on the first mapping session's first frame.
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ from ogmapping.datasets.replica import Replica
 from ogmapping.datasets.scannet import ScanNet
 from ogmapping.datasets.sevenscenes import MEASURED_BASELINE, SevenScenes
 from ogmapping.datasets.synthetic import SyntheticSource
-from ogmapping.datasets.tum import TUM, associate_unique, quaternion_to_matrix
+from ogmapping.datasets.tum import TUM, associate_unique
 from ogmapping.frames.camera import Intrinsics
 
 
@@ -214,12 +214,6 @@ def test_tum_intrinsics(tum_dir: Path) -> None:
 def test_tum_associate_unique_prefers_closest_pair() -> None:
     pairs = associate_unique(np.array([0.0, 0.01, 0.5]), np.array([0.006, 0.9]), 0.02)
     assert pairs == [(1, 0)]
-
-
-def test_quaternion_to_matrix_is_a_rotation() -> None:
-    rotation = quaternion_to_matrix(0.1, -0.3, 0.2, 0.9)
-    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
-    assert np.linalg.det(rotation) == pytest.approx(1.0)
 
 
 # Replica ----------------------------------------------------------------------------------------

@@ -95,7 +95,10 @@ def test_gaussians_carried_out_of_range_grow_nothing(source: SyntheticSource) ->
     mapper.process(source[0])
     with torch.no_grad():
         mapper.anchors.offsets.fill_(1e9)
+    mapper.anchors.spawned.fill_(False)  # every thrown Gaussian a growth candidate again
     mapper.process(source[1])
+    thrown = mapper.anchors.offsets.abs().amax(dim=-1) > 1e8
+    assert thrown.any() and not mapper.anchors.spawned[thrown].any(), "a Gaussian out of range proposed an anchor"
 
 
 def test_the_map_reaches_as_far_as_its_finest_cells_allow() -> None:

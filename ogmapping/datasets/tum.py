@@ -25,6 +25,7 @@ from ogmapping.datasets.base import (
 )
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
+from ogmapping.frames.rotation import quaternion_to_matrix
 
 FR1_K = (517.3, 516.5, 318.6, 255.3)
 MAX_DT = 0.02
@@ -74,19 +75,6 @@ def associate_unique(a: np.ndarray, b: np.ndarray, max_dt: float) -> list[tuple[
             used_b.add(j)
             pairs.append((i, j))
     return sorted(pairs)
-
-
-def quaternion_to_matrix(qx: float, qy: float, qz: float, qw: float) -> np.ndarray:
-    """3x3 rotation of a (normalised) quaternion given in TUM's x, y, z, w order."""
-    q = np.array([qw, qx, qy, qz], dtype=np.float64)
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 class TUM(FrameSource):

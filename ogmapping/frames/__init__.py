@@ -1,1 +1,1 @@
-"""Frames and cameras: the conventions, torch geometry on them, preprocessing, which frames a run streams."""
+"""Frames and cameras: the conventions, rotations, torch geometry on them, preprocessing, which frames a run streams."""

@@ -5,7 +5,8 @@
 - Pixel (row i, column j) covers [j, j+1) x [i, i+1) and its centre is (j + 0.5, i + 0.5).
   This is gsplat's convention; with it, resizing an image by ``s`` scales fx, fy, cx, cy by ``s``.
 - Depth is metres along the camera z axis; 0 (or non-finite) marks an invalid pixel.
-- Quaternions are (w, x, y, z).
+- The Gaussians' quaternions are (w, x, y, z); pose files (TUM, ROS, Foxglove) write (x, y, z, w),
+  the order of ``ogmapping.frames.rotation``.
 
 Plain numpy, so datasets, frames and the client use it without loading torch; the torch geometry
 on these conventions (projection, back-projection, frustum tests) is in ``ogmapping.frames.geometry``.
@@ -57,11 +58,6 @@ class Intrinsics:
 
     def matrix(self) -> np.ndarray:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-    @classmethod
-    def from_matrix(cls, k: np.ndarray, width: int, height: int) -> Intrinsics:
-        k = np.asarray(k, dtype=np.float64)
-        return cls(float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]), int(width), int(height))
 
     def validate(self) -> None:
         """Raise ValueError naming the first field that cannot describe a real camera."""

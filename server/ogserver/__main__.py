@@ -43,7 +43,7 @@ def parser() -> argparse.ArgumentParser:
                         "after the grace, before closing the recordings regardless, seconds (10)")
     p.add_argument("--no-warm-up", dest="warm_up", action="store_false", default=None,
                    help="serve at once, without first mapping a tiny synthetic scene (which loads the compiled "
-                        "kernels, ~2 s, so the first session does not wait for them)")
+                        "kernels, ~2 s, so the first mapping session does not wait for them)")
     p.add_argument("--frame-seconds", dest="frame_seconds", type=float,
                    help="wall-clock budget of one frame's optimisation; it then stops early and its ack says "
                         "so (60; 0 = no limit)")

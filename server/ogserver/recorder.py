@@ -42,6 +42,7 @@ from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
+from ogmapping.frames.rotation import matrix_to_quaternion
 from ogserver.errors import ServiceError
 from ogserver.storage import StorageError, storage_error
 
@@ -57,26 +58,6 @@ class RecordingParts(Protocol):
     def publish(self, finished: Path) -> None: ...
 
 
-def quaternion(rotation: np.ndarray) -> tuple[float, float, float, float]:
-    """(x, y, z, w) of a rotation matrix, branching on the largest diagonal term for stability."""
-    r = np.asarray(rotation, dtype=np.float64)
-    trace = r[0, 0] + r[1, 1] + r[2, 2]
-    if trace > 0:
-        s = 2.0 * np.sqrt(trace + 1.0)
-        w, x, y, z = 0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s
-    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
-        w, x, y, z = (r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s
-    elif r[1, 1] > r[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
-        w, x, y, z = (r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s
-    else:
-        s = 2.0 * np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
-        w, x, y, z = (r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s
-    norm = float(np.sqrt(w * w + x * x + y * y + z * z))
-    return x / norm, y / norm, z / norm, w / norm
-
-
 def timestamp(nanoseconds: int) -> Timestamp:
     stamp = Timestamp()
     stamp.FromNanoseconds(nanoseconds)
@@ -85,7 +66,7 @@ def timestamp(nanoseconds: int) -> Timestamp:
 
 def transform(sensor_ns: int, c2w: np.ndarray, parent: str, child: str) -> FrameTransform:
     """The camera's pose as Foxglove's transform from ``parent`` (the world) to ``child`` (the camera)."""
-    x, y, z, w = quaternion(c2w[:3, :3])
+    x, y, z, w = matrix_to_quaternion(c2w[:3, :3])
     tx, ty, tz = (float(v) for v in c2w[:3, 3])
     return FrameTransform(timestamp=timestamp(sensor_ns), parent_frame_id=parent, child_frame_id=child,
                           translation=Vector3(x=tx, y=ty, z=tz), rotation=Quaternion(x=x, y=y, z=z, w=w))

@@ -1,6 +1,6 @@
 """Who may call and how much, against servers built in this process with the settings each test needs:
-defects 5 (RestoreSession), 9 (idle sessions and streams), 10 (ListSessions, labels) and 12 (wrong
-tokens) of issue 15, API keys, per-caller quotas, the concurrent-call limit and the metrics endpoint."""
+RestoreSession, idle sessions and streams, ListSessions and labels, wrong tokens, API keys, per-caller
+quotas, the concurrent-call limit and the metrics endpoint."""
 
 from __future__ import annotations
 
@@ -85,7 +85,7 @@ def keyed(tmp_path: Path) -> Iterator[Running]:
         yield running
 
 
-# ---------------------------------------------------------------------------- defect 5: RestoreSession
+# ---------------------------------------------------------------------------- RestoreSession
 
 
 def test_idle_restores_leave_the_health_check_answering(tmp_path: Path) -> None:
@@ -132,7 +132,7 @@ def test_mapping_calls_beyond_the_limit_are_refused_and_health_still_answers(tmp
         assert health_check(running.address, timeout=1.0) == health_pb2.HealthCheckResponse.SERVING
 
 
-# ---------------------------------------------------------------------------- defect 9: idle sessions and streams
+# ---------------------------------------------------------------------------- idle sessions and streams
 
 
 def test_an_unused_session_expires_and_its_recording_is_finished(tmp_path: Path) -> None:
@@ -178,7 +178,7 @@ def test_a_stalled_stream_is_ended_and_frees_the_sessions_stream(tmp_path: Path)
 
 
 def test_queued_frames_are_held_to_a_byte_budget(tmp_path: Path) -> None:
-    """Issue 15's smaller defects: queued frames had no byte budget."""
+    """Queued frames once had no byte budget: a session could hold any amount of memory."""
     configured = settings(tmp_path)
     configured.limits.max_queued_bytes = 1  # smaller than any frame: one frame in the session at a time
     frames = messages(scene("0:4"))
@@ -189,7 +189,7 @@ def test_queued_frames_are_held_to_a_byte_budget(tmp_path: Path) -> None:
     assert [ack.queue_depth for ack in acks] == [0] * len(frames)  # nothing waited behind a frame being mapped
 
 
-# ---------------------------------------------------------------------------- defect 10: ListSessions and labels
+# ---------------------------------------------------------------------------- ListSessions and labels
 
 
 def test_listing_shows_no_server_paths_and_long_labels_are_refused(tmp_path: Path) -> None:
@@ -236,7 +236,7 @@ def test_ogclient_sends_the_api_key(keyed: Running, tmp_path: Path, monkeypatch:
     assert capsys.readouterr().out.strip() == "no sessions"
 
 
-# ---------------------------------------------------------------------------- defect 12: wrong tokens
+# ---------------------------------------------------------------------------- wrong tokens
 
 
 def test_wrong_tokens_are_logged_and_then_refused_for_a_while(tmp_path: Path,

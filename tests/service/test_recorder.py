@@ -7,7 +7,6 @@ import time
 from pathlib import Path
 
 import grpc
-import numpy as np
 import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
@@ -15,7 +14,7 @@ from ogapi import recording as layout
 from ogapi.convert import FrameEncoding
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.messages import frame_to_proto
-from ogserver.recorder import PROVISIONAL_END, Recorder, frame_record, quaternion
+from ogserver.recorder import PROVISIONAL_END, Recorder, frame_record
 from ogserver.storage import StorageError
 from ogserver.validation import MAX_TIMESTAMP_SECONDS
 from ogserver.validation import frame as validate_frame
@@ -93,16 +92,6 @@ def test_cut_off_recording_reads_up_to_the_last_frame(tmp_path: Path) -> None:
         recorded = layout.load(path)
         assert recorded.config is not None
         assert len(recorded.frames) >= (3 if cut == len(data) else 2)
-
-
-def test_quaternion_matches_rotation() -> None:
-    angle = 0.7
-    rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
-    x, y, z, w = quaternion(rotation)
-    np.testing.assert_allclose([x, y, z, w], [0, 0, np.sin(angle / 2), np.cos(angle / 2)], atol=1e-12)
-    for flip in (np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])):
-        q = np.array(quaternion(flip))
-        assert np.isclose(np.linalg.norm(q), 1.0) and np.isclose(np.abs(q[:3]).max(), 1.0)
 
 
 def test_a_zero_timestamp_is_kept_and_a_missing_one_becomes_the_arrival_time(tmp_path: Path) -> None:

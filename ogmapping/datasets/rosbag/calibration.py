@@ -71,11 +71,6 @@ class Calibration:
         m = self.rectified
         return opencv_intrinsics(m[0, 0], m[1, 1], m[0, 2], m[1, 2], self.width, self.height)
 
-    def same_camera(self, other: Calibration) -> bool:
-        return (self.width, self.height, self.model) == (other.width, other.height, other.model) and (
-            np.array_equal(self.k, other.k) and np.array_equal(self.p, other.p)
-            and np.array_equal(self.distortion, other.distortion))
-
     def describe(self) -> str:
         size = f"{self.width}x{self.height}, fx {self.k[0, 0]:.2f} fy {self.k[1, 1]:.2f}"
         if not self.distorted:

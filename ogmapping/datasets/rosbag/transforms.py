@@ -14,19 +14,7 @@ from collections import defaultdict
 
 import numpy as np
 
-from ogmapping.datasets.tum import quaternion_to_matrix
-
-
-def _slerp(q0: np.ndarray, q1: np.ndarray, alpha: float) -> np.ndarray:
-    """Spherical interpolation of unit quaternions (x, y, z, w), along the shorter arc."""
-    dot = float(np.dot(q0, q1))
-    if dot < 0.0:
-        q1, dot = -q1, -dot
-    if dot > 0.9995:  # nearly equal: the linear blend is exact to float precision
-        q = q0 + alpha * (q1 - q0)
-        return q / np.linalg.norm(q)
-    theta = np.arccos(dot)
-    return (np.sin((1.0 - alpha) * theta) * q0 + np.sin(alpha * theta) * q1) / np.sin(theta)
+from ogmapping.frames.rotation import quaternion_to_matrix, slerp
 
 
 def rigid(translation: np.ndarray, quaternion: np.ndarray) -> np.ndarray:
@@ -94,11 +82,7 @@ class Track:
         left = right - 1
         alpha = (stamp_ns - int(stamps[left])) / (int(stamps[right]) - int(stamps[left]))
         translation = translations[left] + alpha * (translations[right] - translations[left])
-        return rigid(translation, _slerp(rotations[left], rotations[right], alpha))
-
-    def span(self) -> tuple[int, int]:
-        stamps = self._arrays()[0]
-        return int(stamps[0]), int(stamps[-1])
+        return rigid(translation, slerp(rotations[left], rotations[right], alpha))
 
 
 class TransformTree:
