@@ -16,7 +16,7 @@ from ogapi.images import encode_color, encode_depth
 from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.mapper import FrameResult, Rendered
-from ogmapping.runtime.budget import Stop
+from ogmapping.runtime.time_budget import Stop
 from ogmapping.stats import MapStats
 from ogserver.api.validation import RenderSpec
 from ogserver.errors import ServiceError

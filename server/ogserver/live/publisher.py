@@ -23,7 +23,7 @@ from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from google.protobuf.message import Message
 from ogapi import recording as layout
 
-from ogmapping.export import ColoredPoints, default_viewpoint, point_cloud
+from ogmapping.persist.export import ColoredPoints, default_viewpoint, point_cloud
 from ogserver.errors import ServiceError
 from ogserver.live.foxglove_ws import FoxgloveServer
 from ogserver.live.views import FrameIds, MappedFrame, Pending, image, points_message, render_jpeg

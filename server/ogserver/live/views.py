@@ -20,10 +20,10 @@ from ogapi import recording as layout
 from ogapi.images import encode_color
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogmapping.export import ColoredPoints
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
 from ogmapping.mapper import Mapper
+from ogmapping.persist.export import ColoredPoints
 from ogserver.recording.recorder import FrameRecord, timestamp
 
 RENDER_JPEG_QUALITY = 90

@@ -36,7 +36,7 @@ from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.frames.frame import Frame
 from ogmapping.mapper import Mapper, Rendered
-from ogmapping.runtime.budget import Budget
+from ogmapping.runtime.time_budget import Budget
 from ogmapping.stats import MapStats
 from ogserver.access.tokens import TokenHash
 from ogserver.api import messages, validation
