@@ -16,7 +16,8 @@ import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts
 # isort: split
 import torch
 
-from ogmapping.model.lazy_adam import LazyAdam, RowGradients, SparseRowGather
+from ogmapping.model.row_gradients import RowGradients, SparseRowGather
+from ogmapping.optim.lazy_adam import LazyAdam
 
 LEVELS, SIZE, FEATURES, ANCHORS, REPEATS = 8, 2**19, 4, 4000, 20
 

@@ -23,9 +23,10 @@ from pathlib import Path
 from mcap.writer import CompressionType, Writer
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.messages import frame_to_proto
-from ogserver import auth, checkpoint
-from ogserver.checkpoint import Identity, Position
-from ogserver.recorder import Recorder, _Channels, frame_record
+from ogserver.access import tokens
+from ogserver.recording import checkpoint
+from ogserver.recording.checkpoint import Identity, Position
+from ogserver.recording.recorder import Recorder, _Channels, frame_record
 
 from ogmapping.config import resolve
 from ogmapping.mapper import Mapper
@@ -44,7 +45,7 @@ def main() -> None:
     frames = open_frames(args.data, "auto", args.frames, 1, args.scale)
     mapper = Mapper(resolve(args.preset), "cpu")
     config = pb.SessionConfig(session_id="b" * 32, preset=args.preset, config_json=json.dumps(mapper.config.to_dict()))
-    identity = Identity("bench", auth.TokenHash.of(auth.new_token()), config)
+    identity = Identity("bench", tokens.TokenHash.of(tokens.new_token()), config)
     directory = Path(tempfile.mkdtemp(prefix="ogbench-"))
     recorder = Recorder(directory / f"{config.session_id}.mcap", config)
     checkpoints = checkpoint.Checkpoints(recorder.path, identity, args.interval)

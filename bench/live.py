@@ -34,7 +34,7 @@ from ogclient.connection import SessionRef, connect
 from ogclient.local_server import LocalServer
 from ogclient.messages import frame_to_proto
 from ogclient.streaming import paced, stream_frames
-from ogserver.live import LIVE_TOPICS, session_prefix
+from ogserver.live.publisher import LIVE_TOPICS, session_prefix
 
 from ogmapping.quality.evaluation import open_frames
 

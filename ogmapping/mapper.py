@@ -29,18 +29,18 @@ from ogmapping.frames.preprocess import prepare
 from ogmapping.model.decoders import Decoders
 from ogmapping.model.encoding import HashGridEncoding, feature_dim, initial_anchor_features
 from ogmapping.model.gaussians import GaussianSet, anchors_in_view, decoded_logits, generate
-from ogmapping.model.lazy_adam import LazyAdam
 from ogmapping.optim import refine
 from ogmapping.optim.averaging import MapAverage
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
+from ogmapping.optim.lazy_adam import LazyAdam
 from ogmapping.optim.losses import mapping_loss
 from ogmapping.persist import snapshot, training
 from ogmapping.persist.state import MapState
 from ogmapping.render import rasterize
 from ogmapping.render.output import RenderOutput
-from ogmapping.runtime.budget import Budget, Stop
 from ogmapping.runtime.profile import execution_profile
 from ogmapping.runtime.threads import torch_threads
+from ogmapping.runtime.time_budget import Budget, Stop
 from ogmapping.stats import MapStats
 from ogmapping.structure import allocation
 from ogmapping.structure.anchor_colour import cell_colour_logits, colour_sample_stride

@@ -19,7 +19,7 @@ from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.preprocess import reproject_depth
 from ogmapping.mapper import Mapper
 from ogmapping.persist import snapshot
-from ogmapping.runtime.budget import Budget, Stop
+from ogmapping.runtime.time_budget import Budget, Stop
 from ogmapping.structure import extent
 
 SMALL = {"keyframes.first_iterations": 2, "keyframes.iterations": 1, "keyframes.frame_iterations": 1}

@@ -18,7 +18,7 @@ CHECKS = {
     "client": f"import ogclient.__main__, ogclient.commands, ogclient.demo, sys; {NO_TORCH}",
     "engine's torch-free modules": (
         "import ogmapping.config, ogmapping.datasets, ogmapping.frames.camera, ogmapping.frames.frame, "
-        "ogmapping.frames.preprocess, ogmapping.frames.rotation, ogmapping.frames.selection, ogmapping.options, "
+        "ogmapping.frames.preprocess, ogmapping.frames.rotation, ogmapping.frames.selection, ogmapping.cli.options, "
         "ogmapping.quality.evaluation, "
         f"sys; {NO_TORCH}"
     ),

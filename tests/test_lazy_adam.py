@@ -3,7 +3,8 @@
 import pytest
 import torch
 
-from ogmapping.model.lazy_adam import LazyAdam, RowGradients, SparseRowGather
+from ogmapping.model.row_gradients import RowGradients, SparseRowGather
+from ogmapping.optim.lazy_adam import LazyAdam
 
 
 def test_gather_matches_indexing_and_deposits_its_gradient_rows():

@@ -10,8 +10,8 @@ import sys
 
 import pytest
 
+from ogmapping.cli.runner import RunOptions, run
 from ogmapping.config import resolve
-from ogmapping.runner import RunOptions, run
 
 RESULT_KEYS = {"streamed", "heldout", "processing_fps", "snapshot_bytes", "anchors", "gaussians", "device",
                "preset", "resolution"}

@@ -24,7 +24,8 @@ SETTINGS = {"keyframes.first_iterations": 3, "keyframes.iterations": 1, "keyfram
 SPARSE_KERNELS = {"ogmapping.render.cpu_projection", "ogmapping.render.cpu_kernels", "ogmapping.model.gaussians_cpu",
                   "ogmapping.optim.fused_loss", "ogmapping.optim.ssim"}
 COMPILED_MODULES = {"sparse": SPARSE_KERNELS,
-                    "dense": SPARSE_KERNELS | {"ogmapping.model.encoding_cpu", "ogmapping.model.lazy_adam"}}
+                    "dense": SPARSE_KERNELS | {"ogmapping.model.encoding_cpu", "ogmapping.model.row_gradients",
+                                               "ogmapping.optim.lazy_adam"}}
 
 
 def test_compiled_kernels_run_on_the_cpu_with_the_cpu_backend_only(monkeypatch):

@@ -60,7 +60,7 @@ def test_snapshot_metadata_and_corruption(mapped):
 
 
 def test_ply_export_has_the_3dgs_layout(mapped, tmp_path):
-    from ogmapping.export import default_viewpoint, export_ply
+    from ogmapping.persist.export import default_viewpoint, export_ply
 
     mapper, _ = mapped
     path = tmp_path / "map.ply"
@@ -102,7 +102,7 @@ def test_snapshots_keep_the_camera_centroid_for_export(mapped):
 
 
 def test_a_snapshot_without_camera_positions_falls_back_to_the_anchors(mapped):
-    from ogmapping.export import default_viewpoint
+    from ogmapping.persist.export import default_viewpoint
 
     mapper, _ = mapped
     state = mapper.state()

@@ -11,8 +11,8 @@ import grpc
 
 from ogclient import commands
 from ogclient.connection import DEFAULT_SERVER, ClientError, Transport, connect, describe
+from ogmapping.cli.options import add_bag_arguments, add_config_arguments, add_dataset_arguments
 from ogmapping.datasets import FORMATS
-from ogmapping.options import add_bag_arguments, add_config_arguments, add_dataset_arguments
 
 EPILOG = """\
 typical session:

@@ -22,10 +22,10 @@ from ogclient.evaluation import evaluate, snapshot_bytes
 from ogclient.messages import frame_to_proto, intrinsics_to_proto
 from ogclient.resuming import Backoff, stream_resuming
 from ogclient.streaming import paced, stream_frames
+from ogmapping.cli.options import dataset_source, open_frame_set, parse_intrinsics
 from ogmapping.config import load_file, parse_override_args, resolve
 from ogmapping.frames.camera import validate_pose
-from ogmapping.options import dataset_source, parse_intrinsics
-from ogmapping.quality.evaluation import FrameSet, open_frames
+from ogmapping.quality.evaluation import open_frames
 
 COLOR_CHOICES = {"png": pb.COLOR_PNG, "jpeg": pb.COLOR_JPEG, "raw": pb.COLOR_RAW_RGB8}
 DEPTH_CHOICES = {"png16": pb.DEPTH_PNG16, "raw": pb.DEPTH_RAW_F32}
@@ -90,7 +90,7 @@ def resumed_positions(ctx: Context, session: SessionRef, positions: list[int]) -
 
 
 def stream(ctx: Context, args: argparse.Namespace) -> int:
-    frame_set = FrameSet.from_args(args)
+    frame_set = open_frame_set(args)
     if args.resume and not args.session:
         raise ClientError("--resume goes on with an existing session: name its credentials with --session FILE")
     if args.fps < 0:
@@ -220,7 +220,7 @@ def stats(ctx: Context, args: argparse.Namespace) -> int:
 
 def evaluate_command(ctx: Context, args: argparse.Namespace) -> int:
     session = SessionRef.load(args.session)
-    results = evaluate(ctx.stub, session, FrameSet.from_args(args), Path(args.out) if args.out else None,
+    results = evaluate(ctx.stub, session, open_frame_set(args), Path(args.out) if args.out else None,
                        progress=not args.quiet)
     print(json.dumps(results, indent=2))
     return 0

@@ -9,7 +9,7 @@ from torch import nn
 
 from ogmapping.config import ModelConfig
 from ogmapping.model.encoding_cpu import HashEncode
-from ogmapping.model.lazy_adam import RowGradients, SparseRowGather
+from ogmapping.model.row_gradients import RowGradients, SparseRowGather
 from ogmapping.runtime.device_constants import on_device
 
 # Large primes of the spatial hash (Teschner et al.), the first left at 1 as instant-NGP does.
@@ -21,7 +21,7 @@ class HashGridEncoding(nn.Module):
     """Multi-resolution hash encoding in world coordinates, trilinearly interpolated.
 
     Resolutions are in cells per metre, so no scene bounds are needed in an online setting. The
-    table's gradient is the rows a view read, kept in ``gradients``; ``lazy_adam`` steps those only.
+    table's gradient is the rows a view read, kept in ``gradients``; ``optim.lazy_adam`` steps those only.
     """
 
     def __init__(self, config: ModelConfig, generator: torch.Generator | None = None) -> None:
@@ -33,7 +33,7 @@ class HashGridEncoding(nn.Module):
         self.register_buffer("resolutions", torch.tensor(resolutions, dtype=torch.float32), persistent=False)
         table = torch.empty(self.levels, self.table_size, config.hash_features_per_level)
         self.table = nn.Parameter(table.uniform_(-1e-4, 1e-4, generator=generator))
-        self.gradients = RowGradients()  # the table's gradient rows, for ``lazy_adam.LazyAdam``
+        self.gradients = RowGradients()  # the table's gradient rows, for ``optim.lazy_adam.LazyAdam``
 
     @property
     def output_dim(self) -> int:

@@ -20,7 +20,7 @@ import torch
 from numba import njit, prange
 
 from ogmapping.arrays import float32_array
-from ogmapping.model.lazy_adam import RowGradients
+from ogmapping.model.row_gradients import RowGradients
 
 _ONE = np.float32(1.0)
 

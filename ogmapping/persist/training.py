@@ -16,9 +16,9 @@ from dataclasses import dataclass
 import torch
 
 from ogmapping.frames.camera import Intrinsics
-from ogmapping.model.lazy_adam import LazyAdam
 from ogmapping.optim.averaging import MapAverage
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet
+from ogmapping.optim.lazy_adam import LazyAdam
 from ogmapping.structure.anchors import LEARNABLE, AnchorMap
 
 PREFIX = "training."

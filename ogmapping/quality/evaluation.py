@@ -9,7 +9,6 @@ scoring starts, so the client's other commands can share the frame set and stay 
 
 from __future__ import annotations
 
-import argparse
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -26,7 +25,6 @@ from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.preprocess import prepare, resize_frame
 from ogmapping.frames.selection import Selection, select
-from ogmapping.options import dataset_source
 
 if TYPE_CHECKING:
     import torch
@@ -57,12 +55,6 @@ class FrameSet:
     def load(self, position: int) -> Frame:
         frame = self.source[position]
         return resize_frame(frame, self.scale) if self.scale != 1.0 else frame
-
-    @classmethod
-    def from_args(cls, args: argparse.Namespace) -> FrameSet:
-        """From the flags of ``ogmapping.options.add_dataset_arguments`` (``--bag`` and its flags included)."""
-        data, format, options = dataset_source(args)
-        return open_frames(data, format, args.frames, args.stride, args.scale, **options)
 
 
 def open_frames(

@@ -17,17 +17,19 @@ from ogapi import SERVICE_NAME
 
 from ogmapping.runtime.profile import resolve_device
 from ogmapping.warmup import warm_up
-from ogserver import reflection, storage, transport, wire
-from ogserver.callers import Callers
-from ogserver.calls import HEADROOM, CallGate
-from ogserver.expiry import Expiry
-from ogserver.foxglove_ws import FoxgloveServer
-from ogserver.hosting import Closed, SessionHost
-from ogserver.live import LiveView
+from ogserver.access import transport
+from ogserver.access.call_gate import HEADROOM, CallGate
+from ogserver.access.callers import Callers
+from ogserver.api import reflection, wire
+from ogserver.api.servicer import MappingService
+from ogserver.live.foxglove_ws import FoxgloveServer
+from ogserver.live.publisher import LiveView
 from ogserver.metrics import Endpoint, Metrics
-from ogserver.registry import Registry
-from ogserver.resume import resume_all
-from ogserver.service import MappingService
+from ogserver.recording import disk
+from ogserver.sessions.expiry import Expiry
+from ogserver.sessions.hosting import Closed, SessionHost
+from ogserver.sessions.registry import Registry
+from ogserver.sessions.resume import resume_all
 from ogserver.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -67,7 +69,7 @@ class Server:
 
 def build(settings: Settings) -> Server:
     """A started server; ``port`` is the bound one (useful with port 0)."""
-    storage.check_writable(Path(settings.record_dir))
+    disk.check_writable(Path(settings.record_dir))
     device = str(resolve_device(settings.device))
     torch.set_num_threads(settings.threads())
     limits, access = settings.limits, settings.access

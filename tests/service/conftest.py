@@ -15,7 +15,7 @@ import pytest
 from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 from ogclient.connection import connect
 from ogclient.local_server import LocalServer
-from ogserver import recorder
+from ogserver.recording import recorder
 
 from .scene import TEST_SERVER_CONFIG
 

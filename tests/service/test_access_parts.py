@@ -11,13 +11,13 @@ from collections.abc import Iterator
 import grpc
 import pytest
 from ogserver import apikeys
-from ogserver.budget import ByteBudget
-from ogserver.callers import ANONYMOUS, Callers
+from ogserver.access.callers import ANONYMOUS, Callers
+from ogserver.access.failed_auth import FailedAuthentications, peer_address
+from ogserver.access.transport import keepalive_options
+from ogserver.api.pacing import Paced, Timeout
 from ogserver.errors import ServiceError
-from ogserver.failures import FailedAuthentications, peer_address
-from ogserver.pacing import Paced, Timeout
+from ogserver.sessions.queued_bytes import ByteBudget
 from ogserver.settings import Access, load
-from ogserver.transport import keepalive_options
 
 # ---------------------------------------------------------------------------- paced streams
 
@@ -119,7 +119,7 @@ def fail(failures: FailedAuthentications, address: str) -> None:
 def test_an_address_is_refused_after_too_many_failures_until_they_age(caplog: pytest.LogCaptureFixture) -> None:
     clock = Clock()
     failures = FailedAuthentications(3, 60.0, clock)
-    with caplog.at_level(logging.WARNING, logger="ogserver.failures"):
+    with caplog.at_level(logging.WARNING, logger="ogserver.access.failed_auth"):
         for _ in range(3):
             fail(failures, "10.0.0.1")
             clock.now += 1
@@ -140,7 +140,7 @@ def test_an_address_is_refused_after_too_many_failures_until_they_age(caplog: py
 def test_failure_logging_reports_what_it_left_out(caplog: pytest.LogCaptureFixture) -> None:
     clock = Clock()
     failures = FailedAuthentications(0, 60.0, clock)  # 0: never refused, still logged
-    with caplog.at_level(logging.WARNING, logger="ogserver.failures"):
+    with caplog.at_level(logging.WARNING, logger="ogserver.access.failed_auth"):
         for _ in range(5):
             fail(failures, "10.0.0.1")
             clock.now += 1

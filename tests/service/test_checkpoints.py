@@ -15,14 +15,15 @@ import torch
 from ogapi import recording
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.messages import frame_to_proto
-from ogserver import auth, checkpoint
-from ogserver.callers import ANONYMOUS
-from ogserver.checkpoint import CheckpointError, Identity, Position
+from ogserver.access import tokens
+from ogserver.access.callers import ANONYMOUS
+from ogserver.api.validation import frame as validate_frame
 from ogserver.errors import ServiceError
-from ogserver.registry import Opened, Registry
-from ogserver.resume import resume_all
+from ogserver.recording import checkpoint
+from ogserver.recording.checkpoint import CheckpointError, Identity, Position
+from ogserver.sessions.registry import Opened, Registry
+from ogserver.sessions.resume import resume_all
 from ogserver.settings import Settings
-from ogserver.validation import frame as validate_frame
 
 from ogmapping.config import OctreeConfig, resolve
 from ogmapping.mapper import Mapper
@@ -43,7 +44,7 @@ def mapper() -> Mapper:
 
 
 def identity() -> Identity:
-    return Identity("alice", auth.TokenHash.of(TOKEN), pb.SessionConfig(session_id="a" * 32, label="kitchen"))
+    return Identity("alice", tokens.TokenHash.of(TOKEN), pb.SessionConfig(session_id="a" * 32, label="kitchen"))
 
 
 def test_a_checkpoint_holds_the_exact_map_and_who_the_session_is(tmp_path: Path, mapper: Mapper) -> None:

@@ -12,7 +12,7 @@ from ogapi.v1 import mapping_pb2 as pb
 from ogclient.__main__ import main, parser
 from ogclient.commands import overrides_from_args
 from ogserver import healthcheck
-from ogserver.recorder import Recorder
+from ogserver.recording.recorder import Recorder
 
 COMMANDS = ["create", "stream", "replay", "repair-recording", "render", "snapshot", "restore", "stats", "eval", "list",
             "close"]

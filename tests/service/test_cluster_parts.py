@@ -9,8 +9,8 @@ import grpc
 import pytest
 from ogserver.cluster.directory import Directory
 from ogserver.errors import ServiceError
+from ogserver.recording.disk import StorageError
 from ogserver.settings import Settings
-from ogserver.storage import StorageError
 
 
 @pytest.mark.parametrize("kind", [ServiceError, StorageError])

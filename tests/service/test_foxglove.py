@@ -13,7 +13,7 @@ from ogapi import recording
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.connection import SessionRef
 from ogclient.streaming import stream_frames
-from ogserver.live import LIVE_TOPICS, session_prefix
+from ogserver.live.publisher import LIVE_TOPICS, session_prefix
 
 from .inprocess import serving, settings
 from .scene import TINY, create_request, messages, scene

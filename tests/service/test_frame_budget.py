@@ -9,11 +9,11 @@ from pathlib import Path
 import grpc
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.messages import frame_to_proto
-from ogserver.events import Acked
-from ogserver.recorder import Recorder
-from ogserver.session import Session
+from ogserver.api.validation import frame as validate_frame
+from ogserver.recording.recorder import Recorder
+from ogserver.sessions.session import Session
+from ogserver.sessions.stream_events import Acked
 from ogserver.settings import Limits
-from ogserver.validation import frame as validate_frame
 
 from ogmapping.config import resolve
 from ogmapping.mapper import Mapper

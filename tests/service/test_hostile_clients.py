@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.connection import SessionRef, connect
 from ogclient.messages import frame_to_proto
-from ogserver.validation import MAX_TIMESTAMP_SECONDS
+from ogserver.api.validation import MAX_TIMESTAMP_SECONDS
 from safetensors.torch import load as load_tensors
 from safetensors.torch import save as save_tensors
 

@@ -6,8 +6,8 @@ import json
 from pathlib import Path
 
 from ogapi import recording
-from ogserver import messages
-from ogserver.counters import SessionCounters
+from ogserver.api import messages
+from ogserver.sessions.counters import SessionCounters
 
 from ogmapping.stats import MapStats
 

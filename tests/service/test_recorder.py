@@ -14,10 +14,10 @@ from ogapi import recording as layout
 from ogapi.convert import FrameEncoding
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.messages import frame_to_proto
-from ogserver.recorder import PROVISIONAL_END, Recorder, frame_record
-from ogserver.storage import StorageError
-from ogserver.validation import MAX_TIMESTAMP_SECONDS
-from ogserver.validation import frame as validate_frame
+from ogserver.api.validation import MAX_TIMESTAMP_SECONDS
+from ogserver.api.validation import frame as validate_frame
+from ogserver.recording.disk import StorageError
+from ogserver.recording.recorder import PROVISIONAL_END, Recorder, frame_record
 
 from ogmapping.config import OctreeConfig
 

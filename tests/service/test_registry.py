@@ -10,12 +10,12 @@ import grpc
 import pytest
 from mcap.reader import make_reader
 from ogclient.messages import frame_to_proto
+from ogserver.access.callers import ANONYMOUS
+from ogserver.api.validation import frame as validate_frame
 from ogserver.app import build
-from ogserver.callers import ANONYMOUS
 from ogserver.errors import ServiceError
-from ogserver.registry import Opened, Registry
+from ogserver.sessions.registry import Opened, Registry
 from ogserver.settings import Settings
-from ogserver.validation import frame as validate_frame
 
 from ogmapping.config import OctreeConfig
 

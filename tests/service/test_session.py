@@ -11,13 +11,13 @@ import pytest
 from ogapi import recording
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.messages import frame_to_proto
-from ogserver.auth import TokenHash
+from ogserver.access.tokens import TokenHash
+from ogserver.api.validation import frame as validate_frame
 from ogserver.errors import ServiceError
-from ogserver.events import Acked, SessionClosed
-from ogserver.recorder import Recorder
-from ogserver.session import Session
+from ogserver.recording.recorder import Recorder
+from ogserver.sessions.session import Session
+from ogserver.sessions.stream_events import Acked, SessionClosed
 from ogserver.settings import Limits
-from ogserver.validation import frame as validate_frame
 
 from ogmapping.config import OctreeConfig, resolve
 from ogmapping.mapper import Mapper
@@ -129,8 +129,8 @@ def test_a_failing_recording_answers_every_frame_and_returns_its_slots(tmp_path:
 
 
 def test_a_defect_while_reading_a_stream_ends_it_with_internal_not_silently() -> None:
-    from ogserver import stream
-    from ogserver.events import ReaderDone
+    from ogserver.api import stream
+    from ogserver.sessions.stream_events import ReaderDone
 
     class Broken:
         id = "0" * 32

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 from ogapi import recording as layout
-from ogserver.checkpoint import SUFFIX
-from ogserver.registry import Registry
+from ogserver.recording.checkpoint import SUFFIX
+from ogserver.recording.shared_store import Part, SharedStore
+from ogserver.sessions.registry import Registry
 from ogserver.settings import Settings
-from ogserver.shared import Part, SharedStore
 
 from .test_registry import map_frames
 

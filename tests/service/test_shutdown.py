@@ -10,7 +10,7 @@ from mcap.reader import make_reader
 from ogapi import recording
 from ogclient.connection import SessionRef, connect
 from ogclient.streaming import stream_frames
-from ogserver.validation import frame as validate_frame
+from ogserver.api.validation import frame as validate_frame
 
 from ogmapping.config import OctreeConfig
 from ogmapping.mapper import Mapper

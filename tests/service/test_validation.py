@@ -7,7 +7,7 @@ import pytest
 from ogapi.images import encode_color, encode_depth
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.messages import frame_to_proto
-from ogserver import validation
+from ogserver.api import validation
 from ogserver.errors import ServiceError
 
 from ogmapping.config import OctreeConfig

@@ -71,6 +71,6 @@ def test_a_frame_that_does_not_parse_gets_an_error_ack_and_the_stream_goes_on(
         assert "does not parse as ogapi.v1.Frame" in acks[0].error.message
         stats = stub.GetStats(pb.GetStatsRequest(session_id=ref.session_id), metadata=ref.metadata())
         assert (stats.frames, stats.frames_rejected) == (2, 2)
-    warnings = [record for record in caplog.records if record.name == "ogserver.wire"]
+    warnings = [record for record in caplog.records if record.name == "ogserver.api.wire"]
     assert len(warnings) <= 1  # throttled: one line per interval, however many arrive
     assert not [record for record in caplog.records if record.levelno >= logging.ERROR]

@@ -24,15 +24,16 @@ from ray.actor import ActorHandle
 from ogmapping.mapper import Rendered
 from ogmapping.runtime.profile import resolve_device
 from ogmapping.stats import MapStats
-from ogserver import LOG_FORMAT, checkpoint
-from ogserver.counters import SessionCounters
+from ogserver import LOG_FORMAT
+from ogserver.api.validation import RenderSpec
 from ogserver.errors import ServiceError
-from ogserver.events import Acked, Cancelled, SessionClosed, StreamEvent
-from ogserver.hosting import Closed, Opened, Upload
-from ogserver.registry import Registry
-from ogserver.session import Session
+from ogserver.recording import checkpoint
+from ogserver.sessions.counters import SessionCounters
+from ogserver.sessions.hosting import Closed, Opened, Upload
+from ogserver.sessions.registry import Registry
+from ogserver.sessions.session import Session
+from ogserver.sessions.stream_events import Acked, Cancelled, SessionClosed, StreamEvent
 from ogserver.settings import Settings
-from ogserver.validation import RenderSpec
 
 Described = tuple[bytes, str]  # the session's SessionConfig, serialized, and its recording's path
 Event = tuple[str, bytes]  # ("ack", FrameAck bytes) or ("closed", b"")

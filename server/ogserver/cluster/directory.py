@@ -17,7 +17,7 @@ from collections import Counter
 from collections.abc import Callable
 
 from ogserver.errors import ServiceError
-from ogserver.places import check_room
+from ogserver.sessions.limits import check_room
 
 log = logging.getLogger(__name__)
 

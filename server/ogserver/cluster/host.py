@@ -21,14 +21,14 @@ from ray.actor import ActorHandle
 from ray.exceptions import GetTimeoutError, RayActorError
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-from ogserver import validation
+from ogserver.api import validation
 from ogserver.cluster.actor import SessionActor
 from ogserver.cluster.directory import Directory
 from ogserver.cluster.remote import ACK_GROUP, RemoteSession, call, outcome
-from ogserver.counters import FrameTotals
 from ogserver.errors import ServiceError
-from ogserver.hosting import Closed, HostedSession, Opened, Upload
-from ogserver.registry import check_label, new_session_id, requested_config
+from ogserver.sessions.counters import FrameTotals
+from ogserver.sessions.hosting import Closed, HostedSession, Opened, Upload
+from ogserver.sessions.registry import check_label, new_session_id, requested_config
 from ogserver.settings import Settings
 
 log = logging.getLogger(__name__)

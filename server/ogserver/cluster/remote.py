@@ -26,10 +26,10 @@ from ray.exceptions import GetTimeoutError, RayActorError, RayTaskError
 
 from ogmapping.mapper import Rendered
 from ogmapping.stats import MapStats
-from ogserver.counters import SessionCounters
+from ogserver.api.validation import RenderSpec
 from ogserver.errors import ServiceError
-from ogserver.events import Acked, Lost, SessionClosed, StreamEvent
-from ogserver.validation import RenderSpec
+from ogserver.sessions.counters import SessionCounters
+from ogserver.sessions.stream_events import Acked, Lost, SessionClosed, StreamEvent
 
 log = logging.getLogger(__name__)
 EVENT_WAIT_SECONDS = 0.5  # how long one poll for acks waits in the actor; also how soon a finished pump stops

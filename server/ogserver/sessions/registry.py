@@ -1,10 +1,10 @@
 """All live sessions: creation within the limits, lookup with token check, idle expiry and closing.
 
-Each session has an owner (the caller identity that created it, see ``callers.py``) and the time it
+Each session has an owner (the caller identity that created it, see ``access/callers.py``) and the time it
 was last used; both live here, beside the session, so the per-caller quota, ListSessions and idle
 expiry need nothing from the session itself. Every session writes a checkpoint when it opens (its
 identity, the map it starts from) and drops it when it closes cleanly; ``resume`` brings back a
-session whose server died, from its checkpoint and its recording (``checkpoint.py``, ``resume.py``).
+session whose server died, from its checkpoint and its recording (``recording/checkpoint.py``, ``resume.py``).
 """
 
 from __future__ import annotations
@@ -27,17 +27,20 @@ from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.config import PRESETS, MapperConfig, resolve
 from ogmapping.mapper import Mapper
-from ogserver import __version__, auth, checkpoint, messages, validation
-from ogserver.checkpoint import CheckpointError, Checkpoints, Identity, Position
-from ogserver.counters import FrameTotals
+from ogserver import __version__
+from ogserver.access import tokens
+from ogserver.api import messages, validation
 from ogserver.errors import ServiceError, invalid
-from ogserver.hosting import Closed, Opened, Upload
-from ogserver.places import check_room
-from ogserver.recorder import Recorder
-from ogserver.session import Recorded, Session
+from ogserver.recording import checkpoint
+from ogserver.recording.checkpoint import CheckpointError, Checkpoints, Identity, Position
+from ogserver.recording.disk import StorageError, storage_error
+from ogserver.recording.recorder import Recorder
+from ogserver.recording.shared_store import RecordingParts, SharedStore
+from ogserver.sessions.counters import FrameTotals
+from ogserver.sessions.hosting import Closed, Opened, Upload
+from ogserver.sessions.limits import check_room
+from ogserver.sessions.session import Recorded, Session
 from ogserver.settings import Settings
-from ogserver.shared import RecordingParts, SharedStore
-from ogserver.storage import StorageError, storage_error
 
 log = logging.getLogger(__name__)
 DEFAULT_PRESET = "sparse"  # as ogmap run
@@ -142,8 +145,8 @@ class Registry:
             config_json=json.dumps(mapper.config.to_dict()), device=str(mapper.device), label=label,
             created_unix=time.time(), server_version=__version__, restored_from_sha256=restored, realtime=realtime,
         )
-        token = auth.new_token()
-        identity = Identity(owner, auth.TokenHash.of(token), config)
+        token = tokens.new_token()
+        identity = Identity(owner, tokens.TokenHash.of(token), config)
         recorder = Recorder(self.record_dir / f"{session_id}.mcap", config, self._parts(f"{session_id}.mcap"))
         checkpoints = Checkpoints(recorder.path, identity, self.settings.checkpoint_interval, self.store)
         try:
@@ -216,7 +219,7 @@ class Registry:
             session = self._sessions.get(session_id)
         if session is None:
             raise ServiceError(grpc.StatusCode.NOT_FOUND, f"{field}: no session {session_id}")
-        auth.check_token(token, session.token)
+        tokens.check_token(token, session.token)
         self.touch(session)
         return session
 

@@ -3,7 +3,7 @@
 A frame that does not parse or fails validation is answered with an error ack (``accepted`` false,
 ``error`` set) and the stream goes on; the response stream ends once the client has half-closed and
 every accepted frame has been acknowledged. The reader, the session's worker and gRPC's cancellation
-callback post typed events (``events.py``) to one queue, which the call reads in order.
+callback post typed events (``sessions/stream_events.py``) to one queue, which the call reads in order.
 """
 
 from __future__ import annotations
@@ -17,10 +17,10 @@ from typing import assert_never
 import grpc
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogserver import messages, wire
+from ogserver.api import messages, wire
 from ogserver.errors import ServiceError
-from ogserver.events import Acked, Cancelled, Lost, ReaderDone, Rejected, SessionClosed, StreamEvent
-from ogserver.hosting import HostedSession
+from ogserver.sessions.hosting import HostedSession
+from ogserver.sessions.stream_events import Acked, Cancelled, Lost, ReaderDone, Rejected, SessionClosed, StreamEvent
 
 log = logging.getLogger(__name__)
 

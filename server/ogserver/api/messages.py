@@ -16,11 +16,11 @@ from ogapi.images import encode_color, encode_depth
 from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.mapper import FrameResult, Rendered
-from ogmapping.runtime.budget import Stop
+from ogmapping.runtime.time_budget import Stop
 from ogmapping.stats import MapStats
-from ogserver.counters import SessionCounters
+from ogserver.api.validation import RenderSpec
 from ogserver.errors import ServiceError
-from ogserver.validation import RenderSpec
+from ogserver.sessions.counters import SessionCounters
 
 RENDER_DEPTH_SCALE = 1000.0  # PNG16 renders are millimetres
 

@@ -13,13 +13,13 @@ from ogapi import API_KEY_METADATA_KEY, SESSION_METADATA_KEY, TOKEN_METADATA_KEY
 from ogapi.v1 import mapping_pb2 as pb
 from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 
-from ogserver import messages, stream, validation, wire
-from ogserver.callers import Callers
+from ogserver.access.callers import Callers
+from ogserver.access.failed_auth import FailedAuthentications, peer_address
+from ogserver.api import messages, stream, validation, wire
+from ogserver.api.pacing import Paced, Timeout
 from ogserver.errors import ServiceError, exhausted, invalid
-from ogserver.failures import FailedAuthentications, peer_address
-from ogserver.hosting import HostedSession, Opened, SessionHost, Upload
 from ogserver.metrics import Metrics
-from ogserver.pacing import Paced, Timeout
+from ogserver.sessions.hosting import HostedSession, Opened, SessionHost, Upload
 
 log = logging.getLogger(__name__)
 SNAPSHOT_CHUNK_BYTES = 1 << 20

@@ -14,8 +14,8 @@ from pathlib import Path
 
 from ogapi import recording as layout
 
-from ogserver.checkpoint import SUFFIX
-from ogserver.registry import Registry
+from ogserver.recording.checkpoint import SUFFIX
+from ogserver.sessions.registry import Registry
 
 log = logging.getLogger(__name__)
 LEFTOVERS = ("*.mcap.resumed", f"*{SUFFIX}.tmp")  # a crash while resuming, or while writing a checkpoint

@@ -24,8 +24,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from ogserver import checkpoint
-from ogserver.recorder import PROVISIONAL_END
+from ogserver.recording import checkpoint
+from ogserver.recording.recorder import PROVISIONAL_END
 
 log = logging.getLogger(__name__)
 PART = re.compile(r"(\d+)-(\d+)-(\d+)(-end)?")

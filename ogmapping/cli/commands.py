@@ -10,9 +10,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ogmapping.cli.options import add_config_arguments, add_dataset_arguments, dataset_source, parse_intrinsics
 from ogmapping.config import parse_override_args, resolve
 from ogmapping.frames.camera import validate_pose
-from ogmapping.options import add_config_arguments, add_dataset_arguments, dataset_source, parse_intrinsics
 
 EPILOG = """examples:
   ogmap run --data ../shared/data/7scenes-redkitchen --frames 0:100 --scale 0.25 --out runs/kitchen
@@ -24,7 +24,7 @@ EPILOG = """examples:
 
 
 def command_run(args: argparse.Namespace) -> int:
-    from ogmapping.runner import RunOptions, run
+    from ogmapping.cli.runner import RunOptions, run
 
     config = resolve(args.preset, args.config, parse_override_args(args.overrides))
     data, format, dataset_options = dataset_source(args)
@@ -65,8 +65,8 @@ def parse_center(text: str) -> np.ndarray:
 
 
 def command_export(args: argparse.Namespace) -> int:
-    from ogmapping.export import Viewpoint, default_viewpoint, export_ply
     from ogmapping.mapper import Mapper
+    from ogmapping.persist.export import Viewpoint, default_viewpoint, export_ply
 
     mapper = Mapper.restore(Path(args.snapshot).read_bytes(), "cpu")
     if args.center:
@@ -130,7 +130,3 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as error:
         print(f"ogmap: error: {error}", file=sys.stderr)
         return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -13,6 +13,7 @@ from ogmapping.config import PRESETS
 from ogmapping.datasets import FORMATS, is_bag
 from ogmapping.datasets.rosbag.options import BagOptions
 from ogmapping.frames.camera import Intrinsics
+from ogmapping.quality.evaluation import FrameSet, open_frames
 
 
 def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
@@ -70,6 +71,13 @@ def dataset_source(args: argparse.Namespace) -> tuple[str, str, dict[str, Any]]:
     if given:
         raise ValueError(f"--{given[0].replace('_', '-')} is for ROS bags; {args.data} is not one")
     return args.data, args.format, {}
+
+
+def open_frame_set(args: argparse.Namespace) -> FrameSet:
+    """The frames to stream and hold out, from the flags of ``add_dataset_arguments`` (``--bag`` and its flags
+    included)."""
+    data, format, options = dataset_source(args)
+    return open_frames(data, format, args.frames, args.stride, args.scale, **options)
 
 
 def add_config_arguments(parser: argparse.ArgumentParser) -> None:

@@ -1,17 +1,16 @@
-"""Adam over the rows of the hash table that a step actually touched (lazy Adam).
+"""The hash table's gradient as the rows a step touched: a sink the encoding's gathers fill.
 
 The dense version's hash table holds levels x 2^19 rows, of which one iteration reads a few
-hundred thousand. Dense Adam rewrote all of them every step and autograd built a dense gradient
-of the whole table (~140 ms per iteration at 320x240 on two cores). Here the gathers' backward
-deposits the table's gradient in a ``RowGradients`` sink instead of a gradient tensor (a sparse
-gradient would be summed by autograd across the window's views: a sort per view), and the step
-updates the moments and values of the touched rows only, with the global step count for bias
-correction (TensorFlow's LazyAdam): rows that are not read keep their moments instead of decaying.
+hundred thousand. Dense Adam over all of them and autograd's dense gradient of the whole table cost
+~140 ms per iteration at 320x240 on two cores, so the gathers' backward deposits the table's gradient
+in a ``RowGradients`` sink instead of a gradient tensor (a sparse gradient would be summed by autograd
+across the window's views: a sort per view), and ``optim.lazy_adam.LazyAdam`` steps the touched rows
+only.
 
 The sink takes (row, gradient) pairs from the torch gathers, and summing those is a sort of every
 lookup (``torch.unique``: 22 ms of a 320x240 dense step, a third of the dense preset's time). The
 compiled encoding instead sums its lookups in place into a table-shaped buffer (``TouchedRows``)
-that flags the rows it touched, and the compiled step updates the flagged rows, so nothing sorts.
+that flags the rows it touched, and the compiled step walks the flagged rows, so nothing sorts.
 """
 
 from __future__ import annotations
@@ -132,73 +131,10 @@ class SparseRowGather(torch.autograd.Function):
         return None, None, None
 
 
-class LazyAdam:
-    """Adam (as ``torch.optim.Adam``, no weight decay) applied to the rows ``gradients`` holds.
-
-    ``compiled`` steps with one Numba pass over the touched rows (a float32 CPU table) instead of torch ops.
-    """
-
-    def __init__(self, table: torch.nn.Parameter, gradients: RowGradients, lr: float, *, compiled: bool,
-                 betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15) -> None:
-        self.table = table
-        self.compiled = compiled
-        self.gradients = gradients
-        self.lr = lr
-        self.betas = betas
-        self.eps = eps
-        self.step_count = 0
-        self.exp_avg = torch.zeros_like(table)
-        self.exp_avg_sq = torch.zeros_like(table)
-
-    def zero_grad(self) -> None:
-        self.gradients.clear()
-
-    @torch.no_grad()
-    def step(self) -> None:
-        if self.compiled:
-            self._compiled_step()
-            return
-        summed = self.gradients.summed()
-        if summed is None:
-            return
-        rows, values = summed
-        correction1, correction2 = self._advance()
-        beta1, beta2 = self.betas
-        table, exp_avg, exp_avg_sq = self._flat()
-        first = exp_avg.index_select(0, rows).mul_(beta1).add_(values, alpha=1 - beta1)
-        second = exp_avg_sq.index_select(0, rows).mul_(beta2).addcmul_(values, values, value=1 - beta2)
-        exp_avg.index_copy_(0, rows, first)
-        exp_avg_sq.index_copy_(0, rows, second)
-        denominator = (second / correction2).sqrt_().add_(self.eps)
-        table.index_add_(0, rows, first.div_(denominator), alpha=-self.lr / correction1)
-
-    def _compiled_step(self) -> None:
-        """The same update, one pass over the touched rows, which it leaves reset for the next step."""
-        touched = self.gradients.folded(self.table.shape)
-        if not touched.counts.any():
-            return
-        correction1, correction2 = self._advance()
-        table, exp_avg, exp_avg_sq = self._flat()
-        _adam_touched(table.numpy(), exp_avg.numpy(), exp_avg_sq.numpy(), touched.values, touched.flags,
-                      get_num_threads(), self.lr / correction1, correction2, *self.betas, self.eps)
-        touched.counts[:] = 0
-
-    def _advance(self) -> tuple[float, float]:
-        """Count a step; Adam's bias corrections 1 - beta1^t and 1 - beta2^t for it."""
-        self.step_count += 1
-        beta1, beta2 = self.betas
-        return 1 - beta1**self.step_count, 1 - beta2**self.step_count
-
-    def _flat(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The table and its moments as (rows, F) views, updated in place."""
-        width = self.table.shape[-1]
-        return self.table.detach().view(-1, width), self.exp_avg.view(-1, width), self.exp_avg_sq.view(-1, width)
-
-
 # Rows per block of the scans over the whole table (the step, the reset). Blocks and levels are
 # dealt to the threads in turn: the fine levels hold most touched rows and are the slow ones to
 # sum into (their rows are scattered), so contiguous shares would leave one thread most of the work.
-_SCAN_BLOCK = 1 << 12
+SCAN_BLOCK = 1 << 12
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -235,31 +171,11 @@ def _deposit_pairs(rows, pair_values, values, flags, counts, size):
 @njit(parallel=True, cache=True, error_model="numpy")
 def _reset(values, flags, counts, n_threads):
     """Zero the touched rows of the buffer and their flags."""
-    blocks = (flags.shape[0] + _SCAN_BLOCK - 1) // _SCAN_BLOCK
+    blocks = (flags.shape[0] + SCAN_BLOCK - 1) // SCAN_BLOCK
     for worker in prange(n_threads):
         for block in range(worker, blocks, n_threads):
-            for row in range(block * _SCAN_BLOCK, min(flags.shape[0], (block + 1) * _SCAN_BLOCK)):
+            for row in range(block * SCAN_BLOCK, min(flags.shape[0], (block + 1) * SCAN_BLOCK)):
                 if flags[row]:
                     flags[row] = 0
                     values[row, :] = 0.0
     counts[:] = 0
-
-
-@njit(parallel=True, cache=True)
-def _adam_touched(table, exp_avg, exp_avg_sq, values, flags, n_threads, step_size, correction2, beta1, beta2, eps):
-    """The torch path's update on every touched row, in memory order; the buffer is reset as it goes."""
-    blocks = (flags.shape[0] + _SCAN_BLOCK - 1) // _SCAN_BLOCK
-    for worker in prange(n_threads):
-        for block in range(worker, blocks, n_threads):
-            for row in range(block * _SCAN_BLOCK, min(flags.shape[0], (block + 1) * _SCAN_BLOCK)):
-                if flags[row] == 0:
-                    continue
-                for j in range(table.shape[1]):
-                    g = values[row, j]
-                    m = beta1 * exp_avg[row, j] + (1.0 - beta1) * g
-                    v = beta2 * exp_avg_sq[row, j] + (1.0 - beta2) * g * g
-                    exp_avg[row, j] = m
-                    exp_avg_sq[row, j] = v
-                    table[row, j] -= step_size * m / (np.sqrt(v / correction2) + eps)
-                    values[row, j] = 0.0
-                flags[row] = 0

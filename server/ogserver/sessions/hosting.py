@@ -20,10 +20,10 @@ from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.mapper import Rendered
 from ogmapping.stats import MapStats
-from ogserver.counters import FrameTotals, SessionCounters
-from ogserver.events import StreamEvent
+from ogserver.api.validation import RenderSpec
+from ogserver.sessions.counters import FrameTotals, SessionCounters
+from ogserver.sessions.stream_events import StreamEvent
 from ogserver.settings import Settings
-from ogserver.validation import RenderSpec
 
 
 @dataclass(frozen=True)

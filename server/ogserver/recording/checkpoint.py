@@ -29,7 +29,7 @@ from ogapi.v1 import mapping_pb2 as pb
 from ogmapping.config import ConfigBounds
 from ogmapping.persist import snapshot
 from ogmapping.persist.state import MapState
-from ogserver.auth import TokenHash
+from ogserver.access.tokens import TokenHash
 
 log = logging.getLogger(__name__)
 FORMAT = "ogserver-checkpoint"
@@ -167,7 +167,7 @@ def write_atomically(path: Path, data: bytes) -> None:
 
 
 class SharedStore(Protocol):
-    """Where else checkpoints go (``shared.SharedStore``: an fsspec store)."""
+    """Where else checkpoints go (``shared_store.SharedStore``: an fsspec store)."""
 
     def put(self, name: str, data: bytes) -> None: ...
 

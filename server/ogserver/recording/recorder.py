@@ -8,7 +8,7 @@ close appends the summary and index. The first write that fails (a full disk) st
 for good: the file is cut back to the last complete frame, and closing rewrites it with a summary.
 A session resumed after a crash goes on with its recording (``Recorder.resume``): the cut file is
 copied into a new one, which replaces it, and later frames are appended there. With shared storage
-at a URL (cluster mode, ``shared.py``) each flush's bytes are uploaded too, before the flush returns.
+at a URL (cluster mode, ``shared_store.py``) each flush's bytes are uploaded too, before the flush returns.
 """
 
 from __future__ import annotations
@@ -44,14 +44,14 @@ from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.rotation import matrix_to_quaternion
 from ogserver.errors import ServiceError
-from ogserver.storage import StorageError, storage_error
+from ogserver.recording.disk import StorageError, storage_error
 
 log = logging.getLogger(__name__)
 PROFILE = "protobuf"
 
 
 class RecordingParts(Protocol):
-    """Where else a recording's bytes go as they are committed (``shared.RecordingParts``: an fsspec store)."""
+    """Where else a recording's bytes go as they are committed (``shared_store.RecordingParts``: an fsspec store)."""
 
     def add(self, offset: int, data: bytes, end: bool) -> None: ...
 

@@ -6,7 +6,7 @@ optimisation iterations. The worker records each frame as it takes it up, before
 the recording holds exactly the frames the session mapped (or tried to): frames still queued when
 the session closes are dropped unrecorded, and a replay maps what the original did. Every
 ``checkpoints.interval`` recorded frames the worker, once the frame's ack is sent, writes a
-checkpoint of the map (``checkpoint.py``). A session resumed after a crash starts from its last
+checkpoint of the map (``recording/checkpoint.py``). A session resumed after a crash starts from its last
 checkpoint with a backlog: the recorded frames after it, which the worker maps (they are already
 recorded) before any new frame. The session answers in engine results and its own counters; the
 messages module turns them into ogapi messages.
@@ -36,19 +36,19 @@ from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.frames.frame import Frame
 from ogmapping.mapper import Mapper, Rendered
-from ogmapping.runtime.budget import Budget
+from ogmapping.runtime.time_budget import Budget
 from ogmapping.stats import MapStats
-from ogserver import messages, validation
-from ogserver.auth import TokenHash
-from ogserver.budget import ByteBudget, frame_bytes
-from ogserver.checkpoint import Checkpoints, Position
-from ogserver.counters import SessionCounters
+from ogserver.access.tokens import TokenHash
+from ogserver.api import messages, validation
 from ogserver.errors import ServiceError
-from ogserver.events import Acked, SessionClosed, StreamEvent
-from ogserver.recorder import FrameRecord, Recorder, frame_record
+from ogserver.live.views import LatestFrame, MappedFrame
+from ogserver.recording.checkpoint import Checkpoints, Position
+from ogserver.recording.disk import StorageError
+from ogserver.recording.recorder import FrameRecord, Recorder, frame_record
+from ogserver.sessions.counters import SessionCounters
+from ogserver.sessions.queued_bytes import ByteBudget, frame_bytes
+from ogserver.sessions.stream_events import Acked, SessionClosed, StreamEvent
 from ogserver.settings import Limits
-from ogserver.storage import StorageError
-from ogserver.views import LatestFrame, MappedFrame
 
 log = logging.getLogger(__name__)
 

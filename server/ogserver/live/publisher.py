@@ -23,14 +23,14 @@ from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from google.protobuf.message import Message
 from ogapi import recording as layout
 
-from ogmapping.export import ColoredPoints, default_viewpoint, point_cloud
+from ogmapping.persist.export import ColoredPoints, default_viewpoint, point_cloud
 from ogserver.errors import ServiceError
-from ogserver.foxglove_ws import FoxgloveServer
-from ogserver.recorder import transform
-from ogserver.registry import Registry
-from ogserver.session import Session
+from ogserver.live.foxglove_ws import FoxgloveServer
+from ogserver.live.views import FrameIds, MappedFrame, Pending, image, points_message, render_jpeg
+from ogserver.recording.recorder import transform
+from ogserver.sessions.registry import Registry
+from ogserver.sessions.session import Session
 from ogserver.settings import Live
-from ogserver.views import FrameIds, MappedFrame, Pending, image, points_message, render_jpeg
 
 log = logging.getLogger(__name__)
 LIVE_TOPICS: dict[str, type[Message]] = {

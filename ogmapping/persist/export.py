@@ -12,13 +12,28 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import torch
 
-from ogmapping.mapper import Mapper
+from ogmapping.config import MapperConfig
+from ogmapping.model.gaussians import GaussianSet
 
 SH_C0 = 0.28209479177387814  # zeroth spherical-harmonic basis constant, 3DGS's colour encoding
+
+
+class Decodable(Protocol):
+    """What an export reads of a map (``ogmapping.mapper.Mapper``, which imports this package, not the
+    other way round): its Gaussians decoded as seen from a point, and where its cameras were."""
+
+    config: MapperConfig
+
+    def decode_at(self, camera_center: np.ndarray, max_anchors: int = 0) -> GaussianSet: ...
+
+    def camera_centroid(self) -> np.ndarray | None: ...
+
+    def anchor_centroid(self) -> np.ndarray: ...
 
 
 @dataclass(frozen=True)
@@ -29,7 +44,7 @@ class Viewpoint:
     origin: str
 
 
-def default_viewpoint(mapper: Mapper) -> Viewpoint:
+def default_viewpoint(mapper: Decodable) -> Viewpoint:
     """The mapped cameras' centroid, or the anchors' mean for a snapshot that has none on record."""
     centroid = mapper.camera_centroid()
     if centroid is not None:
@@ -38,7 +53,7 @@ def default_viewpoint(mapper: Mapper) -> Viewpoint:
                      "pass --center or --pose for a point near the views you care about")
 
 
-def export_ply(mapper: Mapper, path: str | Path, camera_center: np.ndarray) -> int:
+def export_ply(mapper: Decodable, path: str | Path, camera_center: np.ndarray) -> int:
     """Write the map's Gaussians, decoded as seen from ``camera_center``, to ``path``; returns how many."""
     gaussians = mapper.decode_at(camera_center)
     means = gaussians.means.cpu().numpy().astype(np.float32)
@@ -77,7 +92,7 @@ class ColoredPoints:
     rgba: np.ndarray  # (N, 4) uint8: colour, and opacity as alpha
 
 
-def point_cloud(mapper: Mapper, camera_center: np.ndarray, max_points: int) -> ColoredPoints:
+def point_cloud(mapper: Decodable, camera_center: np.ndarray, max_points: int) -> ColoredPoints:
     """At most ``max_points`` of the map's Gaussians, from anchors spread evenly over the map (each
     anchor decodes ``n_offsets`` Gaussians), coloured as seen from ``camera_center``."""
     per_anchor = max(mapper.config.model.n_offsets, 1)

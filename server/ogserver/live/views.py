@@ -2,7 +2,7 @@
 
 The session's worker only hands over references (``LatestFrame.offer``: the frame's pose, its
 recorded colour image); rendering and decoding the map happen later, on the live view's thread
-(``live.py``), between the mapper's optimisation iterations like any render call. The messages are
+(``publisher.py``), between the mapper's optimisation iterations like any render call. The messages are
 Foxglove's schemas, the same bytes for the Foxglove WebSocket server and the session recording.
 """
 
@@ -20,11 +20,11 @@ from ogapi import recording as layout
 from ogapi.images import encode_color
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogmapping.export import ColoredPoints
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
 from ogmapping.mapper import Mapper
-from ogserver.recorder import FrameRecord, timestamp
+from ogmapping.persist.export import ColoredPoints
+from ogserver.recording.recorder import FrameRecord, timestamp
 
 RENDER_JPEG_QUALITY = 90
 MAX_POSES = 1000  # poses kept between two looks of the live view; older ones are dropped

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import threading
 
-from ogserver.hosting import SessionHost
+from ogserver.sessions.hosting import SessionHost
 
 CHECKS_PER_LIMIT = 10  # a session is closed at most a tenth of the limit late
 LONGEST_CHECK_INTERVAL = 10.0

@@ -1,0 +1,1 @@
+"""Watching sessions as they map: renders and point clouds to Foxglove and into the recordings."""
