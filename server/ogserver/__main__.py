@@ -105,13 +105,19 @@ def parser() -> argparse.ArgumentParser:
                       help="serve the live view to Foxglove over WebSocket on this port (0 = any free port; "
                            "default off; needs the foxglove-sdk package, the 'live' extra)")
     live.add_argument("--foxglove-host", dest="foxglove_host",
-                      help="address the Foxglove server binds (127.0.0.1; it has no authentication)")
+                      help="address the Foxglove server binds (127.0.0.1)")
     live.add_argument("--view-seconds", dest="view_seconds", type=float,
                       help="at most one render and point cloud per session this often (1; 0 = no views)")
     live.add_argument("--view-points", dest="view_points", type=int,
                       help="points in the map's point cloud at most (50000)")
     live.add_argument("--no-record-views", dest="record_views", action="store_false", default=None,
                       help="keep keyframes' render and point cloud out of the recordings")
+    live.add_argument("--foxglove-token-file", dest="foxglove_token_file", metavar="FILE",
+                      help="the secret Foxglove clients put in the URL (?token=...); without it a random one per "
+                           "server, printed in the log, when the gRPC port has API keys or TLS")
+    live.add_argument("--foxglove-origin", dest="foxglove_origins", action="append", metavar="ORIGIN",
+                      help="a browser origin allowed on the Foxglove port, e.g. https://app.foxglove.dev "
+                           "(repeatable; clients that send no Origin are always allowed)")
     p.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING (default INFO)")
     return p
 

@@ -23,6 +23,7 @@ from ogserver.access.callers import Callers
 from ogserver.api import reflection, wire
 from ogserver.api.servicer import MappingService
 from ogserver.live.foxglove_ws import FoxgloveServer
+from ogserver.live.port_access import port_access
 from ogserver.live.publisher import LiveView
 from ogserver.metrics import Endpoint, Metrics
 from ogserver.recording import disk
@@ -133,12 +134,19 @@ def _live_view(settings: Settings, registry: Registry) -> LiveView | None:
     live = settings.live
     if not live.view_seconds or not (live.foxglove or live.record_views):
         return None
-    foxglove = FoxgloveServer(live.foxglove_host, live.foxglove_port) if live.foxglove else None
-    if foxglove is not None:
+    if not live.foxglove:
+        return LiveView(registry, live, None)
+    port = port_access(settings)
+    foxglove = FoxgloveServer(live.foxglove_host, live.foxglove_port, port.gate, port.tls)
+    url = port.url(live.foxglove_host, foxglove.port)
+    if port.gate.token:
+        shown = url if port.token_generated else url.replace(port.gate.token, "TOKEN")
+        log.info("Foxglove live view on %s%s", shown, "" if port.token_generated
+                 else f" (TOKEN: the contents of {live.foxglove_token_file})")
+    else:
         local = live.foxglove_host in ("127.0.0.1", "localhost", "::1")
         log.log(logging.INFO if local else logging.WARNING,
-                "Foxglove live view on ws://%s:%d (no authentication: anyone who reaches it sees every session's "
-                "images and map)", live.foxglove_host, foxglove.port)
+                "Foxglove live view on %s (no token: anyone who reaches it sees every session's images and map)", url)
     return LiveView(registry, live, foxglove)
 
 

@@ -88,17 +88,29 @@ class Access:
         return not (self.api_keys or self.api_keys_file or self.tls_client_ca)
 
 
+ORIGIN = re.compile(r"[a-z][a-z0-9+.-]*://[^/\s]*")
+
+
 @dataclass
 class Live:
     """The live view: each session's latest render and map, in Foxglove and in the recordings."""
 
-    foxglove_host: str = "127.0.0.1"  # the Foxglove WebSocket server's address (no authentication: keep it local)
+    foxglove_host: str = "127.0.0.1"  # the Foxglove WebSocket server's address
     foxglove_port: int = -1  # -1: no Foxglove server; 0: any free port (the log names it)
     view_seconds: float = 1.0  # at most one render and point cloud per session this often; 0: views off
     view_points: int = 50_000  # the point cloud's bound (Gaussians from anchors spread over the map)
     record_views: bool = True  # write keyframes' render and point cloud into the recordings
+    # --- the Foxglove port's gate (docs/foxglove.md, "Access"): a file holding the secret the URL's token
+    # carries ("" = a random one per server when the gRPC port has API keys or TLS, else none), and the
+    # browser origins allowed (clients that send no Origin always are)
+    foxglove_token_file: str = ""
+    foxglove_origins: list[str] = field(default_factory=list)
 
     def validate(self) -> None:
+        for origin in self.foxglove_origins:
+            if not isinstance(origin, str) or not (origin == "null" or ORIGIN.fullmatch(origin)):
+                raise ValueError(f"live.foxglove_origins: {origin!r} is not an origin such as "
+                                 f"https://app.foxglove.dev (scheme://host[:port], no path)")
         if not -1 <= self.foxglove_port <= 65535:
             raise ValueError(f"live.foxglove_port must be -1 (off), 0 (any free port) or a port number "
                              f"(got {self.foxglove_port})")

@@ -20,6 +20,9 @@ class ThrottledLog:
         self._held = 0
 
     def warning(self, message: str) -> None:
+        self.log(logging.WARNING, message)
+
+    def log(self, level: int, message: str) -> None:
         now = time.monotonic()
         with self._lock:
             if now < self._next:
@@ -28,4 +31,34 @@ class ThrottledLog:
             held, self._held = self._held, 0
             self._next = now + self._interval
         suffix = f" ({held} more since the last such line)" if held else ""
-        self._logger.warning("%s%s", message, suffix)
+        self._logger.log(level, "%s%s", message, suffix)
+
+
+class ThrottledHandler(logging.Handler):
+    """Passes a library's records on to ``target``, at most one per interval for each logger name and level.
+
+    Installed on a library's logger that does not propagate, it stands between code the server does
+    not control (which may log a line per message a client sends) and the server's log.
+    """
+
+    def __init__(self, target: logging.Logger, interval_seconds: float) -> None:
+        super().__init__()
+        self._target = target
+        self._interval = interval_seconds
+        self._lines: dict[tuple[str, int], ThrottledLog] = {}
+        self._lines_lock = threading.Lock()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        key = (record.name, record.levelno)
+        with self._lines_lock:
+            line = self._lines.setdefault(key, ThrottledLog(self._target, self._interval))
+        line.log(record.levelno, f"{record.name}: {record.getMessage()}")
+
+
+def throttle_library(name: str, target: logging.Logger, interval_seconds: float) -> None:
+    """Route the ``name`` logger and its children through a ``ThrottledHandler`` (once per process)."""
+    library = logging.getLogger(name)
+    if any(isinstance(handler, ThrottledHandler) for handler in library.handlers):
+        return
+    library.addHandler(ThrottledHandler(target, interval_seconds))
+    library.propagate = False

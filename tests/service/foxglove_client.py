@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
 import json
+import ssl
 import struct
 import time
 from dataclasses import dataclass, field
@@ -18,10 +20,11 @@ from dataclasses import dataclass, field
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from google.protobuf.message import Message
 from websockets.asyncio.client import ClientConnection, connect
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, InvalidStatus
 
 SUBPROTOCOL = "foxglove.sdk.v1"
 MESSAGE_DATA = 1
+UNKNOWN_CHANNEL = "Unknown channel ID: "  # the server's status when a subscription names no channel it has
 
 
 @dataclass(frozen=True)
@@ -46,7 +49,8 @@ class Received:
     messages: dict[str, list[tuple[int, Message]]] = field(default_factory=dict)  # topic -> (log time, message)
 
 
-async def _read(ws: ClientConnection, received: Received, subscribed: dict[int, Advertised]) -> None:
+async def _read(ws: ClientConnection, received: Received, subscribed: dict[int, Advertised]) -> int | None:
+    """Read one message; return the id of a channel the server says it does not know (yet), if any."""
     message = await ws.recv()
     if isinstance(message, str):
         data = json.loads(message)
@@ -56,30 +60,64 @@ async def _read(ws: ClientConnection, received: Received, subscribed: dict[int, 
                 received.channels[channel["topic"]] = Advertised(
                     channel["id"], channel["topic"], channel["schemaName"],
                     message_type(channel["schemaName"], channel["schema"]))
-        return
+        elif data["op"] == "status" and data["message"].startswith(UNKNOWN_CHANNEL):
+            return int(data["message"].removeprefix(UNKNOWN_CHANNEL))
+        return None
     assert message[0] == MESSAGE_DATA, f"unexpected binary opcode {message[0]}"
     subscription, log_time = struct.unpack_from("<IQ", message, 1)
     channel = subscribed[subscription]
     received.messages.setdefault(channel.topic, []).append((log_time, channel.message_type.FromString(message[13:])))
+    return None
 
 
-async def watch(url: str, prefix: str, topics: list[str], wanted: set[str], seconds: float) -> Received:
+def _connect(url: str, origin: str | None, tls: ssl.SSLContext | None) -> connect:
+    return connect(url, subprotocols=[SUBPROTOCOL], max_size=None, ssl=tls, open_timeout=10,
+                   additional_headers={"Origin": origin} if origin else None)
+
+
+async def first_message(url: str, origin: str | None = None, tls: ssl.SSLContext | None = None) -> str | int:
+    """The ``op`` of the server's first message, or the HTTP status that refused the handshake."""
+    try:
+        async with _connect(url, origin, tls) as ws:
+            return json.loads(await asyncio.wait_for(ws.recv(), 10))["op"]
+    except InvalidStatus as refused:
+        return refused.response.status_code
+
+
+async def subscribe_unknown(url: str, messages: int, entries: int) -> None:
+    """Send ``messages`` subscribe requests of ``entries`` each, for a channel the server never had."""
+    async with _connect(url, None, None) as ws:
+        await ws.recv()
+        for _ in range(messages):
+            await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                {"id": number, "channelId": 999_999} for number in range(entries)]}))
+        with contextlib.suppress(TimeoutError, ConnectionClosed):
+            while True:  # the server's answers (a status per bad entry), until it has none for a second
+                await asyncio.wait_for(ws.recv(), 1.0)
+
+
+async def watch(url: str, prefix: str, topics: list[str], wanted: set[str], seconds: float,
+                tls: ssl.SSLContext | None = None) -> Received:
     """Subscribe to ``prefix + topic`` for each topic once advertised; return once every ``wanted``
     topic has a message (none wanted: until the server ends the connection), or after ``seconds``."""
     received, subscribed = Received(), {}
     deadline = time.monotonic() + seconds
-    async with connect(url, subprotocols=[SUBPROTOCOL], max_size=None) as ws:
+    async with _connect(url, None, tls) as ws:
         while time.monotonic() < deadline and not (wanted and wanted <= set(received.messages)):
             try:
-                await asyncio.wait_for(_read(ws, received, subscribed), max(deadline - time.monotonic(), 0.01))
+                unknown = await asyncio.wait_for(_read(ws, received, subscribed),
+                                                 max(deadline - time.monotonic(), 0.01))
             except (TimeoutError, ConnectionClosed):
                 break
+            if unknown is not None:  # advertised to the client a moment before the server took it: ask again
+                await asyncio.sleep(0.1)
+                subscribed = {number: channel for number, channel in subscribed.items() if channel.id != unknown}
             fresh = [received.channels[prefix + topic] for topic in topics
                      if prefix + topic in received.channels
                      and received.channels[prefix + topic] not in subscribed.values()]
             if fresh:
                 for channel in fresh:
-                    subscribed[len(subscribed) + 1] = channel
+                    subscribed[max(subscribed, default=0) + 1] = channel
                 await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
                     {"id": number, "channelId": channel.id} for number, channel in subscribed.items()
                     if channel in fresh]}))

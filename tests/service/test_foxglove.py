@@ -4,6 +4,8 @@ recording carries the keyframes' render and map under the same schemas."""
 from __future__ import annotations
 
 import asyncio
+import logging
+import ssl
 import time
 
 import cv2
@@ -13,8 +15,12 @@ from ogapi import recording
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.connection import SessionRef
 from ogclient.streaming import stream_frames
+from ogserver import apikeys
+from ogserver.live.port_access import port_access
 from ogserver.live.publisher import LIVE_TOPICS, session_prefix
+from ogserver.settings import load
 
+from .certificates import make_ca
 from .inprocess import serving, settings
 from .scene import TINY, create_request, messages, scene
 
@@ -31,28 +37,36 @@ def wait_for(condition, seconds: float = 10.0) -> None:
         time.sleep(0.05)
 
 
-def test_foxglove_client_sees_render_transform_and_point_cloud(tmp_path) -> None:
+def live_settings(tmp_path):
     configured = settings(tmp_path)
     configured.live.foxglove_port = 0
     configured.live.view_seconds = 0.2
     configured.live.view_points = MAX_POINTS
+    return configured
+
+
+def watch_while_streaming(running, session: SessionRef, url: str, topics: list[str], frames):
+    """What a client at ``url`` receives of the session's ``topics`` while ``frames`` are streamed."""
+    fox, prefix = running.server.live.foxglove, session_prefix(session.session_id)
+
+    async def watch():
+        watcher = asyncio.create_task(foxglove_client.watch(url, prefix, topics, {prefix + t for t in topics}, 30))
+        # Stream once the client has subscribed to every topic of the session.
+        await asyncio.to_thread(wait_for, lambda: all(fox.wants(prefix + topic) for topic in topics))
+        await asyncio.to_thread(stream_frames, running.stub, session, frames, None, False)
+        return await watcher
+
+    return asyncio.run(watch())
+
+
+def test_foxglove_client_sees_render_transform_and_point_cloud(tmp_path) -> None:
     frames = messages(scene())
-    with serving(configured) as running:
-        fox = running.server.live.foxglove
+    with serving(live_settings(tmp_path)) as running:
         credentials = running.stub.CreateSession(create_request(TINY))
         session = SessionRef.from_credentials(credentials)
         prefix = session_prefix(session.session_id)
-        topics = list(LIVE_TOPICS)
-        url = f"ws://127.0.0.1:{fox.port}"
-
-        async def watch_while_streaming():
-            watcher = asyncio.create_task(foxglove_client.watch(url, prefix, topics, {prefix + t for t in topics}, 30))
-            # Stream once the client has subscribed to every topic of the session.
-            await asyncio.to_thread(wait_for, lambda: all(fox.wants(prefix + topic) for topic in topics))
-            await asyncio.to_thread(stream_frames, running.stub, session, frames, None, False)
-            return await watcher
-
-        received = asyncio.run(watch_while_streaming())
+        url = f"ws://127.0.0.1:{running.server.live.foxglove.port}"
+        received = watch_while_streaming(running, session, url, list(LIVE_TOPICS), frames)
         running.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id), metadata=session.metadata())
 
     poses = {tuple(np.round(np.array(frame.c2w).reshape(4, 4)[:3, 3], 6)) for frame in frames}
@@ -101,3 +115,98 @@ def decode_points(cloud) -> np.ndarray:
 def test_without_the_port_no_foxglove_server_starts(tmp_path) -> None:
     with serving(settings(tmp_path)) as running:
         assert running.server.live is not None and running.server.live.foxglove is None
+
+
+# ---------------------------------------------------------------------------- who may connect
+
+def test_with_api_keys_only_the_token_opens_the_live_view(tmp_path) -> None:
+    """API keys on the gRPC port: without the Foxglove token no session id, image or pose is seen."""
+    configured = live_settings(tmp_path)
+    configured.access.api_keys = {"alice": apikeys.digest("alice-key")}
+    token_file = tmp_path / "foxglove.token"
+    token_file.write_text("a-secret-of-twenty-four-chars\n")
+    configured.live.foxglove_token_file = str(token_file)
+    frames = messages(scene())[:4]
+    with serving(configured) as running:
+        fox = running.server.live.foxglove
+        base = f"ws://127.0.0.1:{fox.port}"
+        url = base + "/?token=a-secret-of-twenty-four-chars"
+        assert asyncio.run(foxglove_client.first_message(base)) == 403
+        assert asyncio.run(foxglove_client.first_message(base + "/?token=a-secret-of-twenty-four-charX")) == 403
+        assert asyncio.run(foxglove_client.first_message(url)) == "serverInfo"
+
+        credentials = running.stub.CreateSession(create_request(TINY), metadata=(("x-api-key", "alice-key"),))
+        session = SessionRef.from_credentials(credentials)
+        received = watch_while_streaming(running, session, url, [recording.TOPIC_COLOR, recording.TOPIC_TRANSFORM],
+                                         frames)
+    prefix = session_prefix(session.session_id)
+    _, color = received.messages[prefix + recording.TOPIC_COLOR][-1]
+    assert color.data in {frame.color.data for frame in frames}
+    assert received.messages[prefix + recording.TOPIC_TRANSFORM]
+
+
+def test_a_foreign_origin_is_refused(tmp_path) -> None:
+    """A web page on another origin cannot read the port, even where no token is asked."""
+    configured = live_settings(tmp_path)
+    configured.live.foxglove_origins = ["https://app.foxglove.dev"]
+    with serving(configured) as running:
+        url = f"ws://127.0.0.1:{running.server.live.foxglove.port}"
+        assert asyncio.run(foxglove_client.first_message(url, origin="https://evil.example")) == 403
+        assert asyncio.run(foxglove_client.first_message(url, origin="null")) == 403
+        assert asyncio.run(foxglove_client.first_message(url, origin="https://app.foxglove.dev")) == "serverInfo"
+        assert asyncio.run(foxglove_client.first_message(url)) == "serverInfo"  # a native client sends no Origin
+
+
+def test_the_port_speaks_tls_when_grpc_does(tmp_path) -> None:
+    ca = make_ca(tmp_path / "pki")
+    configured = live_settings(tmp_path)
+    configured.access.tls_cert, configured.access.tls_key = str(ca.server.cert), str(ca.server.key)
+    with serving(configured) as running:
+        fox = running.server.live.foxglove
+        assert fox.tls and fox.gate.token, "TLS on gRPC asks for a token on the Foxglove port"
+        trusting = ssl.create_default_context(cafile=str(ca.ca))
+        url = f"wss://127.0.0.1:{fox.port}/?token={fox.gate.token}"
+        assert asyncio.run(foxglove_client.first_message(url, tls=trusting)) == "serverInfo"
+        assert asyncio.run(foxglove_client.first_message(url.split("?")[0], tls=trusting)) == 403
+        with pytest.raises(Exception):  # noqa: B017 (whatever a plain client makes of a TLS answer)
+            asyncio.run(foxglove_client.first_message(f"ws://127.0.0.1:{fox.port}/?token={fox.gate.token}"))
+
+
+class Lines(logging.Handler):
+    """What reaches the root logger's handlers: the server's log."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.INFO)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
+def test_bad_subscribes_leave_a_bounded_log(tmp_path) -> None:
+    """The SDK logs a line per bad subscription entry; one client sending 2 000 gets a line or two."""
+    root, log = logging.getLogger(), Lines()
+    root.addHandler(log)
+    try:
+        with serving(live_settings(tmp_path)) as running:
+            url = f"ws://127.0.0.1:{running.server.live.foxglove.port}"
+            asyncio.run(foxglove_client.subscribe_unknown(url, messages=10, entries=200))
+    finally:
+        root.removeHandler(log)
+    lines = [record for record in log.records if "unknown channel" in record.getMessage()]
+    assert 1 <= len(lines) <= 2, f"{len(lines)} lines, from {sorted({record.name for record in lines})}"
+    assert sum(len(record.getMessage()) for record in log.records) < 20_000
+
+
+def test_bad_origins_and_tokens_are_refused_in_one_line(tmp_path) -> None:
+    with pytest.raises(ValueError, match=r"live\.foxglove_origins: 'app\.foxglove\.dev' is not an origin"):
+        load(None, {"foxglove_origins": ["app.foxglove.dev"]})
+    configured = live_settings(tmp_path)
+    short = tmp_path / "short.token"
+    short.write_text("guessable\n")
+    configured.live.foxglove_token_file = str(short)
+    with pytest.raises(ValueError, match=r"short\.token must hold one token of 16 to 256"):
+        port_access(configured)
+    configured.live.foxglove_token_file = str(tmp_path / "missing.token")
+    with pytest.raises(ValueError, match=r"live\.foxglove_token_file: cannot read"):
+        port_access(configured)

@@ -4,40 +4,59 @@ Channels are advertised per topic on first use and carry protobuf messages with 
 recordings use, so Foxglove decodes the same bytes live and from a file. ``wants`` tells whether a
 client subscribes to a topic, so nothing is rendered or decoded for a view nobody watches. The
 server has its own ``foxglove.Context``: servers in one process do not see each other's channels.
+Clients reach the SDK's server only through the gate in ``front.py`` (origins, token, TLS), and the
+SDK's log lines, one per bad message a client sends, go through a throttle.
 """
 
 from __future__ import annotations
 
 import logging
+import ssl
 import threading
 from typing import Any
 
 from google.protobuf.message import Message
 from mcap_protobuf.schema import build_file_descriptor_set
 
+from ogserver.live.front import Front, Gate, loopback_host
+from ogserver.throttled_log import throttle_library
+
 log = logging.getLogger(__name__)
 INSTALL_HINT = "pip install 'ogmapping[live]' (the foxglove-sdk package)"
+SDK_LOG_INTERVAL_SECONDS = 10.0
 
 
 class FoxgloveServer:
-    def __init__(self, host: str, port: int) -> None:
+    """The SDK's server on a loopback address of its own, behind a ``Front`` on ``host:port``."""
+
+    def __init__(self, host: str, port: int, gate: Gate, tls: ssl.SSLContext | None = None) -> None:
         try:
             import foxglove
         except ImportError:
             raise ValueError(f"--foxglove-port needs the foxglove-sdk package: {INSTALL_HINT}") from None
+        for library in ("foxglove", "tungstenite"):  # the SDK and its WebSocket library
+            throttle_library(library, logging.getLogger(f"{__name__}.sdk"), SDK_LOG_INTERVAL_SECONDS)
         self._foxglove = foxglove
         self._context = foxglove.Context()
+        inner_host = loopback_host()
         try:
-            self._server = foxglove.start_server(name="ogserver", host=host, port=port, context=self._context)
-        except Exception as error:  # the SDK raises its own error types for a port in use or a bad host
+            self._server = foxglove.start_server(name="ogserver", host=inner_host, port=0, context=self._context)
+        except Exception as error:  # the SDK raises its own error types
+            raise ValueError(f"cannot start the Foxglove server: {error}") from None
+        try:
+            self._front = Front(host, port, (inner_host, self._server.port), gate, tls)
+        except OSError as error:
+            self._server.stop()
             raise ValueError(f"cannot serve Foxglove on {host}:{port}: {error}") from None
         self.host = host
+        self.gate = gate
+        self.tls = tls is not None
         self._channels: dict[str, Any] = {}
         self._lock = threading.Lock()
 
     @property
     def port(self) -> int:
-        return self._server.port
+        return self._front.port
 
     def advertise(self, topic: str, message_type: type[Message]) -> None:
         """Offer ``topic`` to clients (once), so they can subscribe before anything is published on it."""
@@ -69,4 +88,5 @@ class FoxgloveServer:
             channel.close()
 
     def stop(self) -> None:
+        self._front.stop()
         self._server.stop()
