@@ -13,6 +13,8 @@ from typing import Any
 from ogmapping.config import MIB, ConfigBounds
 from ogmapping.config.overrides import assign, read_mapping
 
+ZERO_ALLOWED = {"max_anchors", "max_skipped_recording_bytes", "skipped_recording_bytes_per_second"}
+
 
 @dataclass
 class Limits:
@@ -26,11 +28,15 @@ class Limits:
     max_message_bytes: int = 64 * MIB  # gRPC send/receive limit
     max_anchors: int = 0  # frames are refused once a map holds this many anchors; 0 = no limit
     max_snapshot_bytes: int = 256 * MIB  # largest snapshot RestoreSession accepts (buffered before it is read)
+    # --- recording: what a realtime session's skipped frames may add to its recording (mapped frames are
+    # always recorded); beyond either, a skipped frame is acknowledged as not recorded. 0: none recorded.
+    max_skipped_recording_bytes: int = 1024 * MIB  # per session, over its life on this server
+    skipped_recording_bytes_per_second: int = 4 * MIB  # per session; bursts of one second's worth
 
     def validate(self) -> None:
         for item in dataclasses.fields(self):
             value = getattr(self, item.name)
-            minimum = 0 if item.name == "max_anchors" else 1
+            minimum = 0 if item.name in ZERO_ALLOWED else 1
             if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
                 raise ValueError(f"limits.{item.name} must be an integer >= {minimum} (got {value!r})")
 

@@ -4,6 +4,8 @@ test_crash_resume.py)."""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import queue
 import time
@@ -28,6 +30,7 @@ from ogserver.settings import Settings
 from ogmapping.config import OctreeConfig, resolve
 from ogmapping.mapper import Mapper
 
+from .held_mapper import flood_while_held, frame_messages
 from .scene import FROZEN, PRESET, TINY, create_request, scene
 
 TOKEN = "t" * 43
@@ -194,3 +197,122 @@ def test_a_recording_cut_inside_a_frame_resumes_from_the_frames_before_the_cut(t
     assert [ack.sequence for ack in stream(Opened(session, opened.token), range(2, 4))] == [3, 4]
     second.close(session)
     assert [frame.index for _, frame in recording.load(path).frames] == [0, 1, 2, 3]
+
+
+# ---------------------------------------------------------------------------- realtime sessions
+
+
+def realtime_request() -> pb.CreateSessionRequest:
+    request = create_request(FROZEN)
+    request.realtime = True
+    return request
+
+
+def test_a_realtime_session_checkpoints_on_whichever_frame_it_maps(tmp_path: Path) -> None:
+    """Its mapped frames' sequences fall anywhere between skipped ones: frame 6 is the first mapped
+    four or more frames after the opening checkpoint, and no multiple of four is ever mapped."""
+    registry = Registry(settings(tmp_path, interval=4), "cpu")
+    opened = registry.create(realtime_request(), ANONYMOUS)
+    sink: queue.SimpleQueue = queue.SimpleQueue()
+    held = flood_while_held(opened.session, frame_messages(6), sink)
+    held.release()  # frame 0 (sequence 1) is mapped, frames 1-4 were skipped, frame 5 (sequence 6) is taken up
+    held.taken()
+    held.release()
+    acks = [sink.get(timeout=60).ack for _ in range(6)]
+    assert sorted((ack.sequence, ack.skipped) for ack in acks) == [
+        (1, False), (2, True), (3, True), (4, True), (5, True), (6, False)]
+    deadline = time.monotonic() + 60
+    while opened.session.checkpoints.written < 2:
+        assert time.monotonic() < deadline, "no checkpoint after the frames it mapped"
+        time.sleep(0.05)
+    assert checkpoint.read(checkpoint.path_for(opened.session.recording)).position == Position(6, 5)
+    registry.close(opened.session)
+
+
+def test_a_resumed_realtime_session_skips_what_it_skipped_and_answers_a_new_frame(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    first = Registry(settings(tmp_path, interval=0), "cpu")
+    opened = first.create(realtime_request(), ANONYMOUS)
+    sink: queue.SimpleQueue = queue.SimpleQueue()
+    messages = frame_messages(31)
+    held = flood_while_held(opened.session, messages, sink)
+    held.release()
+    held.taken()
+    held.release()
+    acks = [sink.get(timeout=60).ack for _ in messages]
+    assert sum(ack.skipped for ack in acks) == 29
+    crash(opened)  # the last frame's ack is lost with the writer's buffer: that frame is mapped again
+
+    def slow(self: Mapper, frame, budget=None):
+        time.sleep(0.25)  # 31 frames mapped again would take 8 s or more
+        return mapping(self, frame, budget)
+
+    mapping = Mapper.process
+    monkeypatch.setattr(Mapper, "process", slow)
+    second = Registry(settings(tmp_path, interval=0), "cpu")
+    assert resume_all(second).sessions == [opened.session.id]
+    session = second.get(opened.session.id, opened.token)
+    assert (session.counters().last_sequence, session.counters().last_index) == (31, 30)
+    started = time.monotonic()
+    more = stream(Opened(session, opened.token), range(1))
+    answered = time.monotonic() - started
+    counters = session.counters()
+    assert [ack.sequence for ack in more] == [32] and not more[0].skipped
+    assert (counters.mapped, counters.skipped) == (3, 0), "frames the live session skipped were mapped"
+    assert answered < 4.0, f"the new frame waited {answered:.1f} s behind recorded frames"
+    second.close(session)
+
+
+# ---------------------------------------------------------------------------- what resume trusts
+
+
+def test_a_checkpoint_whose_owner_was_edited_is_not_resumed(tmp_path: Path) -> None:
+    first = Registry(settings(tmp_path, interval=0), "cpu")
+    opened = first.create(create_request(FROZEN), "alice")
+    stream(opened, range(1))
+    crash(opened)
+    path = checkpoint.path_for(opened.session.recorder.path)
+    data = path.read_bytes()
+    edited = data.replace(b'\\"owner\\": \\"alice\\"', b'\\"owner\\": \\"mallo\\"')
+    assert edited != data
+    path.write_bytes(edited)
+
+    second = Registry(settings(tmp_path, interval=0), "cpu")
+    resumed = resume_all(second)
+    assert resumed.sessions == [] and "edited" in resumed.skipped[f"{opened.session.id}.mcap"]
+    assert second.sessions() == [] and path.read_bytes() == edited
+
+
+def test_a_checkpoint_from_before_the_digest_covered_its_identity_is_refused(mapper: Mapper) -> None:
+    header, payload = checkpoint._split(checkpoint.encode(identity(), Position(2, 7), mapper.state()))
+    metadata = header["__metadata__"]
+    entry = json.loads(metadata[checkpoint.KEY])
+    entry["version"] = 1
+    metadata[checkpoint.KEY] = json.dumps(entry)
+    del metadata[checkpoint.DIGEST_KEY]
+    metadata["payload_sha256"] = hashlib.sha256(payload).hexdigest()
+    text = json.dumps(header).encode()
+    with pytest.raises(CheckpointError, match="version 1, from an older server"):
+        checkpoint.decode(len(text).to_bytes(8, "little") + text + payload)
+
+
+def test_another_sessions_recording_under_this_ones_name_is_not_resumed(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    first = Registry(settings(tmp_path, interval=0), "cpu")
+    mine, theirs = (first.create(create_request(FROZEN), "alice") for _ in range(2))
+    stream(mine, range(1))
+    stream(theirs, range(3))
+    crash(mine)
+    crash(theirs)
+    copied = theirs.session.recorder.path.read_bytes()
+    mine.session.recorder.path.write_bytes(copied)  # a copy mistake, or two nodes' shared storage mixed up
+
+    second = Registry(settings(tmp_path, interval=0), "cpu")
+    with caplog.at_level("ERROR"):
+        resumed = resume_all(second)
+    assert resumed.sessions == [theirs.session.id]
+    reason = resumed.skipped[f"{mine.session.id}.mcap"]
+    assert f"recording of session {theirs.session.id}, not of {mine.session.id}" in reason
+    assert f"session of {mine.session.id}.mcap not resumed" in caplog.text
+    assert mine.session.recorder.path.read_bytes() == copied
+    second.close(second.get(theirs.session.id, theirs.token))

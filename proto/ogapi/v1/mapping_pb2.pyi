@@ -167,7 +167,7 @@ class Error(_message.Message):
     def __init__(self, code: _Optional[int] = ..., code_name: _Optional[str] = ..., message: _Optional[str] = ...) -> None: ...
 
 class FrameAck(_message.Message):
-    __slots__ = ("index", "accepted", "sequence", "keyframe", "anchors", "gaussians", "iterations", "latency_seconds", "process_seconds", "queue_depth", "error", "skipped")
+    __slots__ = ("index", "accepted", "sequence", "keyframe", "anchors", "gaussians", "iterations", "latency_seconds", "process_seconds", "queue_depth", "error", "skipped", "unrecorded")
     INDEX_FIELD_NUMBER: _ClassVar[int]
     ACCEPTED_FIELD_NUMBER: _ClassVar[int]
     SEQUENCE_FIELD_NUMBER: _ClassVar[int]
@@ -180,6 +180,7 @@ class FrameAck(_message.Message):
     QUEUE_DEPTH_FIELD_NUMBER: _ClassVar[int]
     ERROR_FIELD_NUMBER: _ClassVar[int]
     SKIPPED_FIELD_NUMBER: _ClassVar[int]
+    UNRECORDED_FIELD_NUMBER: _ClassVar[int]
     index: int
     accepted: bool
     sequence: int
@@ -192,7 +193,8 @@ class FrameAck(_message.Message):
     queue_depth: int
     error: Error
     skipped: bool
-    def __init__(self, index: _Optional[int] = ..., accepted: _Optional[bool] = ..., sequence: _Optional[int] = ..., keyframe: _Optional[bool] = ..., anchors: _Optional[int] = ..., gaussians: _Optional[int] = ..., iterations: _Optional[int] = ..., latency_seconds: _Optional[float] = ..., process_seconds: _Optional[float] = ..., queue_depth: _Optional[int] = ..., error: _Optional[_Union[Error, _Mapping]] = ..., skipped: _Optional[bool] = ...) -> None: ...
+    unrecorded: bool
+    def __init__(self, index: _Optional[int] = ..., accepted: _Optional[bool] = ..., sequence: _Optional[int] = ..., keyframe: _Optional[bool] = ..., anchors: _Optional[int] = ..., gaussians: _Optional[int] = ..., iterations: _Optional[int] = ..., latency_seconds: _Optional[float] = ..., process_seconds: _Optional[float] = ..., queue_depth: _Optional[int] = ..., error: _Optional[_Union[Error, _Mapping]] = ..., skipped: _Optional[bool] = ..., unrecorded: _Optional[bool] = ...) -> None: ...
 
 class RenderRequest(_message.Message):
     __slots__ = ("session_id", "c2w", "intrinsics", "outputs", "color_encoding", "depth_encoding", "jpeg_quality")

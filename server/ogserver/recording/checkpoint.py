@@ -7,7 +7,10 @@ frames after it as the uninterrupted one would have. Its safetensors metadata al
 JSON, the session's identity (id, owner, the recorded ``SessionConfig`` with label and resolved
 config, a salted hash of its token, never the token) and the position of the map in the recording:
 the sequence of the last frame it holds (the n-th recorded frame has sequence n) and that frame's
-``index``. A sha256 of the tensor bytes, in the same metadata, lets a resume refuse a damaged file.
+``index``. A sha256 of the whole header (the metadata and the tensors' layout) and the tensor bytes, in
+the same metadata, lets a resume refuse a damaged or edited file: an owner changed by hand, a checkpoint
+of version 1 (whose identity no digest covered). It detects mistakes, not a forger who can write the
+record dir and compute a sha256.
 A checkpoint replaces the previous one atomically (temporary file, fsync, rename, fsync of the
 directory): the file under its name is always a whole checkpoint, the old one or the new one.
 """
@@ -33,10 +36,10 @@ from ogserver.access.tokens import TokenHash
 
 log = logging.getLogger(__name__)
 FORMAT = "ogserver-checkpoint"
-VERSION = 1
+VERSION = 2  # 1: the digest covered the tensor bytes only
 SUFFIX = ".checkpoint.safetensors"
 KEY = "checkpoint"  # the safetensors metadata entry with the JSON below
-PAYLOAD_KEY = "payload_sha256"
+DIGEST_KEY = "checkpoint_sha256"
 
 
 class CheckpointError(ValueError):
@@ -95,13 +98,22 @@ def _split(data: bytes) -> tuple[dict, bytes]:
     return json.loads(data[8 : 8 + length]), data[8 + length :]
 
 
+def _digest(header: dict, payload: bytes) -> str:
+    """sha256 of the header without the digest itself (canonical JSON) and of the tensor bytes."""
+    metadata = {key: value for key, value in header.get("__metadata__", {}).items() if key != DIGEST_KEY}
+    canonical = json.dumps({**header, "__metadata__": metadata}, sort_keys=True, separators=(",", ":"))
+    digest = hashlib.sha256(canonical.encode())
+    digest.update(payload)
+    return digest.hexdigest()
+
+
 def _with_metadata(data: bytes, extra: dict[str, str]) -> bytes:
-    """``data`` (safetensors) with ``extra`` and the payload's sha256 added to its metadata. Tensor
+    """``data`` (safetensors) with ``extra`` and the digest of the whole added to its metadata. Tensor
     offsets count from the payload's start, so only the header changes (padded to 8 bytes, as
     safetensors writes it)."""
     header, payload = _split(data)
-    header["__metadata__"] = {**header.get("__metadata__", {}), **extra,
-                              PAYLOAD_KEY: hashlib.sha256(payload).hexdigest()}
+    header["__metadata__"] = {**header.get("__metadata__", {}), **extra}
+    header["__metadata__"][DIGEST_KEY] = _digest(header, payload)
     text = json.dumps(header, separators=(",", ":")).encode()
     text += b" " * (-len(text) % 8)
     return len(text).to_bytes(8, "little") + text + payload
@@ -113,22 +125,26 @@ def decode(data: bytes, bounds: ConfigBounds | None = None) -> Checkpoint:
         metadata = snapshot.read_metadata(data)
     except ValueError as error:
         raise CheckpointError(f"not a checkpoint: {error}") from None
-    if PAYLOAD_KEY not in metadata or KEY not in metadata:
+    if KEY not in metadata:
         raise CheckpointError("not a checkpoint: a snapshot without the checkpoint's metadata")
-    if hashlib.sha256(_split(data)[1]).hexdigest() != metadata[PAYLOAD_KEY]:
-        raise CheckpointError("damaged: the tensor bytes do not match their sha256")
     try:
         entry = json.loads(metadata[KEY])
-        if entry.get("format") != FORMAT or entry.get("version") != VERSION:
-            raise CheckpointError(f"format {entry.get('format')!r} version {entry.get('version')!r} is not "
+        version = entry.get("version")
+        if entry.get("format") != FORMAT or version not in (1, VERSION):
+            raise CheckpointError(f"format {entry.get('format')!r} version {version!r} is not "
                                   f"{FORMAT!r} version {VERSION}")
+        if version == 1:  # deliberately refused: its owner and token hash could be edited unnoticed
+            raise CheckpointError("version 1, from an older server: no digest covers its owner and session; "
+                                  "`ogclient replay` maps its recording into a new session")
+        if _digest(*_split(data)) != metadata.get(DIGEST_KEY):
+            raise CheckpointError(f"damaged or edited: its metadata and tensor bytes do not match {DIGEST_KEY}")
         config = json_format.ParseDict(entry["session_config"], pb.SessionConfig())
         identity = Identity(str(entry["owner"]), TokenHash(str(entry["token_salt"]), str(entry["token_sha256"])),
                             config)
         position = Position(int(entry["sequence"]), int(entry["index"]))
     except CheckpointError:
         raise
-    except (KeyError, TypeError, ValueError, json_format.ParseError) as error:
+    except (AttributeError, KeyError, TypeError, ValueError, json_format.ParseError) as error:
         raise CheckpointError(f"malformed metadata: {type(error).__name__}: {error}") from None
     if identity.session_id != entry["session_id"] or position.sequence < 0:
         raise CheckpointError("malformed metadata: inconsistent session id or sequence")
@@ -178,19 +194,25 @@ class Checkpoints:
     """One session's checkpoints: where they go (and, with shared storage, where else), what each carries
     besides the map, when one is due."""
 
-    def __init__(self, recording: Path, identity: Identity, interval: int, store: SharedStore | None = None) -> None:
+    def __init__(self, recording: Path, identity: Identity, interval: int, store: SharedStore | None = None,
+                 last: int = 0) -> None:
         self.path = path_for(recording)
         self.store = store
         self.identity = identity
         self.interval = interval  # frames; 0: only the one written when the session opens
+        self.last = last  # the sequence of the last checkpoint written (or tried)
         self.written = 0
         self.seconds = 0.0  # spent writing them, encoding included
 
     def due(self, sequence: int) -> bool:
-        return self.interval > 0 and sequence > 0 and sequence % self.interval == 0
+        """``interval`` recorded frames after the last one: a realtime session's mapped frames fall on
+        any sequence, its skipped frames in between."""
+        return self.interval > 0 and sequence >= self.last + self.interval
 
     def write(self, state: MapState, position: Position) -> None:
-        """Raises OSError if it could not be written; the previous checkpoint then still stands."""
+        """Raises OSError if it could not be written; the previous checkpoint then still stands, and the
+        next one is due ``interval`` frames later (a full disk is not tried at every frame)."""
+        self.last = position.sequence
         start = time.perf_counter()
         data = encode(self.identity, position, state)
         write_atomically(self.path, data)

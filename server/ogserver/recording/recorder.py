@@ -175,6 +175,11 @@ class FrameRecord:
     sensor_ns: int
     views: list[tuple[str, Message]]
 
+    @property
+    def size(self) -> int:
+        """Its messages' bytes before compression: what it costs the recording, at most."""
+        return sum(view.ByteSize() for _, view in self.views)
+
 
 def frame_record(message: pb.Frame, frame: Frame, received_ns: int) -> FrameRecord:
     """Encoded off the worker's path (raw images become PNGs for Foxglove); validation bounds the timestamp."""

@@ -21,7 +21,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import grpc
-from google.protobuf.message import DecodeError
 from ogapi import recording as layout
 from ogapi.v1 import mapping_pb2 as pb
 
@@ -36,10 +35,11 @@ from ogserver.recording.checkpoint import CheckpointError, Checkpoints, Identity
 from ogserver.recording.disk import StorageError, storage_error
 from ogserver.recording.recorder import Recorder
 from ogserver.recording.shared_store import RecordingParts, SharedStore
+from ogserver.sessions.backlog import read_after
 from ogserver.sessions.counters import FrameTotals
 from ogserver.sessions.hosting import Closed, Opened, Upload
 from ogserver.sessions.limits import check_room
-from ogserver.sessions.session import Recorded, Session
+from ogserver.sessions.session import Session
 from ogserver.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -175,9 +175,10 @@ class Registry:
     def resume(self, recording: Path) -> Session:
         """The session ``recording`` belongs to, back as it was when its server died: same id, owner
         and token (checked against the stored hash), its map from its last checkpoint, the recorded
-        frames after that as a backlog its worker maps first, the recording going on. CheckpointError,
-        RecordingError, ServiceError or StorageError say why it cannot be resumed; the files are then
-        left as they were, except a recording that was already copied and replaced (it holds the same)."""
+        frames after that which the session mapped as a backlog its worker maps first, the recording
+        going on. CheckpointError, RecordingError, ServiceError or StorageError say why it cannot be
+        resumed (a checkpoint or recording of another session under this one's name included); the files
+        are then left as they were, except a recording that was already copied and replaced (it holds the same)."""
         saved = checkpoint.read(checkpoint.path_for(recording), self.settings.config_bounds)
         session_id = saved.identity.session_id
         if session_id != recording.stem:
@@ -185,31 +186,31 @@ class Registry:
         with self._lock:
             if session_id in self._sessions or session_id in self._retiring:
                 raise ServiceError(grpc.StatusCode.ALREADY_EXISTS, f"session {session_id} is already open")
-        backlog, frames = [], 0
-        for frames, message in enumerate(layout.read_messages(recording, {layout.TOPIC_FRAMES}), 1):
-            if frames > saved.position.sequence:
-                try:
-                    backlog.append(Recorded(frames, pb.Frame.FromString(message.data)))
-                except DecodeError:
-                    raise layout.RecordingError(f"{recording.name}: recorded frame {frames} is damaged") from None
-        if frames < saved.position.sequence:
-            raise CheckpointError(f"it is at frame {saved.position.sequence}, beyond the {frames} frames of "
+        after = read_after(recording, saved.position.sequence)
+        if after.session_id != session_id:
+            raise layout.RecordingError(f"{recording.name} is the recording of session {after.session_id or '?'}, "
+                                        f"not of {session_id}")
+        if after.frames < saved.position.sequence:
+            raise CheckpointError(f"it is at frame {saved.position.sequence}, beyond the {after.frames} frames of "
                                   f"{recording.name}")
+        backlog = after.backlog()
         with self._reserve(saved.identity.owner):
             try:
                 mapper = Mapper.from_state(saved.state, device=self.device, training_state=True)
             except ValueError as error:
                 raise CheckpointError(f"its map cannot be rebuilt: {error}") from None
             recorder = Recorder.resume(recording, self._parts(recording.name))
-            checkpoints = Checkpoints(recording, saved.identity, self.settings.checkpoint_interval, self.store)
+            checkpoints = Checkpoints(recording, saved.identity, self.settings.checkpoint_interval, self.store,
+                                      saved.position.sequence)
             config = pb.SessionConfig()
             config.CopyFrom(saved.identity.config)
             config.device = str(mapper.device)  # this server's, which may not be the crashed one's
             session = Session(config, saved.identity.token, mapper, recorder, self.settings.limits,
-                              self.settings.frame_seconds, checkpoints, saved.position, backlog)
+                              self.settings.frame_seconds, checkpoints, saved.position, backlog, after.last)
             self._register(session, saved.identity.owner)
         log.info("session %s resumed for %s from its checkpoint at frame %d, %d recorded frames after it to map "
-                 "again", session_id, saved.identity.owner, saved.position.sequence, len(backlog))
+                 "again (%d skipped as before)", session_id, saved.identity.owner, saved.position.sequence,
+                 len(backlog), len(after.frames_after) - len(backlog))
         return session
 
     def get(self, session_id: str, token: str, field: str = "session_id") -> Session:

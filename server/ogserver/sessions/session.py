@@ -5,16 +5,19 @@ parallel while renders, stats and snapshots (other threads) are served by the ma
 optimisation iterations. The worker records each frame as it takes it up, before mapping it, so
 the recording holds exactly the frames the session mapped (or tried to): frames still queued when
 the session closes are dropped unrecorded, and a replay maps what the original did. Every
-``checkpoints.interval`` recorded frames the worker, once the frame's ack is sent, writes a
-checkpoint of the map (``recording/checkpoint.py``). A session resumed after a crash starts from its last
-checkpoint with a backlog: the recorded frames after it, which the worker maps (they are already
+``checkpoints.interval`` recorded frames the worker, once the ack of the first frame it maps at or past
+that point is sent, writes a checkpoint of the map (``recording/checkpoint.py``). A session resumed after
+a crash starts from its last checkpoint with a backlog: the recorded frames after it that the session
+mapped (a realtime session's skipped ones stay skipped), which the worker maps (they are already
 recorded) before any new frame. The session answers in engine results and its own counters; the
 messages module turns them into ogapi messages.
 
 A realtime session never makes the stream wait: beyond ``realtime_queue_depth`` waiting frames, the
-oldest waiting one is skipped at once (recorded, acknowledged as skipped, never mapped). Taking a
-frame out of the queue and recording it happen under one lock, on either path, so the recording
-keeps arrival order and a replay maps every frame, skipped ones included, in that order.
+oldest waiting one is skipped at once (acknowledged as skipped, never mapped, and recorded while the
+session's ``SkippedBudget`` covers it). Taking a frame out of the queue and recording it happen under one
+lock, on either path, so the recording keeps arrival order and a replay maps every recorded frame,
+skipped ones included, in that order. Sequences number the recorded frames: a skipped frame left out
+of the recording gives its number to the frames queued after it.
 """
 
 from __future__ import annotations
@@ -45,6 +48,8 @@ from ogserver.live.views import LatestFrame, MappedFrame
 from ogserver.recording.checkpoint import Checkpoints, Position
 from ogserver.recording.disk import StorageError
 from ogserver.recording.recorder import FrameRecord, Recorder, frame_record
+from ogserver.recording.skipped_budget import SkippedBudget
+from ogserver.sessions.backlog import Recorded
 from ogserver.sessions.counters import SessionCounters
 from ogserver.sessions.queued_bytes import ByteBudget, frame_bytes
 from ogserver.sessions.stream_events import Acked, SessionClosed, StreamEvent
@@ -57,26 +62,20 @@ log = logging.getLogger(__name__)
 class Job:
     frame: Frame
     record: FrameRecord
-    sequence: int
+    sequence: int  # its place among the session's recorded frames
     received: float  # time.monotonic() when the frame was read
     sink: queue.SimpleQueue[StreamEvent] | None  # where the stream that sent it waits for its ack
     size: int  # bytes it holds of the session's max_queued_bytes (0 in a realtime session, which holds none)
-
-
-@dataclass(frozen=True)
-class Recorded:
-    """A frame the recording already holds, mapped again by a resumed session."""
-
-    sequence: int
-    message: pb.Frame
 
 
 class Session:
     def __init__(
         self, config: pb.SessionConfig, token: TokenHash, mapper: Mapper, recorder: Recorder, limits: Limits,
         frame_seconds: float = 0.0, checkpoints: Checkpoints | None = None, start: Position | None = None,
-        backlog: list[Recorded] | None = None,
+        backlog: list[Recorded] | None = None, recorded: Position | None = None,
     ) -> None:
+        """``start``: where the map stands; ``recorded``: the last frame the recording holds (``start``
+        unless the backlog or skipped frames follow it)."""
         self.id = config.session_id
         self.mapper = mapper
         self.config = config
@@ -86,14 +85,18 @@ class Session:
         self.checkpoints = checkpoints
         self._backlog = list(backlog or ())
         start = start or Position()
-        # Sequences go on from where the map (start) stands; this server run counts the backlog as received.
-        self._sequence_base = start.sequence
-        self._last_index = self._backlog[-1].message.index if self._backlog else start.index
+        recorded = recorded or start
+        # Sequences go on from the recording's last frame; this server run counts the backlog as received.
+        self._sequence = recorded.sequence  # the last one given to a frame
+        self._last_index = recorded.index
         self._mapped_position = start
         self._started = time.monotonic()
         self.realtime = config.realtime
         self._slots = threading.Semaphore(limits.queue_depth)
         self._queued_bytes = ByteBudget(limits.max_queued_bytes)
+        self._skipped_budget = SkippedBudget(limits.max_skipped_recording_bytes,
+                                             limits.skipped_recording_bytes_per_second)
+        self._unrecorded = 0  # skipped frames left out of the recording
         # Jobs in arrival order (None: stop). Lock order: _intake, then _lock.
         self._intake = threading.Condition()
         self._jobs: deque[Job | None] = deque()
@@ -195,10 +198,11 @@ class Session:
                 return None
             self._received += 1
             self._pending += 1
+            self._sequence += 1
             self._last_index = frame.index
             if self._first_received is None:
                 self._first_received = received
-            job = Job(frame, record, self._sequence_base + self._received, received, sink, size)
+            job = Job(frame, record, self._sequence, received, sink, size)
         self._jobs.append(job)
         self._intake.notify()
         return job
@@ -243,11 +247,11 @@ class Session:
 
     def _checkpoint_if_due(self) -> None:
         """After a frame is recorded, mapped and acknowledged: a checkpoint when one is due. Its position
-        is the last mapped frame's, so a resume maps every recorded frame after it (a realtime session's
-        frames skipped since then included). A failed write is logged and the previous checkpoint
-        stands (a resume replays more frames). So does any other failure of the write: it is logged
-        with its traceback instead of ending the session's worker thread, which would leave every
-        later frame of the session waiting for ever."""
+        is the last mapped frame's, so a resume maps the recorded frames after it that this session
+        mapped (a realtime session's frames skipped since then stay skipped). A failed write is logged
+        and the previous checkpoint stands (a resume replays more frames). So does any other failure of
+        the write: it is logged with its traceback instead of ending the session's worker thread, which
+        would leave every later frame of the session waiting for ever."""
         with self._lock:
             position = self._mapped_position
         if (self.checkpoints is None or not self.checkpoints.due(position.sequence) or self.recorder.failure
@@ -262,7 +266,10 @@ class Session:
             log.exception("session %s: cannot capture its checkpoint at sequence %d", self.id, position.sequence)
 
     def _skip(self, job: Job) -> pb.FrameAck:
-        """Record a frame passed over for a newer one, and its skipped ack (or why it could not be recorded)."""
+        """Record a frame passed over for a newer one, and its skipped ack (or why it could not be recorded);
+        beyond the session's ``SkippedBudget``, only the ack. The caller holds ``_intake``."""
+        if not self._skipped_budget.take(job.record.size):
+            return self._skip_unrecorded(job)
         refusal = self._record(job)
         with self._lock:
             self._pending -= 1
@@ -276,6 +283,27 @@ class Session:
                                    time.monotonic() - job.received, waiting)
         with suppress(StorageError):  # logged by the recorder, as for a mapped frame's ack
             self.recorder.write_ack(ack)
+        return ack
+
+    def _skip_unrecorded(self, job: Job) -> pb.FrameAck:
+        """A skipped frame the recording does not take: the frames queued after it move up one sequence."""
+        with self._lock:
+            self._pending -= 1
+            self._skipped += 1
+            self._unrecorded += 1
+            self._sequence -= 1
+            for later in self._jobs:
+                if later is not None:
+                    later.sequence -= 1
+            waiting = len(self._jobs)
+            anchors, gaussians = self._anchors, self._gaussians
+            first = self._unrecorded == 1
+        if first:
+            log.warning("session %s: skipped frames beyond its recording budget (%d bytes in all, %d per second) "
+                        "are acknowledged as unrecorded and left out of the recording", self.id,
+                        self.limits.max_skipped_recording_bytes, self.limits.skipped_recording_bytes_per_second)
+        ack = messages.skipped_ack(job.frame.index, 0, anchors, gaussians, time.monotonic() - job.received, waiting)
+        ack.unrecorded = True
         return ack
 
     def _record(self, job: Job) -> pb.FrameAck | None:
@@ -354,7 +382,7 @@ class Session:
                 skipped=self._skipped, anchors=self._anchors,
                 processing_fps=self._mapped / elapsed if elapsed > 0 else 0.0,
                 uptime_seconds=time.monotonic() - self._started,
-                last_sequence=self._sequence_base + self._received, last_index=self._last_index,
+                last_sequence=self._sequence, last_index=self._last_index,
                 mapped_sequence=self._mapped_position.sequence,
             )
 
