@@ -68,6 +68,10 @@ def parser() -> argparse.ArgumentParser:
                         help="refuse frames once a map holds this many anchors (0 = no limit)")
     limits.add_argument("--max-snapshot-bytes", dest="max_snapshot_bytes", type=int,
                         help="largest snapshot RestoreSession accepts (256 MiB)")
+    limits.add_argument("--max-skipped-recording-bytes", dest="max_skipped_recording_bytes", type=int,
+                        help="realtime sessions: bytes of skipped frames recorded per session (1 GiB; 0 = none)")
+    limits.add_argument("--skipped-recording-bytes-per-second", dest="skipped_recording_bytes_per_second", type=int,
+                        help="realtime sessions: rate of skipped frames recorded per session (4 MiB/s; 0 = none)")
     access = p.add_argument_group("access: TLS, callers, per-caller limits, timeouts, metrics (more in --config)")
     access.add_argument("--tls-cert", dest="tls_cert", metavar="PEM", help="server certificate chain: serve TLS only")
     access.add_argument("--tls-key", dest="tls_key", metavar="PEM", help="the certificate's private key")

@@ -30,6 +30,15 @@ def test_live_view_flags() -> None:
     assert not load().live.foxglove
 
 
+def test_skipped_recording_flags_reach_the_limits() -> None:
+    from ogserver.__main__ import parser
+
+    args = parser().parse_args(["--max-skipped-recording-bytes", "5", "--skipped-recording-bytes-per-second", "0"])
+    flags = {key: value for key, value in vars(args).items() if key not in ("config", "log_level")}
+    limits = load(None, flags).limits
+    assert limits.max_skipped_recording_bytes == 5 and limits.skipped_recording_bytes_per_second == 0
+
+
 def test_the_test_server_config_loads() -> None:
     assert load(TEST_SERVER_CONFIG).limits.max_image_pixels == 65536
 
