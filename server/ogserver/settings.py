@@ -61,8 +61,9 @@ class Access:
     restore_seconds: float = 600.0  # the longest a whole RestoreSession upload may take
     keepalive_seconds: float = 60.0  # HTTP/2 ping interval, so dead clients release their streams
     keepalive_timeout_seconds: float = 20.0
-    max_auth_failures: int = 20  # failed authentications per client address and window, then refused
+    max_auth_failures: int = 20  # wrong keys or tokens per client address and window, then RESOURCE_EXHAUSTED
     auth_failure_window_seconds: float = 60.0
+    max_auth_failures_total: int = 200  # the same from all addresses together (a right credential always passes)
 
     def validate(self) -> None:
         if bool(self.tls_cert) != bool(self.tls_key):
