@@ -152,7 +152,8 @@ def test_an_unused_session_expires_and_its_recording_is_finished(tmp_path: Path)
         error = refusal(running.stub.GetStats, pb.GetStatsRequest(session_id=credentials.session_id),
                         metadata=SessionRef.from_credentials(credentials).metadata())
         assert error.code() == CODE.NOT_FOUND
-        assert recording.load(credentials.recording).stats is not None  # closed like CloseSession
+        recorded = Path(configured.record_dir) / credentials.recording
+        assert recording.load(recorded).stats is not None  # closed like CloseSession
 
 
 def test_a_stalled_stream_is_ended_and_frees_the_sessions_stream(tmp_path: Path) -> None:
@@ -190,6 +191,35 @@ def test_queued_frames_are_held_to_a_byte_budget(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------- ListSessions and labels
+
+
+def test_create_and_close_name_files_in_the_record_dir_not_server_paths(tmp_path: Path) -> None:
+    configured = settings(tmp_path)
+    configured.final_snapshots = True
+    with serving(configured) as running:
+        credentials = running.stub.CreateSession(create_request(FROZEN))
+        session = SessionRef.from_credentials(credentials)
+        assert credentials.recording == f"{session.session_id}.mcap"
+        closed = running.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id),
+                                           metadata=session.metadata())
+    assert (closed.recording, closed.snapshot) == (f"{session.session_id}.mcap", f"{session.session_id}.safetensors")
+    record_dir = Path(configured.record_dir)
+    assert (record_dir / closed.recording).is_file() and (record_dir / closed.snapshot).is_file()
+
+
+def test_ogclient_names_the_files_in_the_servers_record_dir(tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    session_file = str(tmp_path / "session.json")
+    configured = settings(tmp_path)
+    with serving(configured) as running:
+        assert ogclient_main(["--server", running.address, "create", "--preset", PRESET,
+                              "--session-out", session_file]) == 0
+        assert ogclient_main(["--server", running.address, "close", "--session", session_file]) == 0
+    session_id = SessionRef.load(session_file).session_id
+    printed = capsys.readouterr().out
+    assert f"server records to {session_id}.mcap in its record dir" in printed
+    assert f"recording {session_id}.mcap in the server's record dir" in printed
+    assert configured.record_dir not in printed
 
 
 def test_listing_shows_no_server_paths_and_long_labels_are_refused(tmp_path: Path) -> None:

@@ -150,7 +150,4 @@ class MappingService(pb_grpc.MappingServicer):
     def CloseSession(self, request: pb.CloseSessionRequest, context: grpc.ServicerContext) -> pb.CloseSessionResponse:
         with status_errors(context):
             closed = self.registry.close(self._session(request.session_id, context))
-            return pb.CloseSessionResponse(
-                stats=closed.stats, recording=str(closed.recording),
-                snapshot=str(closed.snapshot) if closed.snapshot else "",
-            )
+            return messages.closed(closed.stats, closed.recording, closed.snapshot)
