@@ -54,7 +54,7 @@ def announce(credentials: pb.SessionCredentials, args: argparse.Namespace, serve
     session = SessionRef.from_credentials(credentials)
     session.save(args.session_out, server)
     print(f"session {session.session_id} on {credentials.device}; credentials in {args.session_out}; "
-          f"server records to {credentials.recording}", flush=True)
+          f"server records to {credentials.recording} in its record dir", flush=True)
     return session
 
 
@@ -62,7 +62,7 @@ def close_if_asked(ctx: Context, session: SessionRef, args: argparse.Namespace) 
     if getattr(args, "close", False):
         response = ctx.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id),
                                          metadata=session.metadata())
-        print(f"closed; recording {response.recording}")
+        print(f"closed; recording {response.recording} in the server's record dir")
 
 
 def create_request(args: argparse.Namespace) -> pb.CreateSessionRequest:
@@ -242,5 +242,5 @@ def close(ctx: Context, args: argparse.Namespace) -> int:
     response = ctx.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id),
                                      metadata=session.metadata())
     print(f"closed session {session.session_id} after {response.stats.frames} frames; recording {response.recording}"
-          + (f"; snapshot {response.snapshot}" if response.snapshot else ""))
+          + (f", snapshot {response.snapshot}" if response.snapshot else "") + " in the server's record dir")
     return 0

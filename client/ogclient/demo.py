@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
             snapshot.write_bytes(snapshot_bytes(stub, session))
             closed = stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id),
                                        metadata=session.metadata())
-    recording = Path(closed.recording)
+    recording = record_dir / closed.recording
     results["eval_seconds"] = eval_seconds
     (out / "results.json").write_text(json.dumps(results, indent=2))
     print(f"speed: processing {results['processing_fps']:.2f} frames/s on {results['device']}, "

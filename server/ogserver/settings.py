@@ -67,8 +67,9 @@ class Access:
     restore_seconds: float = 600.0  # the longest a whole RestoreSession upload may take
     keepalive_seconds: float = 60.0  # HTTP/2 ping interval, so dead clients release their streams
     keepalive_timeout_seconds: float = 20.0
-    max_auth_failures: int = 20  # failed authentications per client address and window, then refused
+    max_auth_failures: int = 20  # wrong keys or tokens per client address and window, then RESOURCE_EXHAUSTED
     auth_failure_window_seconds: float = 60.0
+    max_auth_failures_total: int = 200  # the same from all addresses together (a right credential always passes)
 
     def validate(self) -> None:
         if bool(self.tls_cert) != bool(self.tls_key):
@@ -159,6 +160,7 @@ class Settings:
     cluster: str = ""  # a Ray address: "auto", HOST:PORT of a head node, or ray://HOST:PORT (Ray Client)
     session_cpus: float = 1.0  # each session actor's Ray resource request
     session_gpus: float = 0.0  # a fraction of a GPU shares one among several sessions
+    cluster_connect_seconds: float = 15.0  # the longest wait for the address to answer at start; 0: Ray decides
     # An fsspec URL (s3://bucket/prefix, file:///mnt/shared, ...) holding recordings and checkpoints for every
     # node, record_dir being each node's scratch space; "" = record_dir itself is shared (NFS, a shared volume).
     shared_storage: str = ""
@@ -178,7 +180,7 @@ class Settings:
             raise ValueError(f"frame_seconds must be >= 0 and finite (got {self.frame_seconds})")
         if self.cluster and self.live.foxglove:
             raise ValueError("live.foxglove_port: the live view is not available in cluster mode yet")
-        for name in ("session_cpus", "session_gpus"):
+        for name in ("session_cpus", "session_gpus", "cluster_connect_seconds"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0 (got {value})")

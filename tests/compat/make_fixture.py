@@ -46,7 +46,7 @@ def main() -> None:
             (HERE / "snapshot.safetensors").write_bytes(snapshot_bytes(stub, session))
             closed = stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id),
                                        metadata=session.metadata())
-            shutil.copy(closed.recording, HERE / "recording.mcap")
+            shutil.copy(Path(record_dir) / closed.recording, HERE / "recording.mcap")
     k = truth.color_intrinsics
     save_file({
         "color": rendered.color, "depth": rendered.depth, "c2w": truth.c2w.astype(np.float64),

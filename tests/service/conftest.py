@@ -1,5 +1,5 @@
-"""A server for the integration tests ($OGMAP_SERVER when set: the container test; else a subprocess), and a disk
-that fills up."""
+"""A server for the integration tests ($OGMAP_SERVER when set: the container test, with its record dir
+mounted at $OGMAP_RECORD_DIR; else a subprocess), and a disk that fills up."""
 
 from __future__ import annotations
 
@@ -26,6 +26,12 @@ class ServerHandle:
     channel: grpc.Channel
     stub: pb_grpc.MappingStub
     local: LocalServer | None
+
+    def recorded(self, name: str) -> Path | None:
+        """A file the server names (a recording, a final snapshot) where this process sees it; None if it does not."""
+        record_dir = self.local.record_dir if self.local else os.environ.get("OGMAP_RECORD_DIR")
+        path = Path(record_dir) / name if record_dir else None
+        return path if path is not None and path.exists() else None
 
 
 def start_local(record_dir, *extra: str) -> LocalServer:

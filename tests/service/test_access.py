@@ -152,7 +152,8 @@ def test_an_unused_session_expires_and_its_recording_is_finished(tmp_path: Path)
         error = refusal(running.stub.GetStats, pb.GetStatsRequest(session_id=credentials.session_id),
                         metadata=SessionRef.from_credentials(credentials).metadata())
         assert error.code() == CODE.NOT_FOUND
-        assert recording.load(credentials.recording).stats is not None  # closed like CloseSession
+        recorded = Path(configured.record_dir) / credentials.recording
+        assert recording.load(recorded).stats is not None  # closed like CloseSession
 
 
 def test_a_stalled_stream_is_ended_and_frees_the_sessions_stream(tmp_path: Path) -> None:
@@ -190,6 +191,35 @@ def test_queued_frames_are_held_to_a_byte_budget(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------- ListSessions and labels
+
+
+def test_create_and_close_name_files_in_the_record_dir_not_server_paths(tmp_path: Path) -> None:
+    configured = settings(tmp_path)
+    configured.final_snapshots = True
+    with serving(configured) as running:
+        credentials = running.stub.CreateSession(create_request(FROZEN))
+        session = SessionRef.from_credentials(credentials)
+        assert credentials.recording == f"{session.session_id}.mcap"
+        closed = running.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id),
+                                           metadata=session.metadata())
+    assert (closed.recording, closed.snapshot) == (f"{session.session_id}.mcap", f"{session.session_id}.safetensors")
+    record_dir = Path(configured.record_dir)
+    assert (record_dir / closed.recording).is_file() and (record_dir / closed.snapshot).is_file()
+
+
+def test_ogclient_names_the_files_in_the_servers_record_dir(tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    session_file = str(tmp_path / "session.json")
+    configured = settings(tmp_path)
+    with serving(configured) as running:
+        assert ogclient_main(["--server", running.address, "create", "--preset", PRESET,
+                              "--session-out", session_file]) == 0
+        assert ogclient_main(["--server", running.address, "close", "--session", session_file]) == 0
+    session_id = SessionRef.load(session_file).session_id
+    printed = capsys.readouterr().out
+    assert f"server records to {session_id}.mcap in its record dir" in printed
+    assert f"recording {session_id}.mcap in the server's record dir" in printed
+    assert configured.record_dir not in printed
 
 
 def test_listing_shows_no_server_paths_and_long_labels_are_refused(tmp_path: Path) -> None:
@@ -239,18 +269,33 @@ def test_ogclient_sends_the_api_key(keyed: Running, tmp_path: Path, monkeypatch:
 # ---------------------------------------------------------------------------- wrong tokens
 
 
-def test_wrong_tokens_are_logged_and_then_refused_for_a_while(tmp_path: Path,
-                                                               caplog: pytest.LogCaptureFixture) -> None:
-    with serving(settings(tmp_path)) as running:
-        session = SessionRef.from_credentials(running.stub.CreateSession(create_request(FROZEN)))
+def test_failures_from_an_address_never_refuse_right_credentials_from_it(keyed: Running,
+                                                                        caplog: pytest.LogCaptureFixture) -> None:
+    """A client sends 25 wrong tokens and 25 wrong keys from 127.0.0.1 (past the limit of 20); other clients
+    at the same address (as behind one NAT) still create, list, stream and close with their key and token."""
+    alice_channel, alice = as_caller(keyed, "alice")
+    bob_channel, bob = as_caller(keyed, "bob")
+    with alice_channel, bob_channel:
+        session = SessionRef.from_credentials(alice.CreateSession(create_request(FROZEN)))
         request = pb.GetStatsRequest(session_id=session.session_id)
-        wrong = SessionRef(session.session_id, "guess").metadata()
-        codes = [refusal(running.stub.GetStats, request, metadata=wrong).code() for _ in range(20)]
-        assert set(codes) == {CODE.UNAUTHENTICATED}
-        error = refusal(running.stub.GetStats, request, metadata=session.metadata())  # even the right one
-        assert error.code() == CODE.RESOURCE_EXHAUSTED and "too many failed authentications" in error.details()
-    warnings = [record for record in caplog.records if "authentication failed" in record.getMessage()]
-    assert 1 <= len(warnings) <= 3 and "127.0.0.1" in warnings[0].getMessage()
+        wrong_token = SessionRef(session.session_id, "guess").metadata()
+        codes = [refusal(keyed.stub.GetStats, request, metadata=wrong_token).code() for _ in range(25)]
+        codes += [refusal(keyed.stub.ListSessions, pb.ListSessionsRequest(), metadata=(("x-api-key", f"guess {n}"),)
+                          ).code() for n in range(25)]
+        assert codes == [CODE.UNAUTHENTICATED] * 20 + [CODE.RESOURCE_EXHAUSTED] * 30
+        assert alice.GetStats(request, metadata=session.metadata()).session_id == session.session_id
+        assert [info.session_id for info in alice.ListSessions(pb.ListSessionsRequest()).sessions] == \
+            [session.session_id]
+        acks = list(alice.StreamFrames(iter(messages(scene("0:1"))), metadata=session.stream_metadata(), timeout=300))
+        assert [ack.accepted for ack in acks] == [True]
+        other = SessionRef.from_credentials(bob.CreateSession(create_request(FROZEN)))
+        bob.CloseSession(pb.CloseSessionRequest(session_id=other.session_id), metadata=other.metadata())
+        error = refusal(keyed.stub.GetStats, request, metadata=wrong_token)
+        assert error.code() == CODE.RESOURCE_EXHAUSTED
+        assert error.details() == ("too many failed authentications from 127.0.0.1 (20 in 60 s); "
+                                   "x-session-token: does not match the session")
+    warnings = [record.getMessage() for record in caplog.records if "authentication failed" in record.getMessage()]
+    assert 1 <= len(warnings) <= 3 and "127.0.0.1" in warnings[0]
 
 
 # ---------------------------------------------------------------------------- metrics

@@ -12,7 +12,14 @@ import grpc
 import pytest
 from ogserver import apikeys
 from ogserver.access.callers import ANONYMOUS, Callers
-from ogserver.access.failed_auth import FailedAuthentications, peer_address
+from ogserver.access.failed_auth import (
+    LOG_INTERVAL,
+    LOG_LINES,
+    MAX_ADDRESSES,
+    FailedAuthentications,
+    Window,
+    peer_address,
+)
 from ogserver.access.transport import keepalive_options
 from ogserver.api.pacing import Paced, Timeout
 from ogserver.errors import ServiceError
@@ -110,52 +117,110 @@ def unauthenticated() -> ServiceError:
     return ServiceError(grpc.StatusCode.UNAUTHENTICATED, "x-session-token: does not match the session")
 
 
-def fail(failures: FailedAuthentications, address: str) -> None:
+def fail(failures: FailedAuthentications, address: str) -> ServiceError:
+    """A wrong credential from ``address``: how the server answers it."""
     with pytest.raises(ServiceError) as refusal, failures.guard(address):
         raise unauthenticated()
-    assert refusal.value.code == grpc.StatusCode.UNAUTHENTICATED
+    return refusal.value
 
 
-def test_an_address_is_refused_after_too_many_failures_until_they_age(caplog: pytest.LogCaptureFixture) -> None:
+def succeed(failures: FailedAuthentications, address: str) -> None:
+    with failures.guard(address):
+        pass  # the credential was right
+
+
+def test_a_right_credential_passes_whatever_others_sent_from_its_address() -> None:
+    """Clients behind one NAT share an address: one failing must not lock the others out."""
     clock = Clock()
-    failures = FailedAuthentications(3, 60.0, clock)
-    with caplog.at_level(logging.WARNING, logger="ogserver.access.failed_auth"):
-        for _ in range(3):
-            fail(failures, "10.0.0.1")
-            clock.now += 1
-    with pytest.raises(ServiceError) as refusal, failures.guard("10.0.0.1"):
-        pass
-    assert refusal.value.code == grpc.StatusCode.RESOURCE_EXHAUSTED
-    assert "too many failed authentications from 10.0.0.1 (3 in 60 s); retry in 57 s" in refusal.value.message
-    with failures.guard("10.0.0.2"):  # other addresses are not affected
-        pass
-    clock.now += 57
-    with failures.guard("10.0.0.1"):  # the first failure has left the window
-        pass
-    # One WARNING for the burst (rate limited), naming the address, the reason and the count.
-    assert [record.levelno for record in caplog.records] == [logging.WARNING]
-    assert "10.0.0.1" in caplog.text and "does not match the session" in caplog.text
+    failures = FailedAuthentications(3, 60.0, 100, clock)
+    assert [fail(failures, "10.0.0.1").code for _ in range(3)] == [grpc.StatusCode.UNAUTHENTICATED] * 3
+    refusal = fail(failures, "10.0.0.1")
+    assert refusal.code == grpc.StatusCode.RESOURCE_EXHAUSTED
+    assert refusal.message == ("too many failed authentications from 10.0.0.1 (3 in 60 s); "
+                               "x-session-token: does not match the session")
+    succeed(failures, "10.0.0.1")
+    assert fail(failures, "10.0.0.2").code == grpc.StatusCode.UNAUTHENTICATED  # other addresses: their own count
+    clock.now += 120  # two windows later the address starts afresh
+    assert fail(failures, "10.0.0.1").code == grpc.StatusCode.UNAUTHENTICATED
 
 
-def test_failure_logging_reports_what_it_left_out(caplog: pytest.LogCaptureFixture) -> None:
+def test_many_addresses_are_limited_together() -> None:
+    """50 addresses x 19 wrong credentials: none past its own limit of 20, the server past its 200."""
+    failures = FailedAuthentications(20, 60.0, 200, Clock())
+    codes = [fail(failures, f"10.0.{number}.1").code for _ in range(19) for number in range(50)]
+    assert codes.count(grpc.StatusCode.UNAUTHENTICATED) == 200
+    assert codes.count(grpc.StatusCode.RESOURCE_EXHAUSTED) == 750
+    assert "from all addresses (200 in 60 s)" in fail(failures, "10.1.0.1").message
+    succeed(failures, "10.1.0.1")
+
+
+def test_failures_age_out_of_the_window() -> None:
     clock = Clock()
-    failures = FailedAuthentications(0, 60.0, clock)  # 0: never refused, still logged
+    failures = FailedAuthentications(0, 60.0, 10, clock)
+    for _ in range(10):
+        fail(failures, "10.0.0.1")
+    assert fail(failures, "10.0.0.2").code == grpc.StatusCode.RESOURCE_EXHAUSTED
+    clock.now += 90  # half of the previous window's 11 failures still counted
+    assert fail(failures, "10.0.0.2").code == grpc.StatusCode.UNAUTHENTICATED
+
+
+def test_the_address_table_stays_bounded() -> None:
+    clock = Clock()
+    failures = FailedAuthentications(3, 60.0, 0, clock)
+    for _ in range(3):
+        fail(failures, "10.0.0.1")
+    for number in range(2 * MAX_ADDRESSES):  # every one of them failing within the window
+        fail(failures, f"10.{number >> 16}.{(number >> 8) & 255}.{number & 255}")
+        if number % 1000 == 0:
+            fail(failures, "10.0.0.1")  # it keeps failing: the least recently failed go first
+    assert len(failures) == MAX_ADDRESSES
+    assert fail(failures, "10.0.0.1").code == grpc.StatusCode.RESOURCE_EXHAUSTED
+
+
+def test_a_window_estimates_the_events_of_the_last_seconds() -> None:
+    window = Window(10.0, 0.0)
+    for now in (1.0, 2.0, 3.0, 4.0):
+        window.add(now)
+    assert window.recent(9.0) == 4
+    assert window.recent(12.5) == pytest.approx(3.0)  # a quarter of the previous window has left
+    assert window.recent(30.0) == 0
+    assert Window(0.0, 0.0).recent(1.0) == 0  # no window: nothing is ever counted
+
+
+def test_failures_are_logged_without_flooding_the_log(caplog: pytest.LogCaptureFixture) -> None:
+    clock = Clock()
+    failures = FailedAuthentications(3, 60.0, 0, clock)
     with caplog.at_level(logging.WARNING, logger="ogserver.access.failed_auth"):
         for _ in range(5):
             fail(failures, "10.0.0.1")
             clock.now += 1
         clock.now += 10
         fail(failures, "10.0.0.1")
-    assert len(caplog.records) == 2
-    assert "6 failures in the last 60 s, 4 not logged" in caplog.records[1].getMessage()
+    assert len(caplog.records) == 2  # one for the burst, naming the address, the reason and the counts
+    first, second = (record.getMessage() for record in caplog.records)
+    assert first == ("authentication failed from 10.0.0.1: x-session-token: does not match the session "
+                     "(1 from this address; 1 from all addresses in the last 60 s)")
+    assert second.startswith("authentication failed from 10.0.0.1: too many failed authentications from 10.0.0.1")
+    assert second.endswith("(5 from this address since its previous line; 6 from all addresses in the last 60 s)")
+
+
+def test_many_addresses_share_a_bounded_number_of_log_lines(caplog: pytest.LogCaptureFixture) -> None:
+    clock = Clock()
+    failures = FailedAuthentications(0, 60.0, 0, clock)
+    with caplog.at_level(logging.WARNING, logger="ogserver.access.failed_auth"):
+        for number in range(50):
+            fail(failures, f"10.0.0.{number}")
+        assert len(caplog.records) == LOG_LINES
+        clock.now += LOG_INTERVAL
+        fail(failures, "10.0.0.49")
+    assert caplog.records[-1].getMessage().endswith("(2 from this address; 51 from all addresses in the last 60 s)")
 
 
 def test_other_refusals_are_not_counted() -> None:
-    failures = FailedAuthentications(1, 60.0, Clock())
+    failures = FailedAuthentications(1, 60.0, 1, Clock())
     with pytest.raises(ServiceError), failures.guard("10.0.0.1"):
         raise ServiceError(grpc.StatusCode.NOT_FOUND, "session_id: no session")
-    with failures.guard("10.0.0.1"):
-        pass
+    assert fail(failures, "10.0.0.1").code == grpc.StatusCode.UNAUTHENTICATED
 
 
 @pytest.mark.parametrize(("peer", "address"), [

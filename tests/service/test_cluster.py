@@ -147,7 +147,7 @@ def test_any_front_end_serves_any_session(cluster: Cluster) -> None:
 
     for front_end, session in zip(front_ends, sessions, strict=True):
         closed = front_end.call("CloseSession", pb.CloseSessionRequest(session_id=session.session_id), session)
-        assert closed.stats.frames == len(sent) and Path(closed.recording).stat().st_size > 0
+        assert closed.stats.frames == len(sent) and closed.recording == f"{session.session_id}.mcap"
         assert cluster.shared.joinpath(f"{session.session_id}.mcap").stat().st_size > 0  # published
     with pytest.raises(grpc.RpcError) as gone:
         b.call("GetStats", pb.GetStatsRequest(session_id=first.session_id), first)

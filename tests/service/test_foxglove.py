@@ -7,6 +7,7 @@ import asyncio
 import logging
 import ssl
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -93,13 +94,14 @@ def test_foxglove_client_sees_render_transform_and_point_cloud(tmp_path) -> None
     assert cloud.frame_id == f"{session.session_id}/world"
 
     # The recording: the keyframes' render and map under the same schemas, readable as before.
-    recorded = recording.load(credentials.recording)
+    path = Path(configured.record_dir) / credentials.recording
+    recorded = recording.load(path)
     assert len(recorded.frames) == len(frames)
-    schemas = {item.topic: item.schema for item in recording.read_messages(credentials.recording)}
+    schemas = {item.topic: item.schema for item in recording.read_messages(path)}
     assert schemas[recording.TOPIC_RENDER] == "foxglove.CompressedImage"
     assert schemas[recording.TOPIC_MAP] == "foxglove.PointCloud"
     repaired = tmp_path / "repaired.mcap"
-    recording.repair(credentials.recording, repaired)
+    recording.repair(path, repaired)
     maps = list(recording.read_messages(repaired, {recording.TOPIC_MAP}))
     assert maps and all(0 < len(decode_points(type(cloud).FromString(item.data))) <= MAX_POINTS for item in maps)
 

@@ -163,8 +163,9 @@ def test_snapshot_restore_gives_identical_renders(server: ServerHandle, mapped: 
 
 
 def test_replay_beside_a_second_stream(server: ServerHandle, mapped: Mapped) -> None:
-    path = Path(mapped.credentials.recording)
-    if not path.exists():
+    assert mapped.credentials.recording == f"{mapped.session.session_id}.mcap"  # a file name, never a server path
+    path = server.recorded(mapped.credentials.recording)
+    if path is None:
         pytest.skip("the server's record dir is not visible here")
     recorded = recording.load(path)  # session A is still open: the file has no summary yet
     assert len(recorded.frames) == len(mapped.result.acks)
@@ -405,8 +406,9 @@ def test_closing_finishes_the_recording(server: ServerHandle, mapped: Mapped, sp
     with pytest.raises(grpc.RpcError) as refusal:
         stats(server, mapped.session)
     assert refusal.value.code() == OK.NOT_FOUND
-    path = Path(closed["main"].recording)
-    if not path.exists():
+    assert closed["main"].recording == f"{mapped.session.session_id}.mcap"  # a file name, never a server path
+    path = server.recorded(closed["main"].recording)
+    if path is None:
         pytest.skip("the server's record dir is not visible here")
     frames = len(mapped.result.acks)
     with open(path, "rb") as stream:
@@ -422,13 +424,14 @@ def test_closing_finishes_the_recording(server: ServerHandle, mapped: Mapped, sp
     assert schemas[recording.TOPIC_TRANSFORM] == "foxglove.FrameTransform"
     assert counts[recording.TOPIC_SESSION] == counts[recording.TOPIC_STATS] == 1
     assert recording.load(path).stats.anchors == closed["main"].stats.anchors
-    spare_recorded = recording.load(closed["spare"].recording)
+    spare_path = path.with_name(closed["spare"].recording)
+    spare_recorded = recording.load(spare_path)
     assert len(spare_recorded.frames) == spare_stats.frames_received  # refused frames were never recorded
     session_file = tmp_path / "replayed.json"
-    assert ogclient_main(["--server", server.address, "replay", closed["spare"].recording, "--quiet", "--close",
+    assert ogclient_main(["--server", server.address, "replay", str(spare_path), "--quiet", "--close",
                           "--session-out", str(session_file)]) == 0
     replayed_id = SessionRef.load(session_file).session_id
-    replayed = recording.load(Path(closed["spare"].recording).with_name(f"{replayed_id}.mcap"))
+    replayed = recording.load(path.with_name(f"{replayed_id}.mcap"))
     assert len(replayed.frames) == spare_stats.frames_received and replayed.stats is not None
 
 

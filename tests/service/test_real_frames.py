@@ -102,8 +102,8 @@ def test_a_restored_snapshot_renders_like_the_original(server: ServerHandle, dat
 def test_the_recording_holds_every_frame(server: ServerHandle, dataset: Dataset, streamed: Streamed) -> None:
     closed = server.stub.CloseSession(pb.CloseSessionRequest(session_id=streamed.session.session_id),
                                       metadata=streamed.session.metadata())
-    path = Path(closed.recording)
-    assert path.exists(), f"{path}: the server's record dir must be visible here at the same path"
+    path = server.recorded(closed.recording)
+    assert path is not None, f"{closed.recording}: the server's record dir must be visible here ($OGMAP_RECORD_DIR)"
     recorded = recording.load(path)
     assert [frame.index for _, frame in recorded.frames] == dataset.frames.selection.streamed
     assert recorded.stats is not None and recorded.stats.anchors == closed.stats.anchors

@@ -7,6 +7,7 @@ from __future__ import annotations
 import queue
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 from ogapi import recording
@@ -74,7 +75,7 @@ def test_a_realtime_stream_keeps_its_rate_and_records_skipped_frames(tmp_path) -
     assert stats.frames_received == count
 
     # The recording holds every frame in arrival order, with the same acks; a replay maps them all.
-    recorded = recording.load(credentials.recording)
+    recorded = recording.load(Path(settings(tmp_path).record_dir) / credentials.recording)
     assert recorded.config.realtime
     assert [frame.index for _, frame in recorded.frames] == list(range(count))
     assert {ack.index for ack in recorded.acks if ack.skipped} == {ack.index for ack in result.skipped}

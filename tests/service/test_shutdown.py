@@ -9,6 +9,7 @@ from pathlib import Path
 from mcap.reader import make_reader
 from ogapi import recording
 from ogclient.connection import SessionRef, connect
+from ogclient.local_server import LocalServer
 from ogclient.streaming import stream_frames
 from ogserver.api.validation import frame as validate_frame
 
@@ -27,20 +28,20 @@ FOXGLOVE_TOPICS = (recording.TOPIC_COLOR, recording.TOPIC_DEPTH, recording.TOPIC
                    recording.TOPIC_TRANSFORM)
 
 
-def map_a_little(address: str, frames: str) -> tuple[str, SessionRef, int]:
-    channel, stub = connect(address, timeout=60)
+def map_a_little(server: LocalServer, frames: str) -> tuple[Path, SessionRef, int]:
+    channel, stub = connect(server.address, timeout=60)
     with channel:
         credentials = stub.CreateSession(create_request(FROZEN, "shutdown"))
         session = SessionRef.from_credentials(credentials)
         result = stream_frames(stub, session, messages(scene(frames)), progress=False)
     assert all(ack.accepted for ack in result.acks)
-    return credentials.recording, session, result.acks[-1].anchors
+    return server.record_dir / credentials.recording, session, result.acks[-1].anchors
 
 
 def test_sigkill_leaves_every_frame_readable(tmp_path: Path) -> None:
     server = start_local(tmp_path / "recordings")
     try:
-        path, _, _ = map_a_little(server.address, "0:4")
+        path, _, _ = map_a_little(server, "0:4")
         server.kill()
     finally:
         server.stop()
@@ -59,7 +60,7 @@ def test_sigkill_leaves_every_frame_readable(tmp_path: Path) -> None:
 def test_sigterm_finishes_recordings_and_writes_final_snapshots(tmp_path: Path) -> None:
     server = start_local(tmp_path / "recordings", "--final-snapshots")
     try:
-        path, session, anchors = map_a_little(server.address, "0:3")
+        path, session, anchors = map_a_little(server, "0:3")
     finally:
         code = server.stop()
     assert code == 0
@@ -69,11 +70,11 @@ def test_sigterm_finishes_recordings_and_writes_final_snapshots(tmp_path: Path) 
     assert summary is not None
     stats_channel = next(cid for cid, channel in summary.channels.items() if channel.topic == recording.TOPIC_STATS)
     assert summary.statistics.channel_message_counts[stats_channel] == 1
-    snapshot = Path(path).with_suffix(".safetensors")
+    snapshot = path.with_suffix(".safetensors")
     assert Mapper.restore(snapshot.read_bytes(), "cpu").stats().anchors == anchors
 
 
-def wait_for_recorded_frame(path: str, timeout: float = 60.0) -> None:
+def wait_for_recorded_frame(path: Path, timeout: float = 60.0) -> None:
     """The worker records a frame as it takes it up, so then it is being mapped."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -94,7 +95,8 @@ def test_sigterm_during_a_long_frame_exits_within_the_deadline(tmp_path: Path) -
         credentials = stub.CreateSession(create_request(SLOW, "slow"))
         session = SessionRef.from_credentials(credentials)
         responses = stub.StreamFrames(iter(messages(scene("0:1"))), metadata=session.stream_metadata())
-        wait_for_recorded_frame(credentials.recording)
+        recorded = server.record_dir / credentials.recording
+        wait_for_recorded_frame(recorded)
         start = time.monotonic()
         code = server.stop()
         elapsed = time.monotonic() - start
@@ -103,7 +105,7 @@ def test_sigterm_during_a_long_frame_exits_within_the_deadline(tmp_path: Path) -
         channel.close()
         server.stop()
     assert code == 0 and elapsed < GRACE + 2 * STOP_TIMEOUT + 10, (code, elapsed)
-    with open(credentials.recording, "rb") as stream:
+    with open(recorded, "rb") as stream:
         summary = make_reader(stream).get_summary()
     counts = {channel.topic: summary.statistics.channel_message_counts[cid]
               for cid, channel in summary.channels.items()}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -27,7 +28,7 @@ def test_a_closed_recording_ends_with_the_final_map(tmp_path, record_views: bool
         session = SessionRef.from_credentials(credentials)
         acks = stream_frames(running.stub, session, frames, progress=False).mapped
         running.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id), metadata=session.metadata())
-    items = list(recording.read_messages(credentials.recording))
+    items = list(recording.read_messages(Path(configured.record_dir) / credentials.recording))
     counts = Counter(item.topic for item in items)
     if not record_views:
         assert recording.TOPIC_RENDER not in counts and recording.TOPIC_MAP not in counts

@@ -110,7 +110,13 @@ def snapshot_chunks(data: bytes, chunk_bytes: int) -> Iterator[pb.SnapshotChunk]
 
 
 def credentials(config: pb.SessionConfig, token: str, recording: Path) -> pb.SessionCredentials:
+    """A new session's id and token; its recording by file name in the record dir, never a server path."""
     return pb.SessionCredentials(
         session_id=config.session_id, token=token, config_json=config.config_json, device=config.device,
-        recording=str(recording),
+        recording=recording.name,
     )
+
+
+def closed(stats: pb.Stats, recording: Path, snapshot: Path | None) -> pb.CloseSessionResponse:
+    """A closed session's final stats; its recording and final snapshot by file name in the record dir."""
+    return pb.CloseSessionResponse(stats=stats, recording=recording.name, snapshot=snapshot.name if snapshot else "")

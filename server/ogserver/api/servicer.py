@@ -59,7 +59,8 @@ class MappingService(pb_grpc.MappingServicer):
         self.metrics = metrics
         self.limits = registry.settings.limits
         self.access = registry.settings.access
-        self.failures = FailedAuthentications(self.access.max_auth_failures, self.access.auth_failure_window_seconds)
+        self.failures = FailedAuthentications(self.access.max_auth_failures, self.access.auth_failure_window_seconds,
+                                              self.access.max_auth_failures_total)
 
     def _caller(self, context: grpc.ServicerContext) -> str:
         """Who creates, restores or lists: refused (and counted against the address) when unknown."""
@@ -149,7 +150,4 @@ class MappingService(pb_grpc.MappingServicer):
     def CloseSession(self, request: pb.CloseSessionRequest, context: grpc.ServicerContext) -> pb.CloseSessionResponse:
         with status_errors(context):
             closed = self.registry.close(self._session(request.session_id, context))
-            return pb.CloseSessionResponse(
-                stats=closed.stats, recording=str(closed.recording),
-                snapshot=str(closed.snapshot) if closed.snapshot else "",
-            )
+            return messages.closed(closed.stats, closed.recording, closed.snapshot)

@@ -23,6 +23,7 @@ from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from ogserver.api import validation
 from ogserver.cluster.actor import SessionActor
+from ogserver.cluster.connect import join
 from ogserver.cluster.directory import Directory
 from ogserver.cluster.remote import ACK_GROUP, RemoteSession, call, outcome
 from ogserver.errors import ServiceError
@@ -61,7 +62,8 @@ class ClusterHost:
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         self.record_dir = Path(settings.record_dir)
-        ray.init(address=settings.cluster, namespace=NAMESPACE, log_to_driver=False)
+        join(settings.cluster, settings.cluster_connect_seconds,
+             lambda: ray.init(address=settings.cluster, namespace=NAMESPACE, log_to_driver=False))
         self.device = f"ray cluster {settings.cluster}"
         self._directory = ray.remote(Directory).options(
             name=DIRECTORY_NAME, namespace=NAMESPACE, lifetime="detached", get_if_exists=True, num_cpus=0,
