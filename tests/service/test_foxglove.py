@@ -62,7 +62,8 @@ def watch_while_streaming(running, session: SessionRef, url: str, topics: list[s
 
 def test_foxglove_client_sees_render_transform_and_point_cloud(tmp_path) -> None:
     frames = messages(scene())
-    with serving(live_settings(tmp_path)) as running:
+    configured = live_settings(tmp_path)
+    with serving(configured) as running:
         credentials = running.stub.CreateSession(create_request(TINY))
         session = SessionRef.from_credentials(credentials)
         prefix = session_prefix(session.session_id)
