@@ -29,15 +29,15 @@ CHUNK = 0x06
 SMALL = 16 << 20  # bytes Python may allocate while refusing a file
 
 
-def zstd_zeros(size: int, content_size: bool = True) -> bytes:
-    """A zstd frame of ``size`` zero bytes made of RLE blocks (4 bytes each), its size in the frame
-    header or not."""
+def zstd_fill(size: int, content_size: bool = True) -> bytes:
+    """A zstd frame of ``size`` bytes 0x7F made of RLE blocks (4 bytes each), its size in the frame
+    header or not. Inflated, it reads as one record of unknown opcode as long as the rest."""
     header = bytes([0xE0]) + struct.pack("<Q", size) if content_size else bytes([0x00, 0x58])
     blocks = bytearray()
     for start in range(0, size, RLE_BLOCK):
         length = min(RLE_BLOCK, size - start)
         last = int(start + length == size)
-        blocks += struct.pack("<I", last | 1 << 1 | length << 3)[:3] + b"\0"
+        blocks += struct.pack("<I", last | 1 << 1 | length << 3)[:3] + b"\x7f"
     return ZSTD_MAGIC + header + bytes(blocks)
 
 
@@ -74,7 +74,7 @@ def refused(path: Path, match: str) -> int:
 
 def test_a_chunk_claiming_a_terabyte_is_refused_not_allocated(tmp_path: Path) -> None:
     path = tmp_path / "claim.mcap"
-    path.write_bytes(mcap_with_chunk(zstd_zeros(1 << 20, content_size=False)[:40], declared=1 << 40))
+    path.write_bytes(mcap_with_chunk(zstd_fill(1 << 20, content_size=False)[:40], declared=1 << 40))
     assert path.stat().st_size < 128
     assert refused(path, r"a chunk declares 1099511627776 bytes uncompressed, over the limit of 512 MiB") < SMALL
 
@@ -82,16 +82,16 @@ def test_a_chunk_claiming_a_terabyte_is_refused_not_allocated(tmp_path: Path) ->
 def test_a_zstd_bomb_over_the_chunk_limit_is_never_inflated(tmp_path: Path) -> None:
     size = MAX_CHUNK_BYTES + RLE_BLOCK
     path = tmp_path / "bomb.mcap"
-    path.write_bytes(mcap_with_chunk(zstd_zeros(size), declared=size))
+    path.write_bytes(mcap_with_chunk(zstd_fill(size), declared=size))
     assert path.stat().st_size < 20_000
     assert refused(path, f"a chunk declares {size} bytes uncompressed") < SMALL
 
 
 def test_a_zstd_frame_larger_than_its_chunk_declares_is_never_inflated(tmp_path: Path) -> None:
     path = tmp_path / "liar.mcap"
-    path.write_bytes(mcap_with_chunk(zstd_zeros(64 << 20), declared=1000))
+    path.write_bytes(mcap_with_chunk(zstd_fill(64 << 20), declared=1000))
     assert refused(path, r"zstd frame holds 67108864 bytes, more than the 1000 its header declares") < SMALL
-    path.write_bytes(mcap_with_chunk(zstd_zeros(64 << 20, content_size=False), declared=1000))
+    path.write_bytes(mcap_with_chunk(zstd_fill(64 << 20, content_size=False), declared=1000))
     assert refused(path, "did not decompress full frame") < SMALL
 
 
@@ -107,7 +107,7 @@ def test_lengths_beyond_the_file_allocate_nothing_of_their_size(tmp_path: Path) 
 
 def test_the_client_tools_refuse_a_bomb_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     bomb, out = tmp_path / "bomb.mcap", tmp_path / "repaired.mcap"
-    bomb.write_bytes(mcap_with_chunk(zstd_zeros(4 << 30), declared=4 << 30))  # 131 KB, 4 GiB inflated
+    bomb.write_bytes(mcap_with_chunk(zstd_fill(4 << 30), declared=4 << 30))  # 131 KB, 4 GiB inflated
     assert main(["repair-recording", str(bomb), str(out)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith(f"ogclient: {bomb} is not a readable recording: a chunk declares")
