@@ -4,6 +4,7 @@ once, and the command lines say so in one line."""
 
 from __future__ import annotations
 
+import re
 import struct
 import zlib
 from pathlib import Path
@@ -20,6 +21,7 @@ from test_rosbag_reader import N, depth_mm, published_k, rgb8, stamp
 from ogmapping.cli import commands
 from ogmapping.datasets import open_dataset
 from ogmapping.datasets.rosbag import images
+from ogmapping.datasets.rosbag.topics import BagTopicError
 from ogmapping.datasets.synthetic import SyntheticSource
 
 HUGE = 20000
@@ -135,3 +137,49 @@ def test_ogmap_run_refuses_the_bomb_in_one_line(tmp_path: Path, frames, capsys: 
     err = capsys.readouterr().err
     assert code == 2
     assert err.count("\n") == 1 and err.startswith("ogmap: error: ") and f"image is {HUGE}x{HUGE}" in err
+
+
+def test_an_unsupported_encoding_is_named(tmp_path: Path, frames) -> None:
+    path = tmp_path / "yuv.mcap"
+    with BagRecorder(path, ros2=True) as bag:
+        for i in range(2):
+            t, frame = stamp(i), frames[i]
+            yuv = cv2.cvtColor(rgb8(frame), cv2.COLOR_RGB2YUV)[:, :, :2].copy()
+            bag.write("/camera/color/image_raw", t, bag.image(t, FRAME, yuv, "yuv422"))
+            bag.write("/camera/color/camera_info", t, bag.camera_info(t, FRAME, 48, 36, published_k(frame)))
+            bag.write("/camera/depth/image_raw", t, bag.image(t, FRAME, depth_mm(frame), "16UC1"))
+    why = ("(/camera/color/image_raw has encoding yuv422, which is not supported; colour is one of rgb8, bgr8, "
+           "rgba8, bgra8, mono8, depth 16UC1 or 32FC1)")
+    with pytest.raises(BagTopicError, match=re.escape(f"no colour image topic {why}")):
+        open_dataset(str(path))
+    with pytest.raises(BagTopicError, match=re.escape(
+            f"--color-topic /camera/color/image_raw (sensor_msgs/msg/Image) does not hold colour image {why}")):
+        open_dataset(str(path), "bag", color_topic="/camera/color/image_raw")
+
+
+def write_not_a_bag(path: Path, kind: str) -> Path:
+    noise = np.random.default_rng(7).integers(0, 256, 4096, dtype=np.uint8).tobytes()
+    target = path / f"noise.{kind}"
+    if kind == "folder":
+        target.mkdir()
+        (target / "metadata.yaml").write_bytes(noise)
+    else:
+        target.write_bytes(noise if kind != "empty.mcap" else b"")
+    return target
+
+
+@pytest.mark.parametrize("kind", ["bag", "mcap", "db3", "folder", "empty.mcap"])
+def test_random_bytes_are_not_a_bag(tmp_path: Path, kind: str, capsys: pytest.CaptureFixture) -> None:
+    path = write_not_a_bag(tmp_path, kind)
+    with pytest.raises(ValueError, match=rf"^not a ROS bag: {re.escape(str(path))}"):
+        open_dataset(str(path), "bag")
+    assert commands.main(["run", "--bag", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("ogmap: error: not a ROS bag: ") and "codec" not in err
+
+
+def test_a_file_with_only_the_mcap_magic_is_a_damaged_bag(tmp_path: Path) -> None:
+    path = tmp_path / "magic.mcap"
+    path.write_bytes(b"\x89MCAP0\r\n")
+    with pytest.raises(ValueError, match=rf"^cannot open {re.escape(str(path))} as a ROS bag: "):
+        open_dataset(str(path))
