@@ -55,6 +55,31 @@ def paced(messages: Iterable[pb.Frame], fps: float) -> Iterator[pb.Frame]:
         yield message
 
 
+class _Requests:
+    """The frames as grpc's request iterator. One that cannot be made (a bag image refused, a file
+    unreadable) ends the stream there, so the server keeps and acknowledges what came before, and is
+    raised after the acks; raised inside grpc's sending thread it became `UNKNOWN: Exception iterating
+    requests!`, the problem unsaid."""
+
+    def __init__(self, messages: Iterable[pb.Frame]) -> None:
+        self._messages = iter(messages)
+        self.error: Exception | None = None
+
+    def __iter__(self) -> Iterator[pb.Frame]:
+        return self
+
+    def __next__(self) -> pb.Frame:
+        if self.error is not None:
+            raise StopIteration
+        try:
+            return next(self._messages)
+        except StopIteration:
+            raise
+        except Exception as error:  # raised again on the caller's thread
+            self.error = error
+            raise StopIteration from None
+
+
 def stream_frames(
     stub: pb_grpc.MappingStub, session: SessionRef, messages: Iterable[pb.Frame], total: int | None = None,
     progress: bool = True, result: StreamResult | None = None,
@@ -64,7 +89,8 @@ def stream_frames(
     result = StreamResult() if result is None else result
     start = time.perf_counter()
     bar = tqdm(total=total, desc="streaming", unit="frame", disable=not progress)
-    responses = stub.StreamFrames(iter(messages), metadata=session.stream_metadata())
+    requests = _Requests(messages)
+    responses = stub.StreamFrames(requests, metadata=session.stream_metadata())
     keyframes = 0
     try:
         for ack in responses:
@@ -78,6 +104,8 @@ def stream_frames(
                 )
             elif not ack.accepted:
                 bar.write(f"frame {ack.index} rejected: {ack.error.code_name}: {ack.error.message}")
+        if requests.error is not None:
+            raise requests.error
     except KeyboardInterrupt:
         responses.cancel()
         raise ClientError("interrupted; frames sent so far stay in the session") from None

@@ -18,9 +18,9 @@ import zstandard
 from google.protobuf.message import DecodeError
 from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Channel, Header, Message, Schema
-from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
+from ogapi import mcap_records
 from ogapi.v1 import mapping_pb2 as pb
 
 TOPIC_SESSION = "/ogmap/session"  # ogapi.v1.SessionConfig, first message
@@ -51,9 +51,10 @@ class RecordedMessage:
 
 def _records(path: str | Path) -> Iterator[Header | Schema | Channel | Message]:
     """The records in file order, chunks opened and their CRCs checked; a file that ends inside a
-    record (a crashed writer) just ends early."""
+    record (a crashed writer) just ends early. Lengths and sizes beyond the file or ``MAX_CHUNK_BYTES``
+    are refused before anything of that size is allocated."""
     with open(path, "rb") as stream:
-        records = StreamReader(stream, validate_crcs=True).records
+        records = mcap_records.records(stream)
         while True:
             try:
                 record = next(records)

@@ -10,6 +10,7 @@ one chunk, not the bag up to N. ``rosbags`` readers are not thread-safe; a lock 
 
 from __future__ import annotations
 
+import struct
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -18,7 +19,7 @@ from pathlib import Path
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.typesys import Stores, get_typestore
 
-from ogmapping.datasets.rosbag.layout import ROS1_SUFFIX
+from ogmapping.datasets.rosbag.layout import ROS1_SUFFIX, check_signature
 
 
 @dataclass(frozen=True)
@@ -43,11 +44,13 @@ class BagFile:
         if not self.path.exists():
             raise ValueError(f"bag does not exist: {self.path}")
         self.ros2 = not (self.path.is_file() and self.path.suffix == ROS1_SUFFIX)
+        check_signature(self.path)
         try:
             self._reader = AnyReader([self.path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             self._reader.open()
-        except (AnyReaderError, ValueError) as error:
-            raise ValueError(f"cannot open {self.path} as a ROS bag: {error}") from error
+        except (AnyReaderError, ValueError, TypeError, struct.error) as error:  # what rosbags raises on damage
+            first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+            raise ValueError(f"cannot open {self.path} as a ROS bag: {first_line}") from error
         self._lock = threading.Lock()
         self.topics = {
             name: TopicEntry(name, info.msgtype or "(several types)", info.msgcount)

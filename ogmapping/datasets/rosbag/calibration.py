@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from ogmapping.datasets.base import opencv_intrinsics
+from ogmapping.datasets.rosbag.images import check_pixels
 from ogmapping.frames.camera import Intrinsics
 
 UNDISTORTED_MODELS = ("plumb_bob", "rational_polynomial")
@@ -52,6 +53,7 @@ class Calibration:
         """ValueError for a calibration no image can be used with."""
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"CameraInfo has no image size ({self.width}x{self.height})")
+        check_pixels(self.width, self.height)
         if not (np.isfinite(self.k).all() and self.k[0, 0] > 0 and self.k[1, 1] > 0):
             raise ValueError(f"CameraInfo K has no positive focal lengths: {self.k.ravel().tolist()}")
         if self.distorted and self.model not in UNDISTORTED_MODELS:
@@ -98,10 +100,11 @@ def _check_full_frame(message: object, width: int, height: int) -> None:
                          "record full images")
 
 
-def check_size(calibration: Calibration, image: np.ndarray, topic: str, whose: str = "") -> None:
-    """ValueError unless the image has the size its CameraInfo (described by ``whose``) gives."""
-    if image.shape[:2] != (calibration.height, calibration.width):
-        raise ValueError(f"{topic}: image is {image.shape[1]}x{image.shape[0]} but its CameraInfo{whose} says "
+def check_size(calibration: Calibration, width: int, height: int, whose: str = "") -> None:
+    """ValueError unless an image of ``width`` x ``height`` has the size its CameraInfo (described by
+    ``whose``) gives."""
+    if (width, height) != (calibration.width, calibration.height):
+        raise ValueError(f"image is {width}x{height} but its CameraInfo{whose} says "
                          f"{calibration.width}x{calibration.height}")
 
 

@@ -12,6 +12,7 @@ onto colour later (``preprocess.register_depth``).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +30,7 @@ from ogmapping.frames.camera import Intrinsics, validate_pose
 from ogmapping.frames.frame import Frame
 
 OPTICAL_SUFFIXES = ("optical_frame", "_optical")
+DEPTH_SHARES_COLOUR = " (the colour camera's; name the depth camera's with --depth-info-topic)"
 
 
 @dataclass(frozen=True)
@@ -136,24 +138,26 @@ class RosBag(FrameSource):
         ]
 
     def _decode(self, image: StampedImage, depth: bool) -> np.ndarray:
+        """The image, its size checked against its CameraInfo: a compressed one's before it is decoded."""
         topic = image.ref.topic
         message = self.bag.load(image.ref)
         compressed = self.bag.topics[topic].msgtype == COMPRESSED
+        whose = "" if not depth or self.topics.depth_info else DEPTH_SHARES_COLOUR
+        check = partial(check_size, self.depth_calibration if depth else self.color_calibration, whose=whose)
         try:
             if depth:
-                return images.compressed_depth(message) if compressed else images.image_depth(message)
-            return images.compressed_color(message) if compressed else images.image_color(message)
+                decoded = images.compressed_depth(message, check) if compressed else images.image_depth(message)
+            else:
+                decoded = images.compressed_color(message, check) if compressed else images.image_color(message)
+            check(decoded.shape[1], decoded.shape[0])
         except ValueError as error:
             raise ValueError(f"{self.bag.path}: {topic} at {image.stamp_ns} ns: {error}") from error
+        return decoded
 
     def _load(self, position: int) -> Frame:
         entry = self._entries[position]
         rgb = self._decode(entry.color, depth=False)
         depth = self._decode(entry.depth, depth=True)
-        check_size(self.color_calibration, rgb, self.topics.color)
-        check_size(self.depth_calibration, depth, self.topics.depth,
-                   "" if self.topics.depth_info else " (the colour camera's; name the depth camera's with "
-                   "--depth-info-topic)")
         depth_to_color = None
         if entry.color.frame_id and entry.depth.frame_id and entry.depth.frame_id != entry.color.frame_id:
             depth_to_color = self.tree.lookup(entry.color.frame_id, entry.depth.frame_id, entry.depth.stamp_ns,

@@ -2,7 +2,8 @@
 
 Image topics are told apart by their first message: a raw Image by its encoding (rgb8 ... mono8
 is colour, 16UC1 / 32FC1 depth), a CompressedImage by its format (compressedDepth, or a 16UC1
-PNG, is depth; any other is colour). Other encodings (IR mono16, ...) are neither. A camera's
+PNG, is depth; any other is colour). Other encodings (IR mono16, yuv422, ...) are neither, and a
+refusal for want of a colour or depth topic names them. A camera's
 CameraInfo is found where image_transport puts it, ``camera_info`` in the image topic's namespace
 or one above (``/cam/color/image_raw/compressed`` -> ``/cam/color/camera_info``), else it is the
 bag's only CameraInfo topic. A bag whose topics do not fit gets a ``BagTopicError`` listing what
@@ -52,6 +53,15 @@ def image_kind(msgtype: str, first: object | None) -> str | None:
     return None
 
 
+def unsupported_note(encodings: dict[str, str]) -> str:
+    """Why raw image topics hold neither colour nor depth: their encodings, for a refusal to name."""
+    if not encodings:
+        return ""
+    found = "; ".join(f"{topic} has encoding {encoding}" for topic, encoding in encodings.items())
+    return (f" ({found}, which is not supported; colour is one of {', '.join(COLOR_ENCODINGS)}, depth "
+            f"{' or '.join(DEPTH_ENCODINGS)})")
+
+
 def of_types(bag: BagFile, types: tuple[str, ...]) -> list[str]:
     return [entry.name for entry in bag.topics.values() if entry.msgtype in types and entry.count > 0]
 
@@ -64,17 +74,21 @@ class ImageTopics:
     depth_info: str | None  # None: depth shares the colour camera's calibration
 
 
-def _pick(bag: BagFile, kind: str, flag: str, given: str | None, candidates: list[str]) -> str:
+def _pick(bag: BagFile, kind: str, flag: str, given: str | None, candidates: list[str],
+          unsupported: dict[str, str] | None = None) -> str:
+    """The topic given, or the only candidate; ``unsupported`` (topic: encoding) says why others are not."""
+    unsupported = unsupported or {}
     if given is not None:
         if given not in bag.topics:
             raise topic_error(bag, f"{flag} {given} is not in the bag")
         if given not in candidates:
-            raise topic_error(bag, f"{flag} {given} ({bag.topics[given].msgtype}) does not hold {kind}")
+            note = unsupported_note({given: unsupported[given]} if given in unsupported else {})
+            raise topic_error(bag, f"{flag} {given} ({bag.topics[given].msgtype}) does not hold {kind}{note}")
         return given
     if len(candidates) == 1:
         return candidates[0]
     if not candidates:
-        raise topic_error(bag, f"no {kind} topic")
+        raise topic_error(bag, f"no {kind} topic{unsupported_note(unsupported)}")
     raise topic_error(bag, f"{len(candidates)} {kind} topics ({', '.join(candidates)}); pick one with {flag}")
 
 
@@ -89,11 +103,14 @@ def sibling_info(image_topic: str, infos: list[str]) -> str | None:
 
 
 def choose_images(bag: BagFile, options: BagOptions) -> ImageTopics:
-    kinds = {name: image_kind(bag.topics[name].msgtype, bag.first(name)) for name in of_types(bag, (IMAGE, COMPRESSED))}
+    firsts = {name: bag.first(name) for name in of_types(bag, (IMAGE, COMPRESSED))}
+    kinds = {name: image_kind(bag.topics[name].msgtype, first) for name, first in firsts.items()}
+    unsupported = {name: str(first.encoding) for name, first in firsts.items()  # type: ignore[attr-defined]
+                   if kinds[name] is None and first is not None and bag.topics[name].msgtype == IMAGE}
     color = _pick(bag, "colour image", "--color-topic", options.color_topic,
-                  [name for name, kind in kinds.items() if kind == "color"])
+                  [name for name, kind in kinds.items() if kind == "color"], unsupported)
     depth = _pick(bag, "depth image", "--depth-topic", options.depth_topic,
-                  [name for name, kind in kinds.items() if kind == "depth"])
+                  [name for name, kind in kinds.items() if kind == "depth"], unsupported)
     infos = of_types(bag, (CAMERA_INFO,))
     if options.info_topic is not None:
         color_info = _pick(bag, "camera info", "--info-topic", options.info_topic, infos)
