@@ -108,9 +108,13 @@ def build(settings: Settings) -> Server:
     metrics = Metrics(registry)
     loop = EventLoop("grpc-loop")
     gate = CallGate(access.max_concurrent_calls, metrics.call, access.request_seconds, pool)
-    server, health_servicer, port = loop.run(_grpc_server(settings, options, gate, pool, credentials))
+    try:
+        server, health_servicer, port = loop.run(_grpc_server(settings, options, gate, pool, credentials))
+    except RuntimeError:  # grpc.aio's "Failed to bind to address"
+        port = 0
     if port == 0:
         loop.close()
+        pool.shutdown()
         raise ValueError(f"could not bind {settings.address}")
     wire.add_mapping_service(MappingService(registry, callers, metrics), server)
     endpoint = Endpoint.start(access.metrics_address, metrics, access.max_metrics_connections) \

@@ -51,7 +51,7 @@ def header_only_calls(address: str, count: int) -> Iterator[list[grpc.Future]]:
 
 
 @pytest.fixture
-def keyed_stream(tmp_path: Path) -> Iterator[tuple[Running, object, queue.Queue]]:
+def keyed_stream(tmp_path: Path) -> Iterator[tuple[Running, object, object, queue.Queue]]:
     """A keyed server where alice has a session and a frame stream open (one frame acknowledged)."""
     configured = settings(tmp_path)
     configured.access.api_keys = {name: apikeys.digest(key) for name, key in KEYS.items()}
@@ -93,3 +93,24 @@ def test_a_call_whose_request_never_comes_is_ended_and_logged(keyed_stream,
             assert error is not None and error.code() == grpc.StatusCode.DEADLINE_EXCEEDED, error
             assert "request_seconds" in error.details()
     assert "sent no request message within 3 s" in caplog.text
+
+
+def test_streams_cancelled_midway_give_their_call_slots_back(tmp_path: Path) -> None:
+    """grpc.aio would leave a synchronous response stream's thread (and its call slot) blocked for ever."""
+    configured = settings(tmp_path)
+    configured.access.max_concurrent_calls = 2
+    frames = messages(scene("0:1"))
+    with serving(configured) as running:
+        session = SessionRef.from_credentials(running.stub.CreateSession(create_request(FROZEN)))
+        for _ in range(4):
+            feed: queue.Queue[pb.Frame | None] = queue.Queue()
+            acks = running.stub.StreamFrames(iter(feed.get, None), metadata=session.stream_metadata(), timeout=60)
+            feed.put(frames[0])
+            assert next(acks).accepted
+            acks.cancel()
+            feed.put(None)
+            deadline = time.monotonic() + 10.0
+            while any(listed.streaming for listed in running.stub.ListSessions(pb.ListSessionsRequest()).sessions):
+                assert time.monotonic() < deadline, "the cancelled stream never ended"
+                time.sleep(0.1)
+        assert len(running.stub.ListSessions(pb.ListSessionsRequest(), timeout=5).sessions) == 1
