@@ -96,7 +96,7 @@ def test_a_call_whose_request_never_comes_is_ended_and_logged(keyed_stream,
 
 
 def test_streams_cancelled_midway_give_their_call_slots_back(tmp_path: Path) -> None:
-    """grpc.aio would leave a synchronous response stream's thread (and its call slot) blocked for ever."""
+    """Each frame stream holds one of two call slots; a client cancelling it gives the slot back."""
     configured = settings(tmp_path)
     configured.access.max_concurrent_calls = 2
     frames = messages(scene("0:1"))
