@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import threading
 from concurrent import futures
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +23,7 @@ from ogserver.access.call_gate import HEADROOM, CallGate
 from ogserver.access.callers import Callers
 from ogserver.api import reflection, wire
 from ogserver.api.servicer import MappingService
+from ogserver.event_loop import EventLoop
 from ogserver.live.foxglove_ws import FoxgloveServer
 from ogserver.live.port_access import port_access
 from ogserver.live.publisher import LiveView
@@ -44,9 +46,11 @@ class Stopped:
 
 @dataclass
 class Server:
-    grpc_server: grpc.Server
+    grpc_server: grpc.aio.Server
+    loop: EventLoop  # the one the gRPC server runs on
+    pool: futures.ThreadPoolExecutor  # where the mapping calls run
     registry: SessionHost
-    health: health.HealthServicer
+    health: health.aio.HealthServicer
     port: int
     expiry: Expiry
     metrics: Endpoint | None  # the /metrics HTTP server, when metrics_address is set
@@ -56,16 +60,31 @@ class Server:
         """Report NOT_SERVING, let calls in flight finish (up to ``grace``), wait up to ``timeout`` more
         for gRPC to stop, then close every session, waiting up to ``timeout`` for frames being mapped."""
         self.expiry.stop()
-        self.health.enter_graceful_shutdown()
-        grpc_stopped = self.grpc_server.stop(grace).wait(grace + timeout)
+        self.loop.run(self.health.enter_graceful_shutdown())
+        try:
+            self.loop.run(self.grpc_server.stop(grace), grace + timeout)
+            grpc_stopped = True
+        except TimeoutError:
+            grpc_stopped = False
         if not grpc_stopped:
             log.warning("gRPC calls were still running %.1f s after the grace; closing the sessions anyway", timeout)
         if self.live is not None:
             self.live.stop()
         closed = self.registry.close_all(timeout)
+        drained = _drain(self.pool, timeout)
+        if drained:  # else calls still running may need the loop to end theirs
+            self.loop.close()
         if self.metrics is not None:
             self.metrics.stop()
-        return Stopped(closed, grpc_stopped and all(item.stopped for item in closed))
+        return Stopped(closed, grpc_stopped and drained and all(item.stopped for item in closed))
+
+
+def _drain(pool: futures.ThreadPoolExecutor, timeout: float) -> bool:
+    """Whether the calls still running in the pool ended within ``timeout``, their sessions closed."""
+    waiter = threading.Thread(target=pool.shutdown, name="grpc-drain", daemon=True)
+    waiter.start()
+    waiter.join(timeout)
+    return not waiter.is_alive()
 
 
 def build(settings: Settings) -> Server:
@@ -76,39 +95,53 @@ def build(settings: Settings) -> Server:
     limits, access = settings.limits, settings.access
     callers = Callers(access)
     credentials = transport.server_credentials(access)
-    # Mapping calls are held to max_concurrent_calls (each frame stream holds a thread for its lifetime);
-    # the headroom keeps health checks answered when they are all taken.
-    workers = access.max_concurrent_calls + HEADROOM
+    # Mapping calls run in a thread pool, held to max_concurrent_calls (a frame stream holds a thread for
+    # its lifetime); the headroom refuses calls over the limit. A call waiting for its client holds no
+    # thread, and health checks and reflection are served in the event loop, beside the pool.
+    pool = futures.ThreadPoolExecutor(max_workers=access.max_concurrent_calls + HEADROOM, thread_name_prefix="grpc")
     options = [
         ("grpc.max_receive_message_length", limits.max_message_bytes),
         ("grpc.max_send_message_length", limits.max_message_bytes),
+        ("grpc.max_concurrent_streams", access.max_streams_per_connection),
         *transport.keepalive_options(access),
     ]
     registry = _host(settings, device)
     metrics = Metrics(registry)
-    server = grpc.server(
-        futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="grpc"), options=options,
-        interceptors=[CallGate(access.max_concurrent_calls, metrics.call)], maximum_concurrent_rpcs=workers,
-    )
-    wire.add_mapping_service(MappingService(registry, callers, metrics), server)
-    health_servicer = health.HealthServicer()
-    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
-    for name in ("", SERVICE_NAME):
-        health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
-    reflection.enable(server, (SERVICE_NAME, health.SERVICE_NAME))
-    if credentials is None:
-        port = server.add_insecure_port(settings.address)
-    else:
-        port = server.add_secure_port(settings.address, credentials)
+    loop = EventLoop("grpc-loop")
+    gate = CallGate(access.max_concurrent_calls, metrics.call, access.request_seconds, pool)
+    try:
+        server, health_servicer, port = loop.run(_grpc_server(settings, options, gate, pool, credentials))
+    except RuntimeError:  # grpc.aio's "Failed to bind to address"
+        port = 0
     if port == 0:
+        loop.close()
+        pool.shutdown()
         raise ValueError(f"could not bind {settings.address}")
-    endpoint = Endpoint.start(access.metrics_address, metrics) if access.metrics_address else None
+    wire.add_mapping_service(MappingService(registry, callers, metrics), server)
+    endpoint = Endpoint.start(access.metrics_address, metrics, access.max_metrics_connections) \
+        if access.metrics_address else None
     live = _live_view(settings, registry) if isinstance(registry, Registry) else None
-    server.start()
+    loop.run(server.start())
     log.info("device %s, %d torch threads, record dir %s", device, torch.get_num_threads(), settings.record_dir)
     _announce_access(settings, callers, credentials is not None, endpoint)
-    return Server(server, registry, health_servicer, port, Expiry(registry).start(), endpoint,
+    return Server(server, loop, pool, registry, health_servicer, port, Expiry(registry).start(), endpoint,
                   live.start() if live is not None else None)
+
+
+async def _grpc_server(
+    settings: Settings, options: list[tuple[str, int]], gate: CallGate, pool: futures.Executor,
+    credentials: grpc.ServerCredentials | None,
+) -> tuple[grpc.aio.Server, health.aio.HealthServicer, int]:
+    """The server (created in its event loop) with health checking and reflection, and its bound port."""
+    server = grpc.aio.server(migration_thread_pool=pool, options=options, interceptors=[gate])
+    health_servicer = health.aio.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    for name in ("", SERVICE_NAME):
+        await health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
+    reflection.enable(server, (SERVICE_NAME, health.SERVICE_NAME))
+    if credentials is None:
+        return server, health_servicer, server.add_insecure_port(settings.address)
+    return server, health_servicer, server.add_secure_port(settings.address, credentials)
 
 
 def _host(settings: Settings, device: str) -> SessionHost:
@@ -161,4 +194,7 @@ def _announce_access(settings: Settings, callers: Callers, tls: bool, metrics: E
         log.info("%s; creating, restoring and listing sessions need %s", transport_name, callers.describe())
     if metrics is not None:
         host = settings.access.metrics_address.rsplit(":", 1)[0]
-        log.info("Prometheus metrics on http://%s:%d/metrics", host, metrics.port)
+        local = host in ("127.0.0.1", "localhost", "[::1]")
+        exposed = "" if local else " (no authentication: anyone who reaches it reads session ids and counts)"
+        log.log(logging.INFO if local else logging.WARNING, "Prometheus metrics on http://%s:%d/metrics%s", host,
+                metrics.port, exposed)

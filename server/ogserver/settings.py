@@ -45,6 +45,9 @@ class Limits:
 SHA256_HEX = re.compile(r"[0-9a-f]{64}")
 
 
+AT_LEAST_ONE = ("max_concurrent_calls", "max_streams_per_connection", "max_metrics_connections")
+
+
 @dataclass
 class Access:
     """Transport security, callers and the limits that keep one caller from starving the others.
@@ -70,6 +73,9 @@ class Access:
     max_auth_failures: int = 20  # wrong keys or tokens per client address and window, then RESOURCE_EXHAUSTED
     auth_failure_window_seconds: float = 60.0
     max_auth_failures_total: int = 200  # the same from all addresses together (a right credential always passes)
+    request_seconds: float = 10.0  # the longest wait for a unary call's request message once its headers came
+    max_streams_per_connection: int = 256  # HTTP/2 streams (calls) one connection may have open at once
+    max_metrics_connections: int = 16  # /metrics connections served at once; more are closed at once
 
     def validate(self) -> None:
         if bool(self.tls_cert) != bool(self.tls_key):
@@ -85,7 +91,7 @@ class Access:
             value = getattr(self, item.name)
             if isinstance(value, float) and not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"access.{item.name} must be a finite number >= 0 (got {value!r})")
-            minimum = 1 if item.name == "max_concurrent_calls" else 0
+            minimum = 1 if item.name in AT_LEAST_ONE else 0
             if isinstance(value, int) and value < minimum:
                 raise ValueError(f"access.{item.name} must be an integer >= {minimum} (got {value!r})")
 

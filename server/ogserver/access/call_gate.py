@@ -1,35 +1,67 @@
-"""Every ogapi.v1.Mapping call passes here: held to ``max_concurrent_calls`` and its status observed.
+"""Every call passes here. ogapi.v1.Mapping calls are held to ``max_concurrent_calls``, their status
+observed, and served from the event loop (``sync_calls.py``); every unary call must send its request
+within ``request_seconds``.
 
-Health checks and reflection are not counted, and the server's thread pool has ``HEADROOM``
-threads beyond the limit for them (and for refusing calls over it), so a server whose mapping
-calls are all taken, even by clients that send nothing, still answers its health check.
+The server is grpc.aio: a call waiting for its client costs no thread. Synchronous mapping calls run
+in a thread pool with ``HEADROOM`` threads beyond the limit, for refusing calls over it; health
+checks and reflection are coroutines in the event loop, so they answer whatever the mapping calls
+and the clients that send nothing hold.
 """
 
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Awaitable, Callable, Iterator
+from concurrent.futures import Executor
 from contextlib import contextmanager
 from typing import Any
 
 import grpc
+from grpc import aio
 from ogapi import SERVICE_NAME
+
+from ogserver.access.sync_calls import SyncCalls
 
 HEADROOM = 8
 Observer = Callable[[str, grpc.StatusCode], None]  # method name, final status
 
 
-class CallGate(grpc.ServerInterceptor):
-    def __init__(self, limit: int, observe: Observer) -> None:
+class _Recorded:
+    """A servicer's context that remembers the status the call was ended with."""
+
+    def __init__(self, context: Any) -> None:
+        self._context = context
+        self.ended_with: grpc.StatusCode | None = None
+
+    def abort(self, code: grpc.StatusCode, details: str = "") -> None:
+        self.ended_with = code
+        self._context.abort(code, details)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._context, name)
+
+
+class CallGate(aio.ServerInterceptor):
+    def __init__(self, limit: int, observe: Observer, request_seconds: float, pool: Executor) -> None:
         self.limit = limit
         self._slots = threading.BoundedSemaphore(limit)
         self._observe = observe
+        self._sync = SyncCalls(request_seconds, pool)
 
-    def intercept_service(self, continuation: Callable[..., Any], details: grpc.HandlerCallDetails) -> Any:
-        handler = continuation(details)
-        if handler is None or not details.method.startswith(f"/{SERVICE_NAME}/"):
+    async def intercept_service(
+        self, continuation: Callable[[grpc.HandlerCallDetails], Awaitable[grpc.RpcMethodHandler]],
+        details: grpc.HandlerCallDetails,
+    ) -> grpc.RpcMethodHandler:
+        handler = await continuation(details)
+        if handler is None:
             return handler
-        method = details.method.rsplit("/", 1)[1]
+        if details.method.startswith(f"/{SERVICE_NAME}/"):
+            return self._sync.serve(self._gated(handler, details.method.rsplit("/", 1)[1]), details.method)
+        if not handler.request_streaming and not handler.response_streaming:
+            return self._sync.with_deadline(handler, details.method)
+        return handler
+
+    def _gated(self, handler: grpc.RpcMethodHandler, method: str) -> grpc.RpcMethodHandler:
         kind = ("stream" if handler.request_streaming else "unary") + "_" + (
             "stream" if handler.response_streaming else "unary")
         behaviour = getattr(handler, kind)
@@ -38,18 +70,20 @@ class CallGate(grpc.ServerInterceptor):
 
     def _unary(self, behaviour: Callable[..., Any], method: str) -> Callable[..., Any]:
         def call(request: Any, context: grpc.ServicerContext) -> Any:
-            with self._admitted(method, context):
-                return behaviour(request, context)
+            recorded = _Recorded(context)
+            with self._admitted(method, recorded):
+                return behaviour(request, recorded)
         return call
 
     def _streaming(self, behaviour: Callable[..., Any], method: str) -> Callable[..., Iterator[Any]]:
         def call(request: Any, context: grpc.ServicerContext) -> Iterator[Any]:
-            with self._admitted(method, context):
-                yield from behaviour(request, context)
+            recorded = _Recorded(context)
+            with self._admitted(method, recorded):
+                yield from behaviour(request, recorded)
         return call
 
     @contextmanager
-    def _admitted(self, method: str, context: grpc.ServicerContext) -> Iterator[None]:
+    def _admitted(self, method: str, context: _Recorded) -> Iterator[None]:
         if not self._slots.acquire(blocking=False):
             self._observe(method, grpc.StatusCode.RESOURCE_EXHAUSTED)
             context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED,
@@ -61,7 +95,7 @@ class CallGate(grpc.ServerInterceptor):
             code = grpc.StatusCode.CANCELLED
             raise
         except BaseException:
-            code = context.code() or grpc.StatusCode.UNKNOWN
+            code = context.ended_with or grpc.StatusCode.UNKNOWN
             raise
         finally:
             self._slots.release()

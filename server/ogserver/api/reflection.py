@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import grpc
 from google.protobuf import descriptor_pb2, descriptor_pool
-from grpc_reflection.v1alpha import reflection
+from grpc_reflection.v1alpha import _async, reflection
 from grpc_reflection.v1alpha import reflection_pb2 as v1alpha
 
 V1ALPHA_PACKAGE = "grpc.reflection.v1alpha"
@@ -47,11 +47,11 @@ def register_v1_descriptor(pool: descriptor_pool.DescriptorPool) -> None:
         pool.Add(v1_file_descriptor())
 
 
-def enable(server: grpc.Server, service_names: tuple[str, ...]) -> None:
+def enable(server: grpc.aio.Server, service_names: tuple[str, ...]) -> None:
     """Serve reflection for ``service_names`` (and both reflection services) on ``server``."""
     register_v1_descriptor(descriptor_pool.Default())
     names = (*service_names, V1_SERVICE_NAME, V1ALPHA_SERVICE_NAME)
-    servicer = reflection.ReflectionServicer(names)
+    servicer = _async.ReflectionServicer(names)  # the library's servicer for grpc.aio servers
     method = grpc.stream_stream_rpc_method_handler(
         servicer.ServerReflectionInfo,
         request_deserializer=v1alpha.ServerReflectionRequest.FromString,
