@@ -22,6 +22,7 @@ from ogclient.messages import intrinsics_to_proto
 from ogmapping.config import MapperConfig
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.quality.evaluation import FrameSet, evaluate_views
+from ogmapping.runtime.host import host
 
 
 @dataclass
@@ -68,6 +69,7 @@ def evaluate(
         "keyframes": stats.keyframes,
         "frames_mapped": stats.frames,
         "device": stats.device,
+        "client_machine": host().to_dict(),
         "preset": stats.preset,
         "resolution": [sample.width, sample.height],
         "session_id": session.session_id,

@@ -18,6 +18,7 @@ from ogmapping.config import MapperConfig
 from ogmapping.frames.frame import Frame
 from ogmapping.mapper import Mapper
 from ogmapping.quality.evaluation import evaluate_views, open_frames
+from ogmapping.runtime.machine import machine
 from ogmapping.runtime.profile import resolve_device
 from ogmapping.warmup import warm_up
 
@@ -114,6 +115,7 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
         "peak_gpu_memory_bytes": torch.cuda.max_memory_allocated(device) if device.type == "cuda" else None,
         "memory_per_100_frames": memory_log,
         "device": str(device),
+        "machine": machine(device).to_dict(),
         "backend": stats.backend,
         "preset": options.preset,
         "resolution": [sample.color_intrinsics.width, sample.color_intrinsics.height],
