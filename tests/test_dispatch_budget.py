@@ -1,0 +1,101 @@
+"""The torch operators one optimisation step dispatches, held under a budget.
+
+On a GPU each operator is at least one kernel launch and its host-side dispatch, so a step of a
+small map costs what it dispatches, not what it computes; a change that adds operators to the step
+slows the GPU path even where the CPU's timings do not show it. The budgets are bars, each set a
+little above the count at commit 0a316be (2026-11-27, AMD EPYC Zen 3, torch 2.13.0+cpu). A change
+that raises a count must lower it again or argue for the new budget with figures (the step's time
+on the CPU and, where one is at hand, the GPU).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import pytest
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+from ogmapping.config import resolve
+from ogmapping.frames.preprocess import prepare
+from ogmapping.mapper import Mapper
+from ogmapping.optim.keyframes import View
+from ogmapping.quality.evaluation import open_frames
+from ogmapping.runtime.threads import torch_threads
+
+MAPPED = 4  # frames mapped before the counted step, two of them keyframes at least
+# Operators per step at 0a316be: 1396 with ``cpu`` (the compiled kernels dispatch none themselves;
+# backward 493, decode 330, optimizer 224, rasterize 177, loss 84) and 23458 with ``torch`` (the
+# reference rasterizer, forward 7701 and most of backward's 14770, loops over the tiles Gaussians
+# reach, so its count also follows the scene).
+BUDGETS = {"cpu": 1450, "torch": 24400}
+
+
+class DispatchCount(TorchDispatchMode):
+    """Every operator dispatched below autograd (forward and backward), by the mapper's stage."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.stage = "other"
+        self.by_stage: Counter[str] = Counter()
+        self.by_operator: Counter[str] = Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.by_stage[self.stage] += 1
+        self.by_operator[str(func)] += 1
+        return func(*args, **(kwargs or {}))
+
+    @property
+    def total(self) -> int:
+        return sum(self.by_stage.values())
+
+
+def staged(mapper: Mapper, count: DispatchCount):
+    """``mapper._timed`` that also tells ``count`` which stage is running."""
+    timed = mapper._timed
+
+    @contextmanager
+    def stage(name: str) -> Iterator[None]:
+        outer, count.stage = count.stage, name
+        try:
+            with timed(name):
+                yield
+        finally:
+            count.stage = outer
+
+    return stage
+
+
+def steady_step_count(backend: str, monkeypatch: pytest.MonkeyPatch) -> DispatchCount:
+    """The operators of one step on the next frame's view and the two newest keyframes, counted
+    after an uncounted step on the same (so constants cached on first use are not counted)."""
+    frames = open_frames("synthetic", "synthetic", f"0:{MAPPED + 2}", scale=0.25)
+    config = resolve("sparse", overrides={"backend": backend, "keyframes.first_iterations": "2",
+                                          "keyframes.iterations": "1"})
+    mapper = Mapper(config, "cpu")
+    for position in frames.selection.streamed[:MAPPED]:
+        mapper.process(frames.load(position))
+    frame = prepare(frames.load(frames.selection.streamed[MAPPED]), config.octree.depth_min, config.octree.depth_max)
+    as_tensor = lambda array: torch.as_tensor(array, dtype=mapper.profile.precision)  # noqa: E731
+    view = View.of(as_tensor(frame.rgb), as_tensor(frame.depth), frame.color_intrinsics, as_tensor(frame.c2w),
+                   compiled=mapper.profile.compiled)
+    window = mapper.keyframes.keyframes[-2:]
+    assert len(window) == 2, "the counted step renders three views"
+    count = DispatchCount()
+    monkeypatch.setattr(mapper, "_timed", staged(mapper, count))
+    with torch_threads(mapper.profile.threads):
+        mapper._iteration(view, window)
+        with count:
+            mapper._iteration(view, window)
+    return count
+
+
+@pytest.mark.parametrize("backend", BUDGETS)
+def test_a_step_dispatches_no_more_operators_than_its_budget(backend, monkeypatch):
+    count = steady_step_count(backend, monkeypatch)
+    assert count.total <= BUDGETS[backend], (
+        f"{backend}: {count.total} operators per step, budget {BUDGETS[backend]}; by stage "
+        f"{dict(count.by_stage.most_common())}; most dispatched {count.by_operator.most_common(12)}"
+    )
