@@ -209,6 +209,7 @@ def test_eval_scores_streamed_and_heldout(server: ServerHandle, mapped: Mapped, 
         assert 8.0 < results[split]["psnr"] < 60.0 and 0.0 < results[split]["ssim"] <= 1.0
         assert np.isfinite(results[split]["depth_l1_cm"])
     assert results["snapshot_bytes"] > 0 and results["resolution"] == [80, 60]
+    assert results["client_machine"]["logical_cpus"] >= 1 and "torch" not in results["client_machine"]
     assert json.loads((tmp_path / "results.json").read_text())["anchors"] == results["anchors"]
     assert (tmp_path / "heldout_000005.png").exists()
 
