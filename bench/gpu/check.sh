@@ -7,7 +7,7 @@
 #   SECONDS           the budget: a step whose usual cost would overrun it is skipped and said so
 #   SEVEN_SCENES_DIR  7-Scenes RedKitchen (frame-*.depth.png ..., directly or in data/): frames 0-299 for the
 #                     640x480 presets and the service's sparse run, 0-99 for the load and CPU thread steps
-#   REPLICA_DIR       Replica room0 (results/, traj.txt, directly or in data/): frames 0-19 at 1200x680
+#   REPLICA_DIR       Replica room0, the folder holding results/ and traj.txt: frames 0-19 at 1200x680
 #   A data folder given as - or absent skips the steps that need it, as does one with too few frames.
 # Steps: install (carried wheels, gsplat's kernels; the suite runs on CUDA through the pure-torch fallback
 # meanwhile), pytest -m gpu, ogmap run of sparse-fast / sparse / dense on 7-Scenes 0-299 at 640x480 and on
@@ -21,7 +21,7 @@
 #   THREADS ("1 2 4 8 16").
 set -uo pipefail
 cd "$(dirname "$0")/../.."
-[ $# -eq 3 ] || [ $# -eq 4 ] || { sed -n '2,23p' "$0" >&2; exit 2; }
+[ $# -eq 3 ] || [ $# -eq 4 ] || { sed -n '2,21p' "$0" >&2; exit 2; }
 OUT=$1 BUDGET=$2 DATA=$3 REPLICA=${4:--}
 export PY=${PYTHON:-python3}
 export LOAD_FRAMES=${LOAD_FRAMES:-0:100} THREAD_FRAMES=${THREAD_FRAMES:-0:100} THREADS=${THREADS:-1 2 4 8 16}
@@ -46,17 +46,18 @@ pack() {
     cp "$RESULTS/table.md" "$LOGS/check.log" "$OUT/"
 }
 
-# frames DIR GLOB: how many files match GLOB in DIR or DIR/data (0 for DIR "-" or absent).
+# frames GLOB DIR...: how many files match GLOB in the first DIR that has any (0 for "-" or absent).
 frames() {
-    local dir=$1 glob=$2 count
-    for root in "$dir" "$dir/data"; do
+    local glob=$1 root count
+    shift
+    for root in "$@"; do
         count=$(compgen -G "$root/$glob" | wc -l)
         (( count > 0 )) && { echo "$count"; return; }
     done
     echo 0
 }
-SEVEN_SCENES_FRAMES=$(frames "$DATA" 'frame-*.depth.png')
-REPLICA_FRAMES=$(frames "$REPLICA" 'results/depth*.png')
+SEVEN_SCENES_FRAMES=$(frames 'frame-*.depth.png' "$DATA" "$DATA/data")
+REPLICA_FRAMES=$(frames 'results/depth*.png' "$REPLICA")
 
 # marker NAME: the file that says the step succeeded; install's holds for every commit.
 marker() {
@@ -130,12 +131,14 @@ install_with_fallback_suite() {
 
 # pytest -m gpu; the step test's figures (step-time.json, sync-debug.txt) and the output go to gpu-tests/.
 gpu_tests() {
+    set -o pipefail
     mkdir -p "$RESULTS/gpu-tests"
     OGMAP_GPU_REPORT=$RESULTS/gpu-tests OGMAP_GPU_DATA=$DATA bench/gpu/run.sh tests 2>&1 | tee "$RESULTS/gpu-tests/pytest.txt"
 }
 
 # bench/load.py: 1 / 4 / 8 sessions of sparse-fast at 640x480 on one ogserver --device cuda.
 service_load() {
+    set -o pipefail
     mkdir -p "$RESULTS/load"
     "$PY" bench/load.py --device cuda --data "$DATA" --format 7scenes --frames "$LOAD_FRAMES" --scale 1 \
         --preset sparse-fast --sessions 1 4 8 --json "$RESULTS/load/load.json" | tee "$RESULTS/load/load.md"
