@@ -204,7 +204,8 @@ ogmap_run replica sparse 45 replica:20 replica 0:20 1 "$REPLICA"
 ogmap_run replica dense 60 replica:20 replica 0:20 1 "$REPLICA"
 step load 180 "7scenes:${LOAD_FRAMES#*:},gpu" service_load
 step service-sparse-640 120 7scenes:300,gpu service
-step cpu-threads 200 "cpu,7scenes:${THREAD_FRAMES#*:}" cpu_threads
+# about 1.6 s a frame over the five thread counts, and 40 s of start-up
+step cpu-threads $((40 + 16 * (${THREAD_FRAMES#*:} - ${THREAD_FRAMES%:*}) / 10)) "cpu,7scenes:${THREAD_FRAMES#*:}" cpu_threads
 ogmap_run 320 sparse 45 7scenes:300 7scenes 0:300 0.5 "$DATA"
 step suite-gsplat 150 gpu suite
 log "check: end"
