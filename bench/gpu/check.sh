@@ -1,46 +1,104 @@
 #!/usr/bin/env bash
-# Everything a short run on a GPU machine should check, in order of value, within a time budget.
+# The GPU check list, in order of value, within a time budget; a second call goes on where the first stopped.
 #
-# usage: bench/gpu/check.sh DATA_DIR RESULTS_TGZ SECONDS
-#   DATA_DIR     a 7-Scenes folder holding frames 0-299 (frame-*.color.jpg, *.depth.png, *.pose.txt)
-#   RESULTS_TGZ  where to write every log and results.json, packed (rewritten after each step)
-#   SECONDS      the budget: a step whose usual cost would overrun it is skipped and said so
-# Steps: install (run.sh wheels, then run.sh kernels while the suite runs on CUDA through the pure-torch
-# fallback), pytest -m gpu, `run.sh preset` of sparse / sparse-fast / dense on frames 0-299 at 640x480
-# and of sparse at 320x240 (to set beside the CPU's figures; results in OUT/640/NAME and OUT/320/NAME),
-# the service on CUDA (ogserver + ogclient stream/eval),
-# then the suite again with gsplat. A step that succeeded leaves a marker in .gpu/done, so a second
-# call on the same warm machine goes on where the first stopped.
-# environment: PYTHON (python3), OGMAP_LPIPS_WEIGHTS (LPIPS weights file, optional), FRAMES (0:300).
+# usage: bench/gpu/check.sh OUT_DIR SECONDS SEVEN_SCENES_DIR [REPLICA_DIR]
+#   OUT_DIR           gets results.tgz (bench/gpu/results/DATE-COMMIT/..., to unpack at the repository root),
+#                     table.md, check.log and logs.tgz, rewritten after each step
+#   SECONDS           the budget: a step whose usual cost would overrun it is skipped and said so
+#   SEVEN_SCENES_DIR  7-Scenes RedKitchen (frame-*.depth.png ..., directly or in data/): frames 0-299 for the
+#                     640x480 presets and the service's sparse run, 0-99 for the load and CPU thread steps
+#   REPLICA_DIR       Replica room0, the folder holding results/ and traj.txt: frames 0-19 at 1200x680
+#   A data folder given as - or absent skips the steps that need it, as does one with too few frames.
+# Steps: install (carried wheels, gsplat's kernels; the suite runs on CUDA through the pure-torch fallback
+# meanwhile), pytest -m gpu, ogmap run of sparse-fast / sparse / dense on 7-Scenes 0-299 at 640x480 and on
+# Replica room0 0-19 at 1200x680, bench/load.py with 1 / 4 / 8 sparse-fast sessions on one server, the
+# service's sparse run of 0-299 (ogserver + ogclient stream/eval), the CPU thread table (sparse at 320x240,
+# 1 / 2 / 4 / 8 / 16 threads), sparse at 320x240 on the GPU, the suite with gsplat. A step that succeeded
+# leaves a marker in .gpu/done, so a second call on the same machine goes on where the first stopped.
+# environment: PYTHON (python3), OGMAP_LPIPS_WEIGHTS (LPIPS weights file, optional), COMMIT (default: git's
+#   HEAD), STAMP (default: DATE-COMMIT, the results folder's name), ONLY (step names or patterns to run, e.g.
+#   "replica-* load"; install runs first where a GPU step needs it), LOAD_FRAMES (0:100), THREAD_FRAMES (0:100),
+#   THREADS ("1 2 4 8 16").
 set -uo pipefail
 cd "$(dirname "$0")/../.."
-[ $# -eq 3 ] || { sed -n '2,14p' "$0" >&2; exit 2; }
-export DATA=$1 TGZ=$2 BUDGET=$3
-export PY=${PYTHON:-python3} FRAMES=${FRAMES:-0:300}
-export WORK=$PWD/.gpu/out
+[ $# -eq 3 ] || [ $# -eq 4 ] || { sed -n '2,21p' "$0" >&2; exit 2; }
+OUT=$1 BUDGET=$2 DATA=$3 REPLICA=${4:--}
+export PY=${PYTHON:-python3}
+export LOAD_FRAMES=${LOAD_FRAMES:-0:100} THREAD_FRAMES=${THREAD_FRAMES:-0:100} THREADS=${THREADS:-1 2 4 8 16}
+ONLY=${ONLY:-}
+COMMIT=${COMMIT:-$(git rev-parse --short HEAD 2>/dev/null || echo nocommit)}
+STAMP=${STAMP:-$(date -u +%F)-$COMMIT}
+CHECK=$PWD/.gpu/check
+export RESULTS=$CHECK/bench/gpu/results/$STAMP LOGS=$CHECK/logs
 DONE=$PWD/.gpu/done
-mkdir -p "$WORK" "$DONE"
+mkdir -p "$OUT" "$RESULTS" "$LOGS" "$DONE/$STAMP"
+export DATA REPLICA
 export PYTHONUNBUFFERED=1
 export PYTHONPATH=$PWD/.gpu/site:$PWD:$PWD/proto:$PWD/server:$PWD/client
 export TORCH_EXTENSIONS_DIR=$PWD/.gpu/torch_extensions
 
-log() { echo "[$(date +%T) +${SECONDS}s] $*" | tee -a "$WORK/check.log"; }
-pack() { tar czf "$TGZ" -C "$WORK" . 2>/dev/null; }
+log() { echo "[$(date +%T) +${SECONDS}s] $*" | tee -a "$LOGS/check.log"; }
 
-# step NAME ESTIMATE_SECONDS FUNCTION [ARGS...]: run once, unless done before or the budget cannot hold
-# it; stopped (with every process it started) when the budget runs out.
+pack() {
+    "$PY" bench/gpu/table.py --tree "$RESULTS" >"$RESULTS/table.md" 2>>"$LOGS/check.log"
+    tar czf "$OUT/results.tgz" -C "$CHECK" bench
+    tar czf "$OUT/logs.tgz" -C "$LOGS" .
+    cp "$RESULTS/table.md" "$LOGS/check.log" "$OUT/"
+}
+
+# frames GLOB DIR...: how many files match GLOB in the first DIR that has any (0 for "-" or absent).
+frames() {
+    local glob=$1 root count
+    shift
+    for root in "$@"; do
+        count=$(compgen -G "$root/$glob" | wc -l)
+        (( count > 0 )) && { echo "$count"; return; }
+    done
+    echo 0
+}
+SEVEN_SCENES_FRAMES=$(frames 'frame-*.depth.png' "$DATA" "$DATA/data")
+REPLICA_FRAMES=$(frames 'results/depth*.png' "$REPLICA")
+
+# marker NAME: the file that says the step succeeded; install's holds for every commit.
+marker() {
+    if [ "$1" = install ]; then echo "$DONE/install"; else echo "$DONE/$STAMP/$1"; fi
+}
+
+wanted() {
+    [ -z "$ONLY" ] && return 0
+    local pattern
+    for pattern in $ONLY; do
+        # shellcheck disable=SC2254 # a pattern on purpose
+        case $1 in $pattern) return 0 ;; esac
+    done
+    return 1
+}
+
+# step NAME ESTIMATE_SECONDS NEEDS FUNCTION [ARGS...]: run once, unless done before, not wanted, its data or
+# gsplat is missing, or the budget cannot hold it; stopped (with every process it started) when the budget
+# runs out. NEEDS: gpu (gsplat usable), 7scenes:N or replica:N (N frames), cpu (nothing); comma-separated.
 step() {
-    local name=$1 estimate=$2 start=$SECONDS status
-    shift 2
-    if [ -e "$DONE/$name" ]; then log "$name: done in an earlier call"; return 0; fi
+    local name=$1 estimate=$2 needs=$3 start=$SECONDS status need
+    shift 3
+    [ "$name" = install ] || wanted "$name" || return 0
+    if [ -e "$(marker "$name")" ]; then log "$name: done in an earlier call"; return 0; fi
+    for need in ${needs//,/ }; do
+        case $need in
+            gpu) [ -e "$(marker install)" ] || { log "$name: skipped, gsplat is not installed (install did not succeed)"; return 1; } ;;
+            7scenes:*) (( SEVEN_SCENES_FRAMES >= ${need#*:} )) ||
+                { log "$name: skipped, needs 7-Scenes frames 0-$((${need#*:} - 1)); '$DATA' holds $SEVEN_SCENES_FRAMES"; return 1; } ;;
+            replica:*) (( REPLICA_FRAMES >= ${need#*:} )) ||
+                { log "$name: skipped, needs Replica frames 0-$((${need#*:} - 1)); '$REPLICA' holds $REPLICA_FRAMES"; return 1; } ;;
+        esac
+    done
     if (( SECONDS + estimate > BUDGET )); then log "$name: skipped, ${estimate} s would overrun the ${BUDGET} s budget"; return 1; fi
     log "$name: start"
     STEP_LEFT=$((BUDGET - SECONDS)) timeout -s INT -k 15 "$((BUDGET - SECONDS))" bash -c '"$@"' "$name" "$@" \
-        >"$WORK/$name.log" 2>&1
+        >"$LOGS/$name.log" 2>&1
     status=$?
     log "$name: exit $status after $((SECONDS - start)) s"
-    tail -n 5 "$WORK/$name.log" | sed 's/^/    /' | tee -a "$WORK/check.log"
-    [ $status -eq 0 ] && touch "$DONE/$name"
+    tail -n 5 "$LOGS/$name.log" | sed 's/^/    /' | tee -a "$LOGS/check.log"
+    [ $status -eq 0 ] && touch "$(marker "$name")"
     pack
     return $status
 }
@@ -62,7 +120,7 @@ suite() {
 install_with_fallback_suite() {
     bench/gpu/run.sh wheels || return
     OMP_NUM_THREADS=2 nice -n 19 timeout -s INT "$((STEP_LEFT - 60))" bash -c 'pytest_interruptible "$@"' suite \
-        -m "not gpu" tests >"$WORK/suite-torch-fallback.log" 2>&1 &
+        -m "not gpu" tests >"$LOGS/suite-torch-fallback.log" 2>&1 &
     local suite_pid=$!
     bench/gpu/run.sh kernels
     local status=$?
@@ -71,37 +129,84 @@ install_with_fallback_suite() {
     return $status
 }
 
+# pytest -m gpu; the step test's figures (step-time.json, sync-debug.txt) and the output go to gpu-tests/.
+gpu_tests() {
+    set -o pipefail
+    mkdir -p "$RESULTS/gpu-tests"
+    OGMAP_GPU_REPORT=$RESULTS/gpu-tests OGMAP_GPU_DATA=$DATA bench/gpu/run.sh tests 2>&1 | tee "$RESULTS/gpu-tests/pytest.txt"
+}
+
+# bench/load.py: 1 / 4 / 8 sessions of sparse-fast at 640x480 on one ogserver --device cuda.
+service_load() {
+    set -o pipefail
+    mkdir -p "$RESULTS/load"
+    "$PY" bench/load.py --device cuda --data "$DATA" --format 7scenes --frames "$LOAD_FRAMES" --scale 1 \
+        --preset sparse-fast --sessions 1 4 8 --json "$RESULTS/load/load.json" | tee "$RESULTS/load/load.md"
+}
+
+# ogmap run of sparse at 320x240 on the CPU, once per thread count: torch's (OMP_NUM_THREADS, MKL_NUM_THREADS)
+# and Numba's (NUMBA_NUM_THREADS). A sparse map's own torch calls run on one thread whatever the count
+# (ogmapping/runtime/profile.py), so the count reaches the compiled kernels and the evaluation. LPIPS is
+# off (a weights path that does not exist): it would only lengthen the runs.
+cpu_threads() {
+    local count
+    for count in $THREADS; do
+        OMP_NUM_THREADS=$count MKL_NUM_THREADS=$count NUMBA_NUM_THREADS=$count DEVICE=cpu FORMAT=7scenes \
+            FRAMES=$THREAD_FRAMES SCALE=0.5 LABEL=threads-$count OGMAP_LPIPS_WEIGHTS=/nonexistent \
+            bench/gpu/run.sh preset sparse "$DATA" "$RESULTS/cpu-320" || return
+    done
+}
+
 service() {
-    local port server status
+    local port server status dir=$RESULTS/service/sparse-640
+    mkdir -p "$dir"
     port=$("$PY" -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
     "$PY" -m ogserver --address "127.0.0.1:$port" --record-dir "$PWD/.gpu/recordings" --device cuda \
-        >"$WORK/ogserver.log" 2>&1 &
+        >"$LOGS/ogserver.log" 2>&1 &
     server=$!
     for _ in $(seq 120); do
         "$PY" -m ogclient --server "127.0.0.1:$port" list >/dev/null 2>&1 && break
         sleep 1
     done
-    "$PY" -m ogclient --server "127.0.0.1:$port" stream --data "$DATA" --frames "$FRAMES" --scale 1 --preset sparse \
-        --session-out "$WORK/service-session.json" --quiet &&
-        "$PY" -m ogclient --server "127.0.0.1:$port" eval --session "$WORK/service-session.json" --data "$DATA" \
-            --frames "$FRAMES" --scale 1 --out "$WORK/service-eval" --quiet
+    "$PY" -m ogclient --server "127.0.0.1:$port" stream --data "$DATA" --frames 0:300 --scale 1 --preset sparse \
+        --session-out "$LOGS/service-session.json" --quiet &&
+        "$PY" -m ogclient --server "127.0.0.1:$port" eval --session "$LOGS/service-session.json" --data "$DATA" \
+            --frames 0:300 --scale 1 --out "$dir" --quiet
     status=$?
-    rm -f "$WORK/service-eval"/*.png
+    rm -f "$dir"/*.png
     kill -TERM "$server"
     wait "$server"
     return $status
 }
 
-export -f pytest_interruptible suite install_with_fallback_suite service
-log "check: budget ${BUDGET} s, data $DATA"
-nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee -a "$WORK/check.log"
-step install 420 install_with_fallback_suite || { log "gsplat is not usable: the GPU steps stop here"; pack; exit 1; }
-step gpu-tests 45 bench/gpu/run.sh tests
-step sparse-640 90 bench/gpu/run.sh preset sparse "$DATA" "$WORK/640"
-step sparse-fast-640 60 bench/gpu/run.sh preset sparse-fast "$DATA" "$WORK/640"
-SCALE=0.5 step sparse-320 45 bench/gpu/run.sh preset sparse "$DATA" "$WORK/320"
-step dense-640 120 bench/gpu/run.sh preset dense "$DATA" "$WORK/640"
-step service-sparse-640 120 service
-step suite-gsplat 150 suite
+export -f pytest_interruptible suite install_with_fallback_suite gpu_tests service_load cpu_threads service
+log "check: budget ${BUDGET} s, results $STAMP, 7-Scenes '$DATA' ($SEVEN_SCENES_FRAMES frames), Replica '$REPLICA' ($REPLICA_FRAMES frames), only '${ONLY:-all}'"
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>&1 | tee -a "$LOGS/check.log"
+
+GPU_STEPS=(gpu-tests 640-sparse-fast 640-sparse 640-dense replica-sparse-fast replica-sparse replica-dense load
+           service-sparse-640 320-sparse suite-gsplat)
+for name in "${GPU_STEPS[@]}"; do
+    if wanted "$name" && [ ! -e "$(marker "$name")" ]; then
+        step install 180 cpu install_with_fallback_suite
+        break
+    fi
+done
+# ogmap_run GROUP PRESET ESTIMATE NEED FORMAT FRAMES SCALE DATA_DIR: results.json as RESULTS/GROUP/PRESET/.
+ogmap_run() {
+    step "$1-$2" "$3" "$4,gpu" env FORMAT="$5" FRAMES="$6" SCALE="$7" bench/gpu/run.sh preset "$2" "$8" "$RESULTS/$1"
+}
+step gpu-tests 90 gpu gpu_tests
+ogmap_run 640 sparse-fast 60 7scenes:300 7scenes 0:300 1 "$DATA"
+ogmap_run 640 sparse 90 7scenes:300 7scenes 0:300 1 "$DATA"
+ogmap_run 640 dense 120 7scenes:300 7scenes 0:300 1 "$DATA"
+ogmap_run replica sparse-fast 45 replica:20 replica 0:20 1 "$REPLICA"
+ogmap_run replica sparse 45 replica:20 replica 0:20 1 "$REPLICA"
+ogmap_run replica dense 60 replica:20 replica 0:20 1 "$REPLICA"
+step load 180 "7scenes:${LOAD_FRAMES#*:},gpu" service_load
+step service-sparse-640 120 7scenes:300,gpu service
+# about 1.6 s a frame over the five thread counts, and 40 s of start-up
+step cpu-threads $((40 + 16 * (${THREAD_FRAMES#*:} - ${THREAD_FRAMES%:*}) / 10)) "cpu,7scenes:${THREAD_FRAMES#*:}" cpu_threads
+ogmap_run 320 sparse 45 7scenes:300 7scenes 0:300 0.5 "$DATA"
+step suite-gsplat 150 gpu suite
 log "check: end"
 pack

@@ -11,13 +11,14 @@
 #            this GPU, with MAX_JOBS (default: the CPU count) parallel compiler jobs
 #   wheels   only the carried wheels (the first half of install)
 #   kernels  only gsplat's build (the second half of install)
-#   tests    pytest -m gpu (gsplat against the pure-torch reference)
-#   preset   ogmap run of one preset (dense, sparse, sparse-fast) on DATA_DIR (a 7-Scenes folder);
-#            only its results.json is kept, as OUT_DIR/NAME/results.json
+#   tests    pytest -m gpu tests/test_gpu_*.py (gsplat against the pure-torch reference, a mapping step)
+#   preset   ogmap run of one preset (dense, sparse, sparse-fast) on DATA_DIR (7-Scenes unless FORMAT);
+#            only its results.json is kept, as OUT_DIR/LABEL/results.json
 #   table    OUT_DIR/table.md from OUT_DIR/*/results.json
-# environment: FRAMES (0:300), SCALE (1.0), PYTHON (python3).
-# .gpu/ (git-ignored) holds the installed packages and gsplat's build, so later steps of the same
-# session find them without building again.
+# environment: FRAMES (0:300), SCALE (1.0), FORMAT (auto), DEVICE (cuda; cpu needs no gsplat),
+#   LABEL (the preset's name), PYTHON (python3).
+# .gpu/ (git-ignored) holds the installed packages and gsplat's build, so later steps on the same
+# machine find them without building again.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 
@@ -28,7 +29,7 @@ export PYTHONPATH=$SITE:$PWD
 export TORCH_EXTENSIONS_DIR=$PWD/.gpu/torch_extensions
 
 usage() {
-    sed -n '2,20p' "$0" >&2
+    sed -n '2,21p' "$0" >&2
     exit 2
 }
 
@@ -85,21 +86,21 @@ install() {
 
 tests() {
     gsplat_status
-    "$PY" -m pytest -m gpu -ra -q -p no:cacheprovider tests/test_gpu_gsplat.py
+    "$PY" -m pytest -m gpu -ra -q -p no:cacheprovider tests/test_gpu_*.py
 }
 
 preset() {
     [ $# -eq 3 ] || usage
-    local name=$1 data=$2 out=$3 scratch
-    gsplat_status
+    local name=$1 data=$2 out=$3 device=${DEVICE:-cuda} label=${LABEL:-$1} scratch
+    [ "$device" = cpu ] || gsplat_status
     scratch=$(mktemp -d)
     trap 'rm -rf "$scratch"' RETURN
-    echo "== ogmap run --preset $name (frames ${FRAMES:-0:300}, scale ${SCALE:-1.0})"
-    "$PY" -m ogmapping.cli run --data "$data" --frames "${FRAMES:-0:300}" --scale "${SCALE:-1.0}" --device cuda \
-        --preset "$name" --out "$scratch" --quiet
-    mkdir -p "$out/$name"
-    cp "$scratch/results.json" "$out/$name/results.json"
-    "$PY" bench/gpu/table.py "$out/$name"
+    echo "== ogmap run --preset $name on $device (frames ${FRAMES:-0:300}, scale ${SCALE:-1.0}) as $label"
+    "$PY" -m ogmapping.cli run --data "$data" --format "${FORMAT:-auto}" --frames "${FRAMES:-0:300}" \
+        --scale "${SCALE:-1.0}" --device "$device" --preset "$name" --out "$scratch" --quiet
+    mkdir -p "$out/$label"
+    cp "$scratch/results.json" "$out/$label/results.json"
+    "$PY" bench/gpu/table.py "$out/$label"
 }
 
 table() {

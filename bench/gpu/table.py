@@ -1,20 +1,29 @@
-"""One Markdown table from ``ogmap run`` results.json files, beside the paper's Replica speeds.
+"""Markdown tables from ``ogmap run`` results.json files, beside the paper's Replica speeds.
 
-Usage: ``python bench/gpu/table.py OUT/dense OUT/sparse OUT/sparse-fast`` (folders or results.json).
-The paper's processing FPS were measured on Replica with an RTX 4090 (its Table "key performance
-metrics on Replica"); they are context only, since data, resolution and GPU differ here.
+Usage: ``python bench/gpu/table.py OUT/dense OUT/sparse OUT/sparse-fast`` (folders or results.json): one
+table; ``python bench/gpu/table.py --tree RESULTS`` (a folder that ``check.sh`` filled): the machine, one
+table of every results.json below it, labelled by its folder, then the load tables (``load/load.md``), the
+mapping step's figures (``gpu-tests/step-time.json``, ``gpu-tests/sync-debug.txt``) and the GPU tests'
+summary (``gpu-tests/pytest.txt``).
+The paper's processing FPS were measured on Replica at 1200x680 with an RTX 4090 (its Table "key
+performance metrics on Replica"); beside other data, resolutions or GPUs they are context only.
 """
 
 from __future__ import annotations
 
 import json
+import re
 import sys
 from pathlib import Path
 from typing import Any
 
 PAPER_REPLICA_FPS = {"dense": 5.6, "sparse": 8.5, "sparse-fast": 16.1}
 COLUMNS = (
+    "run",
     "preset",
+    "device, backend",
+    "resolution",
+    "frames streamed / held-out",
     "processing FPS",
     "paper FPS (Replica, 4090)",
     "render FPS",
@@ -26,11 +35,18 @@ COLUMNS = (
     "peak GPU MB",
     "peak GPU MB every 100 frames",
 )
+SUMMARY_LINE = re.compile(r"^(PASSED|FAILED|ERROR|SKIPPED|XFAIL|XPASS)\b"
+                          r"|\b(passed|failed|errors?|skipped|xfailed|xpassed)\b.* in [0-9.]+s")
 
 
-def load(path: str) -> dict[str, Any]:
-    file = Path(path)
-    return json.loads((file / "results.json" if file.is_dir() else file).read_text())
+def load(path: Path) -> dict[str, Any]:
+    return json.loads((path / "results.json" if path.is_dir() else path).read_text())
+
+
+def label(path: Path, root: Path | None = None) -> str:
+    """The run's name: its folder, relative to ``root`` when given."""
+    folder = path if path.is_dir() else path.parent
+    return folder.relative_to(root).as_posix() if root is not None else folder.name
 
 
 def number(value: Any, digits: int) -> str:
@@ -47,12 +63,20 @@ def megabytes(value: Any) -> str:
     return "–" if value is None else f"{value / 1e6:.1f}"
 
 
-def row(result: dict[str, Any]) -> list[str]:
+def row(name: str, result: dict[str, Any]) -> list[str]:
     preset = result.get("preset", "?")
+    width, height = result.get("resolution") or ("?", "?")
+    frames = result.get("frames") or {}
+    on_gpu = str(result.get("device", "")).startswith("cuda")
+    memory = [megabytes(entry.get("peak_gpu_memory_bytes")) for entry in result.get("memory_per_100_frames", [])]
     return [
+        name,
         preset,
+        f"{result.get('device', '?')}, {result.get('backend', '–')}",
+        f"{width}x{height}",
+        f"{frames.get('streamed', '–')} / {frames.get('heldout', '–')}",
         number(result.get("processing_fps"), 2),
-        number(PAPER_REPLICA_FPS.get(preset), 1),
+        number(PAPER_REPLICA_FPS.get(preset) if on_gpu else None, 1),
         number(result.get("render_fps"), 1),
         pair(result, "psnr", 2),
         pair(result, "ssim", 3),
@@ -60,32 +84,77 @@ def row(result: dict[str, Any]) -> list[str]:
         pair(result, "depth_l1_cm", 2),
         megabytes(result.get("snapshot_bytes")),
         megabytes(result.get("peak_gpu_memory_bytes")),
-        " / ".join(megabytes(entry.get("peak_gpu_memory_bytes")) for entry in result.get("memory_per_100_frames", [])),
+        " / ".join(memory) if on_gpu and memory else "–",
     ]
 
 
-def setting(result: dict[str, Any]) -> str:
-    """Where and on what a run was measured, so rows from different set-ups are not mixed up."""
-    frames = result.get("frames") or {}
-    width, height = result.get("resolution") or ("?", "?")
-    return (
-        f"device {result.get('device', '?')}, backend {result.get('backend', '?')}, {width}x{height}, "
-        f"{frames.get('streamed', '?')} streamed + {frames.get('heldout', '?')} held-out frames"
-    )
+def described(value: Any) -> str:
+    """A JSON value on one line: ``key: value; ...``, nested objects in parentheses."""
+    if isinstance(value, dict):
+        return "; ".join(f"{key}: {nested(item)}" for key, item in value.items())
+    if isinstance(value, list):
+        return ", ".join(nested(item) for item in value)
+    return str(value)
 
 
-def table(results: list[dict[str, Any]]) -> str:
+def nested(value: Any) -> str:
+    return f"({described(value)})" if isinstance(value, dict) else described(value)
+
+
+def table(runs: list[tuple[str, dict[str, Any]]]) -> str:
+    """One row per (name, results.json); below it every distinct ``machine`` the results name."""
     lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
-    lines += ["| " + " | ".join(row(result)) + " |" for result in results]
-    settings = dict.fromkeys(f"- {r.get('preset', '?')}: {setting(r)}" for r in results)
-    return "\n".join([*lines, "", *settings, "- MB = 10^6 bytes."])
+    lines += ["| " + " | ".join(row(name, result)) + " |" for name, result in runs]
+    machines = dict.fromkeys(f"- machine: {described(r['machine'])}" for _, r in runs if r.get("machine"))
+    return "\n".join([*lines, "", *machines, "- MB = 10^6 bytes; PSNR in dB; frames streamed / held-out."])
 
 
-def main(paths: list[str]) -> int:
-    if not paths:
+def natural(text: str) -> list[Any]:
+    """Sort key that puts threads-2 before threads-16."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", text)]
+
+
+def step_figures(report: Path) -> list[str]:
+    """The mapping step's figures (tests/test_gpu_step.py) and how its synchronisation check fared."""
+    lines = []
+    timing = report / "step-time.json"
+    if timing.exists():
+        lines += ["## One mapping step in steady state (tests/test_gpu_step.py)", ""]
+        lines += [f"- {key}: {described(value)}" for key, value in json.loads(timing.read_text()).items()]
+        lines.append("")
+    sync = report / "sync-debug.txt"
+    if sync.exists():
+        lines += ["First host synchronisation under `torch.cuda.set_sync_debug_mode(\"error\")`:", "", "```",
+                  sync.read_text().rstrip(), "```", ""]
+    output = report / "pytest.txt"
+    if output.exists():
+        summary = [line for line in output.read_text().splitlines() if SUMMARY_LINE.search(line)]
+        lines += ["## pytest -m gpu", "", "```", *summary, "```", ""]
+    return lines
+
+
+def tree(root: Path) -> str:
+    """table.md of a results folder that check.sh filled."""
+    runs = [(label(path, root), load(path)) for path in root.rglob("results.json")]
+    runs.sort(key=lambda run: natural(run[0]))
+    lines = [f"# {root.name}", ""]
+    if runs:
+        lines += [table(runs), ""]
+    load_table = root / "load" / "load.md"
+    if load_table.exists():
+        lines += ["## Sessions on one server (bench/load.py)", "", load_table.read_text().rstrip(), ""]
+    lines += step_figures(root / "gpu-tests")
+    return "\n".join(lines)
+
+
+def main(argv: list[str]) -> int:
+    if argv[:1] == ["--tree"] and len(argv) == 2:
+        print(tree(Path(argv[1])))
+        return 0
+    if not argv or argv[0].startswith("-"):
         print(__doc__, file=sys.stderr)
         return 2
-    print(table([load(path) for path in paths]))
+    print(table([(label(Path(path)), load(Path(path))) for path in argv]))
     return 0
 
 
