@@ -34,6 +34,16 @@ class ServerHandle:
         return path if path is not None and path.exists() else None
 
 
+@pytest.fixture(scope="session", autouse=True)
+def compiled_kernels() -> None:
+    """Compile the engine's kernels once, before the first test's clock starts: a fresh checkout compiles
+    them on first use (about 45 s on a 2-core machine), which would otherwise land inside whichever test maps
+    the first frame in this process, and past its deadlines."""
+    from ogmapping.warmup import warm_up
+
+    warm_up("cpu")
+
+
 def start_local(record_dir, *extra: str) -> LocalServer:
     return LocalServer(record_dir, "--config", str(TEST_SERVER_CONFIG), "--device", "cpu", *extra).start()
 
