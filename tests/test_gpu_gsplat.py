@@ -16,8 +16,9 @@ import importlib.util
 import pytest
 import torch
 
-from ogmapping.render import gsplat_backend, rasterize
+from ogmapping.render import Camera, gsplat_backend, rasterize, rasterize_batch
 from ogmapping.render.rules import ALPHA_MAX
+from ogmapping.render.views import SplatSet
 
 HAS_GSPLAT = importlib.util.find_spec("gsplat") is not None
 WIDTH, HEIGHT = 96, 72  # 72 is not a multiple of the 16-pixel tile: partial tiles are covered
@@ -131,3 +132,40 @@ def test_missing_gsplat_names_the_install_command() -> None:
     scene, viewmat = random_scene(0, n=4)
     with pytest.raises(ImportError, match=r"gsplat is not installed.*pip install"):
         rasterize(*(scene[k] for k in PARAMS), viewmat, K, WIDTH, HEIGHT, backend="gsplat")
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.skipif(not HAS_GSPLAT, reason="gsplat is not installed (see docs/cuda.md)")
+def test_gsplat_batch_matches_torch_reference() -> None:
+    """Four views, two image sizes (two gsplat calls), different counts (padding) against the reference."""
+    fail_unless_usable()
+    half = K.clone()
+    half[:2] *= 0.5
+    sizes = ((WIDTH, HEIGHT, K), (WIDTH // 2, HEIGHT // 2, half), (WIDTH, HEIGHT, K), (WIDTH // 2, HEIGHT // 2, half))
+    counts = (300, 120, 200, 0)
+    results = {}
+    for backend in ("torch", "gsplat"):
+        scenes, cameras, leaves = [], [], []
+        for seed, ((width, height, intrinsics), n) in enumerate(zip(sizes, counts, strict=True)):
+            scene, viewmat = random_scene(seed, max(n, 1))
+            view_leaves = {k: v[:n].cuda().requires_grad_() for k, v in scene.items()}
+            leaves.append(view_leaves)
+            scenes.append(SplatSet(*(view_leaves[k] for k in PARAMS)))
+            cameras.append(Camera(viewmat.cuda(), intrinsics.cuda(), width, height))
+        outputs = rasterize_batch(scenes, cameras, torch.tensor([0.1, 0.4, 0.8], device="cuda"), backend=backend)
+        g = torch.Generator(device="cuda").manual_seed(0)
+        loss = sum((out.color * torch.randn(out.color.shape, device="cuda", generator=g)).sum()
+                   + (out.alpha * torch.randn(out.alpha.shape, device="cuda", generator=g)).sum() for out in outputs)
+        loss.backward()
+        results[backend] = outputs, leaves
+    (ref, ref_leaves), (gs, gs_leaves) = results["torch"], results["gsplat"]
+    for v in range(len(sizes)):
+        assert gs[v].color.shape == ref[v].color.shape and torch.equal(gs[v].visible, ref[v].visible), v
+        close(gs[v].color, ref[v].color, 1e-4, 1e-4, f"view {v} colour")
+        close(gs[v].alpha, ref[v].alpha, 1e-4, 1e-4, f"view {v} alpha")
+        close(gs[v].depth * gs[v].alpha, ref[v].depth * ref[v].alpha, 1e-4, 1e-4, f"view {v} accumulated depth")
+        if counts[v]:
+            close(gs[v].means2d.grad, ref[v].means2d.grad, 5e-3, 5e-3, f"view {v} means2d gradient")
+            for name, (rtol, atol) in GRAD_TOLERANCES.items():
+                close(gs_leaves[v][name].grad, ref_leaves[v][name].grad, rtol, atol, f"view {v} {name} gradient")

@@ -1,8 +1,9 @@
 """The gsplat backend's decisions and its wrapping of gsplat's call, checked on the CPU with stand-ins for gsplat.
 
 Which backend ``auto`` picks, when gsplat counts as usable (gsplat 1.5 reports kernels it could not
-build only by setting ``gsplat.cuda._backend._C`` to None) and what ``render_with`` does around
-``gsplat.rasterization`` (float32 in, the caller's dtype out, culled ``means2d`` zero). The real
+build only by setting ``gsplat.cuda._backend._C`` to None) and what ``render_group`` does around
+``gsplat.rasterization`` (views padded into one batch and cut out again, float32 in, the caller's
+dtype out, culled ``means2d`` zero, each view's screen-space gradient its own). The real
 kernels are checked against the reference in ``test_gpu_gsplat.py``.
 """
 
@@ -15,6 +16,7 @@ import pytest
 import torch
 
 from ogmapping.render import gsplat_backend, resolve_backend
+from ogmapping.render.views import Camera, SplatSet
 
 CUDA = torch.device("cuda")
 
@@ -58,6 +60,11 @@ def test_gsplat_of_another_minor_version_is_unusable(monkeypatch, fresh_check, v
     assert f"gsplat {version} is installed" in fresh_check()
 
 
+def test_gsplat_before_batched_rendering_is_unusable(monkeypatch, fresh_check):
+    install_fake_gsplat(monkeypatch, "1.5.2", compiled=object())
+    assert "through gsplat >= 1.5.3" in fresh_check()
+
+
 def test_gsplat_1_5_with_kernels_is_usable(monkeypatch, fresh_check):
     install_fake_gsplat(monkeypatch, "1.5.3", compiled=object())
     assert fresh_check() is None
@@ -94,51 +101,82 @@ def test_gsplat_by_name_fails_now_with_the_reason_and_the_install_hint(monkeypat
 
 
 def fake_rasterization(culled: torch.Tensor):
-    """A stand-in for ``gsplat.rasterization`` with its output shapes (``packed=False``, ``RGB+ED``, one
-    camera): it takes float32 only, as gsplat's kernels do, and leaves culled ``means2d`` rows as garbage."""
+    """A stand-in for ``gsplat.rasterization`` with its output shapes (``packed=False``, ``RGB+ED``, a
+    leading batch dimension B and one camera per batch entry): it takes float32 only, as gsplat's
+    kernels do, and leaves culled ``means2d`` rows as garbage. ``culled`` (B, N) marks the culled."""
 
     def rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, **options):
         for tensor in (means, quats, scales, opacities, colors, viewmats, Ks):
             assert tensor.dtype == torch.float32
         assert options["packed"] is False and options["render_mode"] == "RGB+ED"
-        projected = means[:, :2] * Ks[0, 0, 0] / means[:, 2:] + Ks[0, :2, 2]
-        means2d = torch.where(culled.unsqueeze(-1), torch.full_like(projected, 1e30), projected)[None]
-        weight = (means2d[0, ~culled].sum() + opacities.sum() + colors.sum()) * 1e-3
-        render = weight * torch.ones(1, height, width, 4)
-        alpha = torch.sigmoid(weight) * torch.ones(1, height, width, 1)
-        radii = torch.where(culled, 0, 3).to(torch.int32)[None, :, None].expand(1, -1, 2)
+        batch, n = means.shape[:2]
+        assert viewmats.shape == (batch, 1, 4, 4) and Ks.shape == (batch, 1, 3, 3) and culled.shape == (batch, n)
+        projected = means[..., :2] * Ks[:, :, 0, 0, None] / means[..., 2:] + Ks[:, 0, None, :2, 2]
+        means2d = torch.where(culled.unsqueeze(-1), torch.full_like(projected, 1e30), projected)[:, None]
+        weight = torch.stack([
+            (means2d[b, 0, ~culled[b]].sum() + opacities[b].sum() + colors[b].sum()) * 1e-3 * (b + 1)
+            for b in range(batch)
+        ])
+        render = weight[:, None, None, None, None] * torch.ones(batch, 1, height, width, 4)
+        alpha = torch.sigmoid(weight)[:, None, None, None, None] * torch.ones(batch, 1, height, width, 1)
+        radii = torch.where(culled, 0, 3).to(torch.int32)[:, None, :, None].expand(batch, 1, n, 2)
         return render, alpha, {"means2d": means2d, "radii": radii}
 
     return rasterization
 
 
-def test_render_with_casts_to_float32_and_back_and_zeroes_culled_means2d():
+def random_scene(generator: torch.Generator, n: int) -> SplatSet:
+    def leaf(*shape: int) -> torch.Tensor:
+        return torch.rand(*shape, generator=generator, dtype=torch.float64).requires_grad_(True)
+
+    scene = SplatSet(leaf(n, 3), leaf(n, 4), leaf(n, 3), leaf(n), leaf(n, 3))
+    with torch.no_grad():
+        scene.means[:, 2] += 1.0
+    return scene
+
+
+def test_render_group_pads_views_casts_to_float32_and_back_and_zeroes_culled_means2d():
     generator = torch.Generator().manual_seed(0)
-    n, width, height = 5, 8, 6
-    leaves = {
-        "means": torch.rand(n, 3, generator=generator, dtype=torch.float64) + torch.tensor([0.0, 0.0, 1.0],
-                                                                                           dtype=torch.float64),
-        "quats": torch.rand(n, 4, generator=generator, dtype=torch.float64),
-        "scales": torch.rand(n, 3, generator=generator, dtype=torch.float64),
-        "opacities": torch.rand(n, generator=generator, dtype=torch.float64),
-        "colors": torch.rand(n, 3, generator=generator, dtype=torch.float64),
-    }
-    for tensor in leaves.values():
-        tensor.requires_grad_(True)
-    culled = torch.tensor([False, True, False, False, True])
+    counts, width, height = (5, 2), 8, 6
+    scenes = [random_scene(generator, n) for n in counts]
+    # Padding (the second view's last three) is culled too, as gsplat culls opacity 0.
+    culled = torch.tensor([[False, True, False, False, True], [False, True, True, True, True]])
     K = torch.tensor([[10.0, 0.0, 4.0], [0.0, 10.0, 3.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    output = gsplat_backend.render_with(fake_rasterization(culled), tuple(leaves.values()),
-                                        torch.eye(4, dtype=torch.float64), K, width, height, None)
+    cameras = [Camera(torch.eye(4, dtype=torch.float64), K, width, height) for _ in scenes]
+    outputs = gsplat_backend.render_group(fake_rasterization(culled), scenes, cameras, None)
 
-    for image in (output.color, output.depth, output.alpha, output.means2d):
-        assert image.dtype == torch.float64
-    assert output.color.shape == (height, width, 3) and output.depth.shape == output.alpha.shape == (height, width)
-    assert torch.equal(output.visible, ~culled)
-    assert torch.equal(output.means2d[culled], torch.zeros(2, 2, dtype=torch.float64))
-    assert bool(torch.isfinite(output.means2d).all())
+    assert len(outputs) == 2
+    (sum(o.color.sum() + o.depth.sum() + o.alpha.sum() for o in outputs)).backward()
+    for b, (output, scene) in enumerate(zip(outputs, scenes, strict=True)):
+        n, view_culled = counts[b], culled[b, :counts[b]]
+        for image in (output.color, output.depth, output.alpha, output.means2d):
+            assert image.dtype == torch.float64
+        assert output.color.shape == (height, width, 3) and output.depth.shape == output.alpha.shape == (height, width)
+        assert output.means2d.shape == (n, 2) and torch.equal(output.visible, ~view_culled)
+        assert torch.equal(output.means2d[view_culled], torch.zeros(int(view_culled.sum()), 2, dtype=torch.float64))
+        assert bool(torch.isfinite(output.means2d).all())
+        grad = output.means2d.grad
+        assert grad.dtype == torch.float64 and grad.shape == (n, 2)
+        assert bool((grad[~view_culled] != 0).all()) and bool((grad[view_culled] == 0).all())
+        for name in ("means", "opacities", "colors"):
+            leaf = getattr(scene, name)
+            assert leaf.grad is not None and leaf.grad.dtype == torch.float64, name
+    # Each view's screen gradient is its own: the fake weighs view b by b + 1.
+    assert bool((outputs[1].means2d.grad[0] > 1.5 * outputs[0].means2d.grad[0]).all())
 
-    (output.color.sum() + output.depth.sum() + output.alpha.sum()).backward()
-    assert output.means2d.grad.dtype == torch.float64
-    assert bool((output.means2d.grad[~culled] != 0).all()) and bool((output.means2d.grad[culled] == 0).all())
-    for name in ("means", "opacities", "colors"):
-        assert leaves[name].grad is not None and leaves[name].grad.dtype == torch.float64, name
+
+def test_views_are_grouped_by_image_size_in_order_of_appearance():
+    def camera(width: int, height: int) -> Camera:
+        return Camera(torch.eye(4), torch.eye(3), width, height)
+
+    cameras = [camera(64, 48), camera(32, 24), camera(64, 48), camera(32, 24), camera(16, 16)]
+    assert gsplat_backend.same_size_groups(cameras) == [[0, 2], [1, 3], [4]]
+
+
+def test_a_group_without_gaussians_renders_the_background():
+    background = torch.tensor([0.2, 0.4, 0.6])
+    empty = SplatSet(*(torch.zeros(0, *shape) for shape in ((3,), (4,), (3,), (), (3,))))
+    outputs = gsplat_backend.render_group(fake_rasterization(torch.zeros(2, 0, dtype=torch.bool)), [empty, empty],
+                                          [Camera(torch.eye(4), torch.eye(3), 4, 3)] * 2, background)
+    for output in outputs:
+        assert torch.equal(output.color, background.expand(3, 4, 3)) and not bool(output.alpha.any())

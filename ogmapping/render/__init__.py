@@ -1,4 +1,4 @@
-"""One public entry, ``rasterize()``, over interchangeable backends.
+"""One public entry, ``rasterize()`` (and ``rasterize_batch()`` for several views), over interchangeable backends.
 
 Backends (all render colour, expected depth and alpha, and expose the screen-space gradient):
 - ``torch``: pure PyTorch through autograd; the reference the others are checked against.
@@ -20,6 +20,9 @@ import torch
 from ogmapping.backends import BACKENDS
 from ogmapping.render import gsplat_backend
 from ogmapping.render.output import RenderOutput
+from ogmapping.render.views import Camera, Splats
+
+__all__ = ["Camera", "RenderOutput", "Splats", "rasterize", "rasterize_batch", "resolve_backend"]
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:
@@ -70,3 +73,21 @@ def rasterize(
     return module.rasterize(
         means, quats, scales, opacities, colors, viewmat, K, int(width), int(height), background
     )
+
+
+def rasterize_batch(
+    scenes: list[Splats],
+    cameras: list[Camera],
+    background: torch.Tensor | None = None,
+    backend: str = "auto",
+) -> list[RenderOutput]:
+    """Render scene i (its own Gaussians, as ``rasterize`` takes them) into camera i, for every i.
+
+    The same images and gradients as one ``rasterize`` per view (the reference backend is exactly
+    that loop), in as few backend calls as the backend can: ``cpu`` one projection and one
+    compositing node for the whole batch, ``gsplat`` one call per image size. Each output's
+    ``means2d.grad`` holds its own view's screen-space gradient after ``backward``.
+    """
+    name = resolve_backend(backend, scenes[0].means.device if scenes else torch.device("cpu"))
+    module = importlib.import_module(f"ogmapping.render.{name}_backend")
+    return module.rasterize_batch(list(scenes), list(cameras), background)

@@ -5,9 +5,17 @@ parameters into screen-space means, conics, depths and radii, and compositing (`
 turns those into images. Keeping ``means2d`` a separate autograd node is what gives it the
 ``.grad`` refinement reads. Both run float32 kernels; results follow exactly the rules of the
 torch reference and come back in the input dtype.
+
+Both take a batch of views, each its own Gaussians and camera, concatenated: one projection node
+and one compositing node per batch, whatever its size, so a mapping step's window costs two
+autograd nodes and one conversion of each input, not two nodes and a dozen conversions per view.
+The kernels still run view after view (each is parallel within its image).
 """
 
 from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -18,6 +26,7 @@ from ogmapping.render import cpu_kernels as kernels
 from ogmapping.render import cpu_projection
 from ogmapping.render.output import RenderOutput, finish_output
 from ogmapping.render.projection import Projection
+from ogmapping.render.views import Camera, Splats, SplatSet, check_batch, parameters
 
 
 def _depth_order(depths: np.ndarray, visible: np.ndarray) -> np.ndarray:
@@ -36,14 +45,32 @@ def _depth_order(depths: np.ndarray, visible: np.ndarray) -> np.ndarray:
     return visible[packed & 0xFFFFFFFF].astype(np.int32)
 
 
+@dataclass(frozen=True)
+class Layout:
+    """Where each view's Gaussians sit in the concatenated inputs, and its image size."""
+
+    counts: tuple[int, ...]
+    sizes: tuple[tuple[int, int], ...]  # (width, height) per view
+
+    @property
+    def spans(self) -> list[slice]:
+        return [slice(int(a), int(b)) for a, b in itertools.pairwise(np.cumsum((0, *self.counts)))]
+
+
 class _Project(torch.autograd.Function):
-    """Gaussian parameters -> (means2d, conics, depths, radii); opacity only culls, so gets no gradient."""
+    """Gaussian parameters -> (means2d, conics, depths, radii) of every view, concatenated; opacity
+    only culls, so gets no gradient, and cameras are fixed (no gradient)."""
 
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, viewmat, K, width, height):
-        inputs = [float32_array(t) for t in (means, quats, scales, opacities, viewmat, K)]
-        means2d, conics, depths, radii = cpu_projection.project_forward(*inputs, width, height)
-        ctx.state = (inputs, width, height)
+    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, layout):
+        inputs = [float32_array(t) for t in (means, quats, scales, opacities)]
+        cameras = float32_array(viewmats), float32_array(Ks)
+        per_view = [
+            cpu_projection.project_forward(*(a[span] for a in inputs), cameras[0][v], cameras[1][v], *layout.sizes[v])
+            for v, span in enumerate(layout.spans)
+        ]
+        means2d, conics, depths, radii = (np.concatenate(parts) for parts in zip(*per_view, strict=True))
+        ctx.state = (inputs, cameras, layout)
         ctx.dtypes = (means.dtype, quats.dtype, scales.dtype)
         ctx.device = means.device
         radii = torch.from_numpy(radii).to(means.device)
@@ -58,60 +85,90 @@ class _Project(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_means2d, grad_conics, grad_depths, _grad_radii):
-        inputs, width, height = ctx.state
+        inputs, (viewmats, Ks), layout = ctx.state
         n = inputs[0].shape[0]
         upstream = [
             np.zeros(shape, np.float32) if g is None else float32_array(g)
             for g, shape in ((grad_means2d, (n, 2)), (grad_conics, (n, 3)), (grad_depths, (n,)))
         ]
-        grads = cpu_projection.project_backward(*inputs, width, height, *upstream)
+        per_view = [
+            cpu_projection.project_backward(*(a[span] for a in inputs), viewmats[v], Ks[v], *layout.sizes[v],
+                                            *(g[span] for g in upstream))
+            for v, span in enumerate(layout.spans)
+        ]
+        grads = (np.concatenate(parts) for parts in zip(*per_view, strict=True))
         means, quats, scales = (
             torch.from_numpy(g).to(dtype=dtype, device=ctx.device) for g, dtype in zip(grads, ctx.dtypes, strict=True)
         )
-        return means, quats, scales, None, None, None, None, None
+        return means, quats, scales, None, None, None, None
+
+
+@dataclass
+class _ViewComposite:
+    """One view's compositing state between forward and backward."""
+
+    order: np.ndarray
+    bins: tuple  # tile offsets, ids, pair start, pair of
+    ellipses: tuple  # limits, extents
+    final_t: np.ndarray
+    n_contrib: np.ndarray
 
 
 class _Composite(torch.autograd.Function):
-    """Screen-space Gaussians -> (colour, accumulated depth, alpha) images."""
+    """Screen-space Gaussians of every view -> each view's (colour, accumulated depth, alpha) images,
+    returned as all colours, then all depths, then all alphas."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, colors, depths, background, radii, width, height):
-        arrays = [float32_array(t) for t in (means2d, conics, opacities, colors, depths, background)]
-        m2d, con, opa, col, dep, bg = arrays
+    def forward(ctx, means2d, conics, opacities, colors, depths, background, radii, layout):
+        arrays = [float32_array(t) for t in (means2d, conics, opacities, colors, depths)]
+        bg = float32_array(background)
         radii_np = np.ascontiguousarray(radii.to("cpu", torch.int32).numpy())
-        order = _depth_order(dep, np.flatnonzero(radii_np > 0))
         n_threads = numba.get_num_threads()
-        tile_offsets, ids, pair_start, pair_of, limits, extents = kernels.bin_tiles(
-            order, m2d, con, opa, radii_np, width, height, n_threads
-        )
-        ellipses = (limits, extents)
-        color, accum_depth, final_t, n_contrib = kernels.render_forward(
-            tile_offsets, ids, m2d, con, opa, col, dep, *ellipses, bg, width, height, n_threads
-        )
-        ctx.state = (order, tile_offsets, ids, pair_start, pair_of, arrays, ellipses, final_t, n_contrib, width, height)
+        views, images = [], []
+        for span, (width, height) in zip(layout.spans, layout.sizes, strict=True):
+            m2d, con, opa, col, dep = (a[span] for a in arrays)
+            order = _depth_order(dep, np.flatnonzero(radii_np[span] > 0))
+            tile_offsets, ids, pair_start, pair_of, limits, extents = kernels.bin_tiles(
+                order, m2d, con, opa, radii_np[span], width, height, n_threads
+            )
+            color, accum_depth, final_t, n_contrib = kernels.render_forward(
+                tile_offsets, ids, m2d, con, opa, col, dep, limits, extents, bg, width, height, n_threads
+            )
+            views.append(_ViewComposite(order, (tile_offsets, ids, pair_start, pair_of), (limits, extents),
+                                        final_t, n_contrib))
+            images.append((color, accum_depth, 1.0 - final_t))
+        ctx.state = (arrays, bg, views, layout)
         ctx.dtypes = (means2d.dtype, background.dtype)
         ctx.device = means2d.device
         like = {"dtype": means2d.dtype, "device": means2d.device}
-        return (
-            torch.from_numpy(color).to(**like),
-            torch.from_numpy(accum_depth).to(**like),
-            torch.from_numpy(1.0 - final_t).to(**like),
-        )
+        return tuple(torch.from_numpy(image).to(**like) for kind in zip(*images, strict=True) for image in kind)
 
     @staticmethod
-    def backward(ctx, grad_color, grad_depth, grad_alpha):
-        order, tile_offsets, ids, pair_start, pair_of, arrays, ellipses, final_t, n_contrib, width, height = ctx.state
-        m2d, con, opa, col, dep, bg = arrays
-        pair_grads, bg_grads = kernels.render_backward(
-            tile_offsets, ids, m2d, con, opa, col, dep, *ellipses, bg, final_t, n_contrib,
-            float32_array(grad_color), float32_array(grad_depth), float32_array(grad_alpha), width, height,
-            numba.get_num_threads(),
-        )
-        grads = torch.from_numpy(kernels.reduce_pairs(order, pair_start, pair_of, pair_grads, m2d.shape[0]))
+    def backward(ctx, *grads):
+        arrays, bg, views, layout = ctx.state
+        count = len(views)
+        grad_colors, grad_depths, grad_alphas = grads[:count], grads[count:2 * count], grads[2 * count:]
+        n_threads = numba.get_num_threads()
+        gaussian_grads, bg_grad = [], np.zeros(3, np.float64)
+        for v, (span, (width, height)) in enumerate(zip(layout.spans, layout.sizes, strict=True)):
+            view = views[v]
+            m2d, con, opa, col, dep = (a[span] for a in arrays)
+            tile_offsets, ids, pair_start, pair_of = view.bins
+            upstream = [
+                np.zeros(shape, np.float32) if g is None else float32_array(g)
+                for g, shape in ((grad_colors[v], (height, width, 3)), (grad_depths[v], (height, width)),
+                                 (grad_alphas[v], (height, width)))
+            ]
+            pair_grads, bg_grads = kernels.render_backward(
+                tile_offsets, ids, m2d, con, opa, col, dep, *view.ellipses, bg, view.final_t, view.n_contrib,
+                *upstream, width, height, n_threads,
+            )
+            gaussian_grads.append(kernels.reduce_pairs(view.order, pair_start, pair_of, pair_grads, m2d.shape[0]))
+            bg_grad += bg_grads.sum(axis=0, dtype=np.float64)
         dtype, bg_dtype = ctx.dtypes
-        grads = grads.to(dtype=dtype, device=ctx.device)
-        grad_bg = torch.from_numpy(bg_grads.sum(axis=0, dtype=np.float64)).to(dtype=bg_dtype, device=ctx.device)
-        return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:9], grads[:, 9], grad_bg, None, None, None
+        grads = torch.from_numpy(np.concatenate(gaussian_grads)).to(dtype=dtype, device=ctx.device)
+        grad_bg = torch.from_numpy(bg_grad).to(dtype=bg_dtype, device=ctx.device)
+        return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:9], grads[:, 9], grad_bg, None, None
 
 
 def rasterize(
@@ -131,13 +188,38 @@ def rasterize(
     Camera poses and intrinsics are fixed here: the projection's backward has no gradient for them,
     so asking for one is an error rather than a silent zero.
     """
-    if viewmat.requires_grad or K.requires_grad:
+    scene = SplatSet(means, quats, scales, opacities, colors)
+    return rasterize_batch([scene], [Camera(viewmat, K, int(width), int(height))], background)[0]
+
+
+def rasterize_batch(scenes: list[Splats], cameras: list[Camera],
+                    background: torch.Tensor | None = None) -> list[RenderOutput]:
+    """Render scene i into camera i with one projection and one compositing node for all of them;
+    see ``ogmapping.render.rasterize_batch``."""
+    check_batch(scenes, cameras)
+    if any(camera.viewmat.requires_grad or camera.K.requires_grad for camera in cameras):
         raise NotImplementedError("the cpu backend has no gradient for viewmat or K; use backend='torch'")
-    proj = Projection(*_Project.apply(means, quats, scales, opacities, viewmat, K, int(width), int(height)))
-    if proj.means2d.requires_grad:
-        proj.means2d.retain_grad()
-    bg = torch.zeros(3, dtype=means.dtype, device=means.device) if background is None else background.to(means)
-    color, accum_depth, alpha = _Composite.apply(
-        proj.means2d, proj.conics, opacities, colors, proj.depths, bg, proj.radii, int(width), int(height)
+    means, quats, scales, opacities, colors = (
+        torch.cat(tensors) if len(scenes) > 1 else tensors[0]
+        for tensors in zip(*(parameters(scene) for scene in scenes), strict=True)
     )
-    return finish_output(color, accum_depth, alpha, proj)
+    layout = Layout(tuple(int(scene.means.shape[0]) for scene in scenes),
+                    tuple((int(camera.width), int(camera.height)) for camera in cameras))
+    viewmats = torch.stack([camera.viewmat for camera in cameras])
+    Ks = torch.stack([camera.K for camera in cameras])
+    proj = Projection(*_Project.apply(means, quats, scales, opacities, viewmats, Ks, layout))
+    # Each view's means2d a piece of the projection that compositing reads, so its retained .grad is
+    # that view's screen-space gradient and it stays differentiable, as the reference's is.
+    count = len(scenes)
+    means2d = list(proj.means2d.split(layout.counts)) if count > 1 else [proj.means2d]
+    if proj.means2d.requires_grad:
+        for piece in means2d:
+            piece.retain_grad()
+    bg = torch.zeros(3, dtype=means.dtype, device=means.device) if background is None else background.to(means)
+    images = _Composite.apply(torch.cat(means2d) if count > 1 else means2d[0], proj.conics, opacities, colors,
+                              proj.depths, bg, proj.radii, layout)
+    outputs = []
+    for v, span in enumerate(layout.spans):
+        view = Projection(means2d[v], proj.conics[span], proj.depths[span], proj.radii[span])
+        outputs.append(finish_output(images[v], images[count + v], images[2 * count + v], view))
+    return outputs

@@ -24,26 +24,32 @@ code, not settable from Python), with these details:
 - depth: "RGB+ED" composites each centre's camera z and divides by alpha (clamped at 1e-10), which
   is our expected depth and gives 0 where alpha is 0.
 - ``means2d`` of culled Gaussians is 0 rather than their projection (gsplat leaves them
-  uninitialised; ``_screen_means`` zeroes them); use it where ``visible``.
+  uninitialised; the mirrors zero them); use it where ``visible``.
+- batches: a step's views are rendered with one call per image size through gsplat 1.5.3's
+  leading batch dimension (one scene and one camera per batch entry), which gsplat 1.5.0-1.5.2 lack.
 - dtype: gsplat takes float32 only; other inputs are cast to it and the outputs back.
 """
 
 from __future__ import annotations
 
 import functools
+import re
 from collections.abc import Callable
 
 import torch
+from torch.nn.utils.rnn import pad_sequence
 
 from ogmapping.render.output import RenderOutput
 from ogmapping.render.rules import COVARIANCE_BLUR, NEAR_PLANE
+from ogmapping.render.views import Camera, Splats, SplatSet, check_batch, parameters
 
 INSTALL_HINT = (
-    "the gsplat backend needs gsplat 1.5.x with its CUDA kernels and a CUDA build of PyTorch: after "
+    "the gsplat backend needs gsplat 1.5.x (1.5.3 or later) with its CUDA kernels and a CUDA build of PyTorch: after "
     "`pip install -e '.[cuda]'`, `pip install --no-build-isolation --no-binary gsplat --no-deps --force-reinstall "
-    "'gsplat>=1.5,<1.6'` builds the kernels once (needs nvcc), see docs/cuda.md"
+    "'gsplat>=1.5.3,<1.6'` builds the kernels once (needs nvcc), see docs/cuda.md"
 )
 SUPPORTED_MINOR = (1, 5)
+FIRST_BATCHED_PATCH = 3  # gsplat 1.5.3 added the leading batch dimension ``rasterize_batch`` renders through
 
 
 @functools.cache
@@ -58,8 +64,11 @@ def unavailable_reason() -> str | None:
     except ImportError as error:
         return f"gsplat is not installed ({error})"
     version = gsplat.__version__
-    if tuple(int(part) for part in version.split(".")[:2]) != SUPPORTED_MINOR:
+    numbers = tuple(int(part) for part in re.findall(r"\d+", version)[:3])
+    if numbers[:2] != SUPPORTED_MINOR:
         return f"gsplat {version} is installed, but this backend implements the rules of gsplat 1.5.x"
+    if numbers[2:] < (FIRST_BATCHED_PATCH,):
+        return f"gsplat {version} is installed, but this backend renders batches of views through gsplat >= 1.5.3"
     try:
         from gsplat.cuda._backend import _C
     except Exception as error:  # its just-in-time build can fail in any way the compiler does
@@ -77,24 +86,32 @@ def require() -> None:
         raise ImportError(f"{reason}; {INSTALL_HINT}")
 
 
-def _screen_means(projected: torch.Tensor, visible: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    """(N, 2) pixel centres in ``dtype`` whose ``.grad`` receives gsplat's screen-space gradient.
+def _screen_means(projected: torch.Tensor, pieces: Callable[[torch.Tensor], list[torch.Tensor]],
+                   dtype: torch.dtype, visible: list[torch.Tensor] | None = None) -> list[torch.Tensor]:
+    """Per-view (n_i, 2) leaves whose ``.grad`` receives the screen-space gradient of ``projected``.
 
-    gsplat renders from its own (1, N, 2) tensor, so a plain view of it would never get a gradient;
-    a leaf mirror filled by a backward hook keeps the shared ``means2d.grad`` contract. gsplat leaves
-    the entries of culled Gaussians uninitialised (``at::empty``); the mirror holds 0 there.
+    gsplat renders from its own (B, 1, N, 2) tensor, so a plain view of it would never get a
+    gradient; leaf mirrors keep the shared ``RenderOutput.means2d.grad`` contract. ``pieces`` cuts a tensor
+    shaped like ``projected`` into the views' (n_i, 2) parts; each mirror holds its view's values (0
+    where ``visible`` is False) and a backward hook on ``projected`` hands each its part of the
+    gradient, accumulating as a leaf's ``.grad`` does.
     """
-    mirror = projected[0].detach().masked_fill(~visible.unsqueeze(-1), 0.0).to(dtype)
+    parts = pieces(projected.detach())
+    if visible is not None:
+        parts = [part.masked_fill(~seen.unsqueeze(-1), 0.0) for part, seen in zip(parts, visible, strict=True)]
+    mirrors = [part.to(dtype).clone() for part in parts]
     if not projected.requires_grad:
-        return mirror
-    mirror.requires_grad_(True)
+        return mirrors
+    for mirror in mirrors:
+        mirror.requires_grad_(True)
 
     def receive(grad: torch.Tensor) -> None:
-        step = grad[0].detach().to(dtype)
-        mirror.grad = step.clone() if mirror.grad is None else mirror.grad + step
+        for mirror, part in zip(mirrors, pieces(grad.detach()), strict=True):
+            part = part.to(dtype)
+            mirror.grad = part.clone() if mirror.grad is None else mirror.grad + part
 
     projected.register_hook(receive)
-    return mirror
+    return mirrors
 
 
 def _empty(means: torch.Tensor, width: int, height: int, background: torch.Tensor | None) -> RenderOutput:
@@ -125,36 +142,64 @@ def rasterize(
     background: torch.Tensor | None = None,
 ) -> RenderOutput:
     """Render with gsplat; see ``ogmapping.render.rasterize`` for shapes and conventions."""
+    scene = SplatSet(means, quats, scales, opacities, colors)
+    return rasterize_batch([scene], [Camera(viewmat, K, int(width), int(height))], background)[0]
+
+
+def rasterize_batch(scenes: list[Splats], cameras: list[Camera],
+                    background: torch.Tensor | None = None) -> list[RenderOutput]:
+    """Scene i into camera i: one gsplat call per image size; see ``ogmapping.render.rasterize_batch``."""
     require()
-    if means.device.type != "cuda":
-        raise ValueError(f"the gsplat backend renders CUDA tensors only, got {means.device}")
-    if means.shape[0] == 0:
-        return _empty(means, width, height, background)
+    check_batch(scenes, cameras)
+    for scene in scenes:
+        if scene.means.device.type != "cuda":
+            raise ValueError(f"the gsplat backend renders CUDA tensors only, got {scene.means.device}")
     from gsplat import rasterization
 
-    gaussians = (means, quats, scales, opacities, colors)
-    return render_with(rasterization, gaussians, viewmat, K, width, height, background)
+    outputs: list[RenderOutput | None] = [None] * len(scenes)
+    for group in same_size_groups(cameras):
+        rendered = render_group(rasterization, [scenes[i] for i in group], [cameras[i] for i in group], background)
+        for index, output in zip(group, rendered, strict=True):
+            outputs[index] = output
+    return outputs
 
 
-def render_with(
+def same_size_groups(cameras: list[Camera]) -> list[list[int]]:
+    """Indices of the cameras, grouped by image size in order of first appearance: gsplat renders
+    a batch into images of one size."""
+    groups: dict[tuple[int, int], list[int]] = {}
+    for index, camera in enumerate(cameras):
+        groups.setdefault(camera.size, []).append(index)
+    return list(groups.values())
+
+
+def render_group(
     rasterization: Callable[..., tuple[torch.Tensor, torch.Tensor, dict]],
-    gaussians: tuple[torch.Tensor, ...],
-    viewmat: torch.Tensor,
-    K: torch.Tensor,
-    width: int,
-    height: int,
+    scenes: list[Splats],
+    cameras: list[Camera],
     background: torch.Tensor | None,
-) -> RenderOutput:
-    """One call of gsplat's ``rasterization`` on ``gaussians`` (means, quats, scales, opacities, colours).
+) -> list[RenderOutput]:
+    """One call of gsplat's ``rasterization`` for views of one image size, each scene its own batch
+    entry (gsplat 1.5.3's leading batch dimension), padded to the largest with Gaussians of opacity
+    0, which gsplat's projection culls before anything else reads them.
 
     gsplat's kernels take float32 only: inputs are cast to it and the outputs back to the dtype of
     the means, as the CPU backend does. Passed in (not imported here) so tests can stand in for it.
     """
-    dtype, device, work = gaussians[0].dtype, gaussians[0].device, torch.float32
+    dtype, device, work = scenes[0].means.dtype, scenes[0].means.device, torch.float32
+    width, height = cameras[0].size
+    counts = [int(scene.means.shape[0]) for scene in scenes]
+    if max(counts) == 0:
+        return [_empty(scene.means, width, height, background) for scene in scenes]
+    padded = [
+        pad_sequence([tensor.to(work) for tensor in tensors], batch_first=True)
+        for tensors in zip(*(parameters(scene) for scene in scenes), strict=True)
+    ]
+    batch = len(scenes)
     render, alpha, meta = rasterization(
-        *(tensor.to(work) for tensor in gaussians),
-        viewmat.to(device=device, dtype=work)[None],
-        K.to(device=device, dtype=work)[None],
+        *padded,
+        torch.stack([camera.viewmat for camera in cameras]).to(device=device, dtype=work)[:, None],
+        torch.stack([camera.K for camera in cameras]).to(device=device, dtype=work)[:, None],
         width,
         height,
         near_plane=NEAR_PLANE,
@@ -162,13 +207,20 @@ def render_with(
         packed=False,
         render_mode="RGB+ED",
         rasterize_mode="classic",
-        backgrounds=None if background is None else background.to(device=device, dtype=work).reshape(1, 3),
+        backgrounds=None if background is None else background.to(device=device, dtype=work).expand(batch, 1, 3),
     )
-    visible = (meta["radii"][0] > 0).all(dim=-1)  # (N, 2): a Gaussian is culled where either radius is 0
-    return RenderOutput(
-        color=render[0, ..., :3].to(dtype),
-        depth=render[0, ..., 3].to(dtype),
-        alpha=alpha[0, ..., 0].to(dtype),
-        means2d=_screen_means(meta["means2d"], visible, dtype),
-        visible=visible,
-    )
+    seen = (meta["radii"][:, 0] > 0).all(dim=-1)  # (B, N): a Gaussian is culled where either radius is 0
+    visible = [seen[b, :count] for b, count in enumerate(counts)]
+    # gsplat leaves the entries of culled Gaussians uninitialised (``at::empty``); the mirrors hold 0 there.
+    means2d = _screen_means(meta["means2d"], lambda t: [t[b, 0, :count] for b, count in enumerate(counts)],
+                             dtype, visible)
+    return [
+        RenderOutput(
+            color=render[b, 0, ..., :3].to(dtype),
+            depth=render[b, 0, ..., 3].to(dtype),
+            alpha=alpha[b, 0, ..., 0].to(dtype),
+            means2d=means2d[b],
+            visible=visible[b],
+        )
+        for b in range(batch)
+    ]

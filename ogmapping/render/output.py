@@ -34,3 +34,4 @@ def finish_output(
     covered = alpha > 0
     depth = torch.where(covered, accum_depth / torch.where(covered, alpha, torch.ones_like(alpha)), 0.0)
     return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=proj.means2d, visible=proj.radii > 0)
+

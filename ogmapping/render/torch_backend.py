@@ -17,6 +17,7 @@ from ogmapping.render.output import RenderOutput, finish_output
 from ogmapping.render.projection import project_gaussians, tile_grid
 from ogmapping.render.rules import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN
 from ogmapping.render.tiles import TILE_SIZE, tile_lists
+from ogmapping.render.views import Camera, Splats, check_batch, parameters
 
 
 def tile_alphas(
@@ -122,3 +123,13 @@ def rasterize(
         transmittance_final[y0:y1, x0:x1] = t_final.reshape(shape)
     return finish_output(color, accum_depth, 1.0 - transmittance_final, proj)
 
+
+
+def rasterize_batch(scenes: list[Splats], cameras: list[Camera],
+                    background: torch.Tensor | None = None) -> list[RenderOutput]:
+    """Scene i into camera i, one ``rasterize`` after another: the definition of a batched render."""
+    check_batch(scenes, cameras)
+    return [
+        rasterize(*parameters(scene), camera.viewmat, camera.K, camera.width, camera.height, background)
+        for scene, camera in zip(scenes, cameras, strict=True)
+    ]

@@ -1,0 +1,62 @@
+"""What a batched render takes: one set of Gaussians and one camera per view.
+
+A mapping step renders its view and its window of keyframes, each view with its own decoded
+Gaussians (the decoders are conditioned on the viewing direction). ``rasterize_batch`` takes them
+together so a backend can render them in as few calls as it can (gsplat: one per image size).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import torch
+
+
+class Splats(Protocol):
+    """The Gaussians of one view, as ``rasterize`` takes them (see its docstring for shapes)."""
+
+    means: torch.Tensor
+    quats: torch.Tensor
+    scales: torch.Tensor
+    opacities: torch.Tensor
+    colors: torch.Tensor
+
+
+@dataclass
+class SplatSet:
+    """Loose tensors as ``Splats``."""
+
+    means: torch.Tensor
+    quats: torch.Tensor
+    scales: torch.Tensor
+    opacities: torch.Tensor
+    colors: torch.Tensor
+
+
+@dataclass(frozen=True)
+class Camera:
+    """``viewmat`` (4, 4) world-to-camera and ``K`` (3, 3) pixel intrinsics of a ``width`` x ``height`` image."""
+
+    viewmat: torch.Tensor
+    K: torch.Tensor
+    width: int
+    height: int
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.width, self.height
+
+
+def parameters(splats: Splats) -> tuple[torch.Tensor, ...]:
+    """(means, quats, scales, opacities, colors): the order every backend takes them in."""
+    return splats.means, splats.quats, splats.scales, splats.opacities, splats.colors
+
+
+def check_batch(scenes: list[Splats], cameras: list[Camera]) -> None:
+    """One camera per scene, at least one view."""
+    if len(scenes) != len(cameras):
+        raise ValueError(f"rasterize_batch needs one camera per scene, got {len(scenes)} scenes and "
+                         f"{len(cameras)} cameras")
+    if not scenes:
+        raise ValueError("rasterize_batch needs at least one view")

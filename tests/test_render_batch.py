@@ -1,0 +1,101 @@
+"""Batched rendering against one render per view: the compiled cpu backend against the reference.
+
+``rasterize_batch`` renders scene i into camera i. The reference defines it as one ``rasterize``
+per view; the cpu backend projects and composites the whole batch in one autograd node each. Its
+images and gradients must be those of the reference (relative norm error below 1e-4, the cpu
+rasterizer's tolerance, tests/test_render_cpu.py) and exactly those of the cpu backend rendering
+each view alone. Views differ in size, pose and Gaussian count (one has none).
+"""
+
+from __future__ import annotations
+
+import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts its thread pool)
+
+# isort: split
+import pytest
+import torch
+from test_render_cpu import TOLERANCE, intrinsics, mixed_scene, relative_error
+
+from ogmapping.render import Camera, rasterize, rasterize_batch
+from ogmapping.render.views import SplatSet
+
+PARAMS = ("means", "quats", "scales", "opacities", "colors")
+VIEWS = ((0, 300, 64, 48), (1, 500, 64, 48), (2, 0, 64, 48), (3, 400, 53, 37))  # seed, Gaussians, size
+
+
+def pose(seed: int) -> torch.Tensor:
+    """A world-to-camera matrix near the identity, so the mixed scenes stay mostly in view."""
+    g = torch.Generator().manual_seed(100 + seed)
+    wx, wy, wz = (0.05 * torch.randn(3, generator=g)).tolist()
+    skew = torch.tensor([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
+    viewmat = torch.eye(4)
+    viewmat[:3, :3] = torch.linalg.matrix_exp(skew)
+    viewmat[:3, 3] = 0.05 * torch.randn(3, generator=g)
+    return viewmat
+
+
+def views(dtype: torch.dtype) -> tuple[list[SplatSet], list[Camera]]:
+    scenes, cameras = [], []
+    for seed, n, width, height in VIEWS:
+        scene = {k: v.to(dtype).clone().requires_grad_(True) for k, v in mixed_scene(seed, max(n, 1), width,
+                                                                                       height).items()}
+        scenes.append(SplatSet(*(scene[k][:n] if n else scene[k][:0] for k in PARAMS)))
+        for k in PARAMS:
+            getattr(scenes[-1], k).retain_grad()
+        cameras.append(Camera(pose(seed).to(dtype), intrinsics(width, height).to(dtype), width, height))
+    return scenes, cameras
+
+
+def weighted_loss(outputs) -> torch.Tensor:
+    g = torch.Generator().manual_seed(7)
+    total = 0
+    for out in outputs:
+        for image in (out.color, out.depth, out.alpha):
+            total = total + (image * torch.rand(image.shape, generator=g).to(image.dtype)).sum()
+    return total
+
+
+def render_and_grad(batched: bool, backend: str, dtype: torch.dtype) -> dict[str, torch.Tensor]:
+    scenes, cameras = views(dtype)
+    background = torch.tensor([0.3, 0.6, 0.1], dtype=dtype, requires_grad=True)
+    if batched:
+        outputs = rasterize_batch(scenes, cameras, background, backend=backend)
+    else:
+        outputs = [rasterize(*(getattr(s, k) for k in PARAMS), c.viewmat, c.K, c.width, c.height, background,
+                             backend=backend) for s, c in zip(scenes, cameras, strict=True)]
+    weighted_loss(outputs).backward()
+    results = {"background.grad": background.grad}
+    for v, (out, scene) in enumerate(zip(outputs, scenes, strict=True)):
+        results.update({f"{v}.color": out.color, f"{v}.depth": out.depth, f"{v}.alpha": out.alpha,
+                        f"{v}.visible": out.visible, f"{v}.means2d": out.means2d,
+                        f"{v}.means2d.grad": out.means2d.grad})
+        results.update({f"{v}.{k}.grad": getattr(scene, k).grad for k in PARAMS})
+    return {k: v.detach() for k, v in results.items() if v is not None}
+
+
+def test_cpu_batch_matches_the_reference_values_and_gradients() -> None:
+    cpu = render_and_grad(True, "cpu", torch.float32)
+    ref = render_and_grad(True, "torch", torch.float64)
+    assert cpu.keys() == ref.keys()
+    for v in range(len(VIEWS)):
+        assert torch.equal(cpu[f"{v}.visible"], ref[f"{v}.visible"]), v
+    errors = {k: relative_error(cpu[k], ref[k]) for k in ref if not k.endswith("visible")}
+    assert max(errors.values()) < TOLERANCE, errors
+    assert cpu["2.means.grad"].shape == (0, 3) and cpu["2.means2d.grad"].shape == (0, 2)
+
+
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+def test_a_batch_is_exactly_one_render_per_view(backend: str) -> None:
+    batched = render_and_grad(True, backend, torch.float32)
+    alone = render_and_grad(False, backend, torch.float32)
+    assert batched.keys() == alone.keys()
+    # The shared background's gradient sums the views' in another order (float64 in the batch).
+    torch.testing.assert_close(batched.pop("background.grad"), alone.pop("background.grad"), rtol=1e-6, atol=0)
+    for key, value in alone.items():
+        assert torch.equal(batched[key], value), key
+
+
+def test_a_batch_needs_one_camera_per_scene() -> None:
+    scenes, cameras = views(torch.float32)
+    with pytest.raises(ValueError, match="one camera per scene"):
+        rasterize_batch(scenes, cameras[:2], backend="cpu")
