@@ -28,7 +28,7 @@ from ogmapping.frames.geometry import intrinsics_matrix, world_to_camera
 from ogmapping.frames.preprocess import prepare
 from ogmapping.model.decoders import Decoders
 from ogmapping.model.encoding import HashGridEncoding, feature_dim, initial_anchor_features
-from ogmapping.model.gaussians import GaussianSet, anchors_in_view, decoded_logits, generate
+from ogmapping.model.gaussians import GaussianSet, anchors_in_view, decoded_logits, generate, generate_window
 from ogmapping.optim import refine
 from ogmapping.optim.averaging import MapAverage
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
@@ -36,7 +36,7 @@ from ogmapping.optim.lazy_adam import LazyAdam
 from ogmapping.optim.losses import mapping_loss
 from ogmapping.persist import snapshot, training
 from ogmapping.persist.state import MapState
-from ogmapping.render import rasterize
+from ogmapping.render import Camera, rasterize, rasterize_batch
 from ogmapping.render.output import RenderOutput
 from ogmapping.runtime.profile import execution_profile
 from ogmapping.runtime.threads import torch_threads
@@ -270,19 +270,22 @@ class Mapper:
             window = [view, *(self._drawn(keyframe) for keyframe in keyframes)]
         with self._timed("decode"):
             rows = [self._rows_in_view(drawn.c2w, drawn.intrinsics) for drawn in window]
-            features = self._window_features(rows)
-        renders: list[tuple[GaussianSet, RenderOutput, View]] = []
+            window_gaussians = generate_window(self.anchors, self._window_features(rows), self.decoders,
+                                               [drawn.c2w[:3, 3] for drawn in window], rows,
+                                               compiled=self.profile.compiled, shared_decode=self.profile.shared_decode)
+        with self._timed("rasterize"):
+            outputs = rasterize_batch(window_gaussians, [self._camera(drawn.c2w, drawn.intrinsics) for drawn in window],
+                                      backend=self.backend)
+        renders = list(zip(window_gaussians, outputs, window, strict=True))
         total = torch.zeros((), device=self.device)
         weights = self._window_weights(keyframes)
         weight_sum = sum(weights)
-        for drawn, view_rows, weight in zip(window, rows, weights, strict=True):
-            gaussians, output = self._render(drawn.c2w, drawn.intrinsics, view_rows, features)
-            with self._timed("loss"):
+        with self._timed("loss"):
+            for (gaussians, output, drawn), weight in zip(renders, weights, strict=True):
                 loss, _ = mapping_loss(output.color, output.depth, drawn.rgb, drawn.depth,
                                        gaussians.scales, self.config.loss, drawn.ssim_reference,
                                        compiled=self.profile.compiled)
-            total = total + loss * weight / weight_sum
-            renders.append((gaussians, output, drawn))
+                total = total + loss * weight / weight_sum
         with self._timed("backward"):
             if total.requires_grad:
                 total.backward()
@@ -338,19 +341,21 @@ class Mapper:
     def _rows_in_view(self, c2w: torch.Tensor, intrinsics: Intrinsics) -> torch.Tensor:
         return anchors_in_view(self.anchors, intrinsics, c2w, far=self.config.octree.depth_max * 2)
 
-    def _render(self, c2w: torch.Tensor, intrinsics: Intrinsics, rows: torch.Tensor | None = None,
-                features: Callable[[torch.Tensor], torch.Tensor] | None = None) -> tuple[GaussianSet, RenderOutput]:
-        """Decode and rasterize the anchors ``rows`` (default: those in view) with ``features``
-        (default: ``_features``)."""
+    def _camera(self, c2w: torch.Tensor, intrinsics: Intrinsics) -> Camera:
+        return Camera(world_to_camera(c2w), intrinsics_matrix(intrinsics, self.device), intrinsics.width,
+                      intrinsics.height)
+
+    def _render(self, c2w: torch.Tensor, intrinsics: Intrinsics) -> tuple[GaussianSet, RenderOutput]:
+        """Decode and rasterize the anchors in view."""
         with self._timed("decode"):
-            rows = self._rows_in_view(c2w, intrinsics) if rows is None else rows
-            gaussians = generate(self.anchors, features or self._features, self.decoders, c2w[:3, 3], rows,
+            rows = self._rows_in_view(c2w, intrinsics)
+            gaussians = generate(self.anchors, self._features, self.decoders, c2w[:3, 3], rows,
                                  compiled=self.profile.compiled)
         with self._timed("rasterize"):
+            camera = self._camera(c2w, intrinsics)
             output = rasterize(
                 gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.colors,
-                world_to_camera(c2w), intrinsics_matrix(intrinsics, self.device), intrinsics.width, intrinsics.height,
-                backend=self.backend,
+                camera.viewmat, camera.K, camera.width, camera.height, backend=self.backend,
             )
         return gaussians, output
 

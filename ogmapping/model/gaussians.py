@@ -63,14 +63,62 @@ def generate(
     ``compiled`` assembles them with the Numba kernel of ``gaussians_cpu`` (CPU tensors) instead
     of torch ops; both give the same Gaussians and gradients.
     """
+    return _generate_one(anchors, features, decoders, camera_center, rows, compiled)
+
+
+def generate_window(
+    anchors: AnchorMap,
+    features: Callable[[torch.Tensor], torch.Tensor],
+    decoders: Decoders,
+    camera_centers: list[torch.Tensor],
+    rows: list[torch.Tensor],
+    *,
+    compiled: bool,
+    shared_decode: bool,
+) -> list[GaussianSet]:
+    """The Gaussians of several views, view i's from the anchors ``rows[i]`` seen from
+    ``camera_centers[i]``, each view assembled on its own (an anchor may be in several views).
+
+    ``shared_decode`` runs the decoders once over every (anchor, view) pair of the window instead
+    of once per view: a few large matmuls instead of many small ones, which is what a GPU wants.
+    The results agree to float rounding (row sums of the decoders' weight gradients run in another
+    order), so a map made either way is not bit for bit the other's.
+    """
+    if not shared_decode or len(rows) == 1:
+        return [_generate_one(anchors, features, decoders, center, view_rows, compiled)
+                for center, view_rows in zip(camera_centers, rows, strict=True)]
+    counts = [int(view_rows.shape[0]) for view_rows in rows]
+    all_rows = torch.cat(rows)
+    positions = anchors.positions.index_select(0, all_rows)
+    centers = torch.stack([center.to(positions) for center in camera_centers])
+    per_row = centers.repeat_interleave(torch.tensor(counts, device=centers.device), dim=0, output_size=len(all_rows))
+    logits = _logits(anchors, decoders, features(all_rows), positions, per_row, all_rows)
+    views = zip(rows, *(part.split(counts) for part in (positions, *logits)), strict=True)
+    return [_assemble(anchors, view_rows, view_positions, *view_logits, compiled=compiled)
+            for view_rows, view_positions, *view_logits in views]
+
+
+def _generate_one(anchors: AnchorMap, features: Callable[[torch.Tensor], torch.Tensor], decoders: Decoders,
+                  camera_center: torch.Tensor, rows: torch.Tensor, compiled: bool) -> GaussianSet:
     positions = anchors.positions.index_select(0, rows)
-    logits = decoded_logits(decoders, features(rows), positions, camera_center)
+    logits = _logits(anchors, decoders, features(rows), positions, camera_center, rows)
+    return _assemble(anchors, rows, positions, *logits, compiled=compiled)
+
+
+def _logits(anchors: AnchorMap, decoders: Decoders, features: torch.Tensor, positions: torch.Tensor,
+            camera_centers: torch.Tensor, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The decoders' logits, with each anchor's own colour added where the map keeps one."""
+    opacity, color, cov = decoded_logits(decoders, features, positions, camera_centers)
     if anchors.with_colours:
-        opacity, color, cov = logits
-        logits = opacity, with_anchor_colours(color, anchors.colours, rows), cov
+        color = with_anchor_colours(color, anchors.colours, rows)
+    return opacity, color, cov
+
+
+def _assemble(anchors: AnchorMap, rows: torch.Tensor, positions: torch.Tensor, opacity_logits: torch.Tensor,
+              color_logits: torch.Tensor, cov: torch.Tensor, *, compiled: bool) -> GaussianSet:
     if compiled:
-        return _assemble_compiled(anchors, rows, *logits)
-    return _assemble_torch(anchors, rows, positions, *logits)
+        return _assemble_compiled(anchors, rows, opacity_logits, color_logits, cov)
+    return _assemble_torch(anchors, rows, positions, opacity_logits, color_logits, cov)
 
 
 def _assemble_torch(anchors: AnchorMap, rows: torch.Tensor, positions: torch.Tensor, opacity_logits: torch.Tensor,

@@ -27,6 +27,9 @@ class ExecutionProfile:
     compiled: bool  # whether the Numba CPU kernels run instead of their torch definitions
     threads: int | None  # torch threads for the mapper's calls; None leaves the caller's setting
     precision: torch.dtype = torch.float32  # of frames and poses; the only one the compiled kernels take
+    # Decoders run once per step's window, not once per view: fewer, larger kernels on a GPU. On the
+    # CPU it is no faster (bench/RESULTS.md "Batched windows") and would change every CPU map's rounding.
+    shared_decode: bool = False
 
 
 def execution_profile(device: str | torch.device, backend: str, encoding: str) -> ExecutionProfile:
@@ -38,6 +41,7 @@ def execution_profile(device: str | torch.device, backend: str, encoding: str) -
         backend=concrete,
         compiled=device.type == "cpu" and concrete == "cpu",
         threads=_mapping_threads(device, encoding),
+        shared_decode=device.type == "cuda",
     )
 
 
