@@ -13,9 +13,8 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import defaultdict
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager, nullcontext
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +38,7 @@ from ogmapping.persist.state import MapState
 from ogmapping.render import rasterize
 from ogmapping.render.output import RenderOutput
 from ogmapping.runtime.profile import execution_profile
+from ogmapping.runtime.stage_timer import StageTimer
 from ogmapping.runtime.threads import torch_threads
 from ogmapping.runtime.time_budget import Budget, Stop
 from ogmapping.stats import MapStats
@@ -98,7 +98,7 @@ class Mapper:
         self.camera_position_sum = torch.zeros(3, dtype=torch.float64)
         self.camera_positions = 0
         self.last_gaussians = 0
-        self.timings: dict[str, float] = defaultdict(float)
+        self.timer = StageTimer.for_device(self.device)
 
     @property
     def device(self) -> torch.device:
@@ -107,6 +107,11 @@ class Mapper:
     @property
     def backend(self) -> str:
         return self.profile.backend
+
+    @property
+    def timings(self) -> dict[str, float]:
+        """Seconds per stage so far (``StageTimer``; on CUDA, reading them waits for the device)."""
+        return self.timer.totals()
 
     def _make_optimizer(self) -> torch.optim.Adam:
         lr = self.config.optim
@@ -123,17 +128,11 @@ class Mapper:
             groups.append({"params": [self.anchors.colours], "lr": lr.colour_lr, "name": "colours"})
         return torch.optim.Adam(groups, eps=1e-15)
 
-    @contextmanager
-    def _timed(self, stage: str) -> Iterator[None]:
-        """Add the stage's seconds to ``timings``. CUDA runs kernels asynchronously, so there the
-        stage ends by waiting for the device: its time is its work, not its kernel launches. The
-        stage before it ended the same way, so little earlier work is left to count; the price is
-        one host synchronisation per stage."""
-        start = time.perf_counter()
-        yield
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
-        self.timings[stage] += time.perf_counter() - start
+    def _timed(self, stage: str) -> AbstractContextManager[None]:
+        """Add the block's time to stage ``stage`` of ``timings``: the host's on the CPU; on CUDA the
+        device's between the stage's start and end on the mapper's stream, measured with events the
+        host never waits for while mapping (``ogmapping.runtime.stage_timer``)."""
+        return self.timer.stage(stage)
 
     # ------------------------------------------------------------------ mapping
 
@@ -380,7 +379,7 @@ class Mapper:
                 octree_cells_per_level=tuple(self.octree.count(level) for level in range(self.octree.levels)),
                 device=str(self.device),
                 backend=self.backend,
-                timings=dict(self.timings),
+                timings=self.timings,
             )
 
     def decode_at(self, camera_center: np.ndarray, max_anchors: int = 0) -> GaussianSet:
