@@ -34,6 +34,7 @@ from ogmapping.config import resolve
 from ogmapping.mapper import Mapper
 from ogmapping.optim.keyframes import View
 from ogmapping.quality.evaluation import open_frames
+from ogmapping.runtime.streams import on_stream
 
 pytestmark = [
     pytest.mark.gpu,
@@ -65,7 +66,8 @@ def steady(seven_scenes_if_present: Path | None) -> tuple[Mapper, View, str]:
     mapper = Mapper(resolve("sparse"), "cuda")
     for position in frames.selection.streamed:
         mapper.process(frames.load(position))
-    view = mapper.keyframes.keyframes[-1].view(mapper.device, compiled=mapper.profile.compiled)
+    with on_stream(mapper.stream):  # the view is made where the mapper's steps will read it
+        view = mapper.keyframes.keyframes[-1].view(mapper.device, compiled=mapper.profile.compiled)
     for _ in range(WARM_STEPS):  # window draws, downscaled copies and the allocator's cache settle
         step(mapper, view)
     torch.cuda.synchronize()
@@ -73,8 +75,10 @@ def steady(seven_scenes_if_present: Path | None) -> tuple[Mapper, View, str]:
 
 
 def step(mapper: Mapper, view: View) -> torch.Tensor:
-    """One optimisation iteration on ``view`` (the newest keyframe) and a drawn window, as a keyframe's are."""
-    return mapper._iteration(view, mapper.keyframes.draw_window(view_is_newest=True))
+    """One optimisation iteration on ``view`` (the newest keyframe) and a drawn window, as a keyframe's
+    are, on the mapper's stream as ``process`` runs them."""
+    with on_stream(mapper.stream):
+        return mapper._iteration(view, mapper.keyframes.draw_window(view_is_newest=True))
 
 
 def test_step_time_and_launches_are_reported(steady: tuple[Mapper, View, str], capsys) -> None:
@@ -83,9 +87,10 @@ def test_step_time_and_launches_are_reported(steady: tuple[Mapper, View, str], c
     for _ in range(TIMED_STEPS):
         begin, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
         tic = time.perf_counter()
-        begin.record()
-        step(mapper, view)
-        end.record()
+        with on_stream(mapper.stream):
+            begin.record()
+            step(mapper, view)
+            end.record()
         end.synchronize()
         host_ms.append((time.perf_counter() - tic) * 1e3)
         device_ms.append(begin.elapsed_time(end))
