@@ -7,16 +7,18 @@ window, growing and pruning anchors every m iterations.
 All public methods are thread-safe: ``lock`` is held per optimisation iteration, so a render or a
 stats request from another thread is served between iterations. Device, backend, torch threads and
 whether the compiled CPU kernels run are fixed once, in ``profile`` (``ogmapping.runtime.profile``).
+On CUDA each mapper runs its device work on a stream of its own (``ogmapping.runtime.streams``), so
+mappers driven from separate threads overlap on the device: every public method that touches the
+device runs on it, and device tensors cross it only through ``handed_in`` and ``handed_out``.
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from collections import defaultdict
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager, nullcontext
-from dataclasses import dataclass
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
@@ -39,6 +41,8 @@ from ogmapping.persist.state import MapState
 from ogmapping.render import Camera, rasterize, rasterize_batch
 from ogmapping.render.output import RenderOutput
 from ogmapping.runtime.profile import execution_profile
+from ogmapping.runtime.stage_timer import StageTimer
+from ogmapping.runtime.streams import handed_in, handed_out, on_stream, session_stream
 from ogmapping.runtime.threads import torch_threads
 from ogmapping.runtime.time_budget import Budget, Stop
 from ogmapping.stats import MapStats
@@ -74,23 +78,14 @@ class Mapper:
     def __init__(self, config: MapperConfig, device: str | torch.device = "cpu") -> None:
         self.config = config
         self.profile = execution_profile(device, config.backend, config.model.encoding)
+        self.stream = session_stream(self.device)
         self.lock = threading.RLock()
         # Each session draws from its own generator: sessions mapping side by side in one server
         # would otherwise interleave draws from torch's global one (and reseed it for each other).
         self.generator = torch.Generator().manual_seed(config.seed)
-        model = config.model
-        self.octree = SparseVoxelOctree.from_config(config.octree, self.device)
-        self.anchors = AnchorMap(model.n_offsets, model.feature_dim, model.encoding == "anchor", self.device,
-                                 with_colours=model.anchor_colour)
-        self.encoding = HashGridEncoding(model, self.generator).to(self.device) if model.encoding == "hash" else None
-        self.decoders = Decoders(feature_dim(model), model.n_offsets, model.hidden_dim, self.generator)
-        self.decoders = self.decoders.to(self.device)
+        with on_stream(self.stream):
+            self._build_model(config)
         self.keyframes = KeyframeSet(config.keyframes, config.seed, self._footprint)
-        self.optimizer = self._make_optimizer()
-        self.average = MapAverage(self.anchors, self.decoders, config.optim.average_decay, config.optim.average_growth)
-        self.hash_optimizer = (LazyAdam(self.encoding.table, self.encoding.gradients, config.optim.hash_lr,
-                                        compiled=self.profile.compiled)
-                               if self.encoding is not None else None)
         self.frames = 0
         self.iterations = 0
         # Sum of the mapped frames' camera centres (float64): their mean is where a .ply export
@@ -98,7 +93,22 @@ class Mapper:
         self.camera_position_sum = torch.zeros(3, dtype=torch.float64)
         self.camera_positions = 0
         self.last_gaussians = 0
-        self.timings: dict[str, float] = defaultdict(float)
+        self.timer = StageTimer.for_device(self.device)
+
+    def _build_model(self, config: MapperConfig) -> None:
+        """The map's structures, decoders and optimisers, made on the device (on the mapper's stream)."""
+        model = config.model
+        self.octree = SparseVoxelOctree.from_config(config.octree, self.device)
+        self.anchors = AnchorMap(model.n_offsets, model.feature_dim, model.encoding == "anchor", self.device,
+                                 with_colours=model.anchor_colour)
+        self.encoding = HashGridEncoding(model, self.generator).to(self.device) if model.encoding == "hash" else None
+        self.decoders = Decoders(feature_dim(model), model.n_offsets, model.hidden_dim, self.generator)
+        self.decoders = self.decoders.to(self.device)
+        self.optimizer = self._make_optimizer()
+        self.average = MapAverage(self.anchors, self.decoders, config.optim.average_decay, config.optim.average_growth)
+        self.hash_optimizer = (LazyAdam(self.encoding.table, self.encoding.gradients, config.optim.hash_lr,
+                                        compiled=self.profile.compiled)
+                               if self.encoding is not None else None)
 
     @property
     def device(self) -> torch.device:
@@ -107,6 +117,11 @@ class Mapper:
     @property
     def backend(self) -> str:
         return self.profile.backend
+
+    @property
+    def timings(self) -> dict[str, float]:
+        """Seconds per stage so far (``StageTimer``; on CUDA, reading them waits for the device)."""
+        return self.timer.totals()
 
     def _make_optimizer(self) -> torch.optim.Adam:
         lr = self.config.optim
@@ -123,23 +138,17 @@ class Mapper:
             groups.append({"params": [self.anchors.colours], "lr": lr.colour_lr, "name": "colours"})
         return torch.optim.Adam(groups, eps=1e-15)
 
-    @contextmanager
-    def _timed(self, stage: str) -> Iterator[None]:
-        """Add the stage's seconds to ``timings``. CUDA runs kernels asynchronously, so there the
-        stage ends by waiting for the device: its time is its work, not its kernel launches. The
-        stage before it ended the same way, so little earlier work is left to count; the price is
-        one host synchronisation per stage."""
-        start = time.perf_counter()
-        yield
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
-        self.timings[stage] += time.perf_counter() - start
+    def _timed(self, stage: str) -> AbstractContextManager[None]:
+        """Add the block's time to stage ``stage`` of ``timings``: the host's on the CPU; on CUDA the
+        device's between the stage's start and end on the mapper's stream, measured with events the
+        host never waits for while mapping (``ogmapping.runtime.stage_timer``)."""
+        return self.timer.stage(stage)
 
     # ------------------------------------------------------------------ mapping
 
     def process(self, frame: Frame, budget: Budget | None = None) -> FrameResult:
         """Map one frame; returns what happened to it. Optimisation ends early once ``budget`` says stop."""
-        with torch_threads(self.profile.threads):
+        with on_stream(self.stream), torch_threads(self.profile.threads):
             return self._process(frame, budget or Budget())
 
     def _process(self, frame: Frame, budget: Budget) -> FrameResult:
@@ -363,18 +372,19 @@ class Mapper:
 
     def render(self, c2w: np.ndarray, intrinsics: Intrinsics) -> Rendered:
         """Colour, depth and alpha from any pose (camera-to-world) and intrinsics."""
-        pose = torch.as_tensor(np.asarray(c2w), dtype=self.profile.precision, device=self.device)
-        with self.lock, torch.no_grad(), torch_threads(self.profile.threads), self.average.applied():
-            _, output = self._render(pose, intrinsics)
-        return Rendered(
-            color=output.color.clamp(0, 1).cpu().numpy().astype(np.float32),
-            depth=output.depth.cpu().numpy().astype(np.float32),
-            alpha=output.alpha.cpu().numpy().astype(np.float32),
-        )
+        with on_stream(self.stream):
+            pose = torch.as_tensor(np.asarray(c2w), dtype=self.profile.precision, device=self.device)
+            with self.lock, torch.no_grad(), torch_threads(self.profile.threads), self.average.applied():
+                _, output = self._render(pose, intrinsics)
+            return Rendered(
+                color=output.color.clamp(0, 1).cpu().numpy().astype(np.float32),
+                depth=output.depth.cpu().numpy().astype(np.float32),
+                alpha=output.alpha.cpu().numpy().astype(np.float32),
+            )
 
     def stats(self) -> MapStats:
         """Map statistics as one consistent record."""
-        with self.lock:
+        with on_stream(self.stream), self.lock:
             return MapStats(
                 frames=self.frames,
                 keyframes=len(self.keyframes),
@@ -385,19 +395,23 @@ class Mapper:
                 octree_cells_per_level=tuple(self.octree.count(level) for level in range(self.octree.levels)),
                 device=str(self.device),
                 backend=self.backend,
-                timings=dict(self.timings),
+                timings=self.timings,
             )
 
     def decode_at(self, camera_center: np.ndarray, max_anchors: int = 0) -> GaussianSet:
         """Every anchor's Gaussians as seen from ``camera_center`` (colours and opacities depend on
         the viewpoint through the decoders); no frustum culling, no gradients. ``max_anchors`` > 0
         decodes only that many, evenly spread over the map, so a preview costs a bounded time."""
-        center = torch.as_tensor(np.asarray(camera_center), dtype=torch.float32, device=self.device)
-        with self.lock, torch.no_grad(), torch_threads(self.profile.threads), self.average.applied():
-            count = len(self.anchors)
-            stride = -(-count // max_anchors) if max_anchors and count > max_anchors else 1
-            rows = torch.arange(0, count, stride, device=self.device)
-            return generate(self.anchors, self._features, self.decoders, center, rows, compiled=self.profile.compiled)
+        with on_stream(self.stream):
+            center = torch.as_tensor(np.asarray(camera_center), dtype=torch.float32, device=self.device)
+            with self.lock, torch.no_grad(), torch_threads(self.profile.threads), self.average.applied():
+                count = len(self.anchors)
+                stride = -(-count // max_anchors) if max_anchors and count > max_anchors else 1
+                rows = torch.arange(0, count, stride, device=self.device)
+                gaussians = generate(self.anchors, self._features, self.decoders, center, rows,
+                                     compiled=self.profile.compiled)
+        handed_out(self.stream, (getattr(gaussians, name.name) for name in fields(gaussians)))
+        return gaussians
 
     def camera_centroid(self) -> np.ndarray | None:
         """Mean camera position of every frame mapped into this map (across snapshots), or None
@@ -409,7 +423,7 @@ class Mapper:
 
     def anchor_centroid(self) -> np.ndarray:
         """Mean anchor centre (the origin for an empty map)."""
-        with self.lock:
+        with on_stream(self.stream), self.lock:
             if not len(self.anchors):
                 return np.zeros(3)
             return self.anchors.positions.mean(0).double().cpu().numpy()
@@ -421,6 +435,12 @@ class Mapper:
         that renders (its moving average, ``optim.average_decay``); with ``training_state`` the live
         map instead and what its optimisation carries (``ogmapping.persist.training``, the average included),
         so a mapper rebuilt from it maps on exactly as this one would."""
+        with on_stream(self.stream):
+            state = self._state(training_state)
+        handed_out(self.stream, state.tensors.values())
+        return state
+
+    def _state(self, training_state: bool) -> MapState:
         with self.lock, nullcontext() if training_state else self.average.applied():
             anchors = self.anchors
             tensors: dict[str, torch.Tensor] = {
@@ -452,10 +472,12 @@ class Mapper:
         from the optimisation state it holds (a server's own checkpoint: never a snapshot from
         outside). ValueError when the tensors do not fit the config (states may come from outside)."""
         mapper = cls(state.config, device)
+        handed_in(mapper.stream, state.tensors.values())
         try:
-            mapper._load(state)
-            if training_state:
-                mapper.last_gaussians = training.restore(mapper._optimisation(), state.tensors) or 0
+            with on_stream(mapper.stream):
+                mapper._load(state)
+                if training_state:
+                    mapper.last_gaussians = training.restore(mapper._optimisation(), state.tensors) or 0
         except (KeyError, RuntimeError, ValueError) as error:
             raise ValueError(f"map state does not match its config: {error}") from error
         mapper.frames = state.frames
