@@ -90,8 +90,9 @@ def generate_window(
     counts = [int(view_rows.shape[0]) for view_rows in rows]
     all_rows = torch.cat(rows)
     positions = anchors.positions.index_select(0, all_rows)
-    centers = torch.stack([center.to(positions) for center in camera_centers])
-    per_row = centers.repeat_interleave(torch.tensor(counts, device=centers.device), dim=0, output_size=len(all_rows))
+    # Expanded views, not repeat_interleave: its repeats would be copied from the host to the device.
+    per_row = torch.cat([center.to(positions).expand(count, 3) for center, count in zip(camera_centers, counts,
+                                                                                         strict=True)])
     logits = _logits(anchors, decoders, features(all_rows), positions, per_row, all_rows)
     views = zip(rows, *(part.split(counts) for part in (positions, *logits)), strict=True)
     return [_assemble(anchors, view_rows, view_positions, *view_logits, compiled=compiled)
