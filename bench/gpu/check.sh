@@ -129,7 +129,8 @@ install_with_fallback_suite() {
     return $status
 }
 
-# pytest -m gpu; the step test's figures (step-time.json, sync-debug.txt) and the output go to gpu-tests/.
+# pytest -m gpu; the step test's figures (step-time.json, sync-debug.txt), the decoder-graph probe's
+# (decoder-graphs.json) and the output go to gpu-tests/.
 gpu_tests() {
     set -o pipefail
     mkdir -p "$RESULTS/gpu-tests"
