@@ -73,4 +73,6 @@ def test_summarise_skips_missing_values():
         {"psnr": 30.0, "ssim": 0.7, "depth_l1_cm": math.nan, "lpips": None},
     ]
     summary = metrics.summarise(frames)
-    assert summary == {"psnr": 25.0, "ssim": pytest.approx(0.6), "depth_l1_cm": 2.0, "lpips": None, "frames": 2}
+    assert summary == {"psnr": 25.0, "ssim": pytest.approx(0.6), "depth_l1_cm": 2.0, "lpips": None, "frames": 2,
+                       "psnr_spread": {"min": 20.0, "max": 30.0, "std": 5.0}}
+    assert metrics.summarise([{"psnr": None}])["psnr_spread"] is None

@@ -23,6 +23,7 @@ from ogmapping.runtime.profile import resolve_device
 from ogmapping.warmup import warm_up
 
 MEMORY_LOG_INTERVAL = 100  # streamed frames between peak-memory records
+STEP_STAGES = ("window", "decode", "rasterize", "loss", "backward", "statistics", "optimizer", "refine")
 
 
 @dataclass
@@ -37,6 +38,12 @@ class RunOptions:
     out: Path = Path("runs/latest")
     dataset_options: dict = field(default_factory=dict)
     progress: bool = True
+
+
+def step_seconds(timings: dict[str, float]) -> float:
+    """Time spent in optimisation steps: the stages of ``Mapper._iteration`` and refinement (decode and
+    rasterize also count the few renders allocation makes, a small share)."""
+    return sum(seconds for stage, seconds in timings.items() if stage in STEP_STAGES)
 
 
 def memory_snapshot(frames: int, anchors: int, device: torch.device) -> dict:
@@ -110,6 +117,8 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
         "gaussians": stats.gaussians,
         "keyframes": stats.keyframes,
         "iterations": stats.iterations,
+        "steps_per_frame": stats.iterations / len(selection.streamed),
+        "seconds_per_step": step_seconds(stats.timings) / stats.iterations if stats.iterations else None,
         "time_per_stage_seconds": stats.timings,
         "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
         "peak_gpu_memory_bytes": torch.cuda.max_memory_allocated(device) if device.type == "cuda" else None,

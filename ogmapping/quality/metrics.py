@@ -174,7 +174,18 @@ def _mean(values: list[Any]) -> float | None:
 
 
 def summarise(per_frame: list[dict[str, Any]]) -> dict[str, Any]:
-    """Average each metric over the frames that have it (None/NaN skipped), plus the frame count."""
+    """Average each metric over the frames that have it (None/NaN skipped), plus the frame count and
+    the PSNR's spread over the frames (a mean over two held-out frames says little without it)."""
     summary: dict[str, Any] = {key: _mean([frame.get(key) for frame in per_frame]) for key in METRIC_KEYS}
     summary["frames"] = len(per_frame)
+    summary["psnr_spread"] = _spread([frame.get("psnr") for frame in per_frame])
     return summary
+
+
+def _spread(values: list[Any]) -> dict[str, float] | None:
+    """Lowest, highest and (population) standard deviation of the values that are numbers."""
+    kept = [float(v) for v in values if v is not None and not math.isnan(float(v))]
+    if not kept:
+        return None
+    mean = sum(kept) / len(kept)
+    return {"min": min(kept), "max": max(kept), "std": math.sqrt(sum((v - mean) ** 2 for v in kept) / len(kept))}
