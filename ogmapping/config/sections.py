@@ -96,6 +96,11 @@ class KeyframeConfig:
     window_scale: float = ranged(1.0, 0, 1, open_low=True)
     window_min_width: int = ranged(160, 1)  # ...but never narrower than this many pixels (or the keyframe itself)
     window: Window = "dynamic"
+    # The four step counts above (iterations, first_iterations, frame_iterations, frame_renders) times
+    # the image's linear size against an image of this many pixels, rounded to a whole multiple (at
+    # least 1): x1 up to about 1.5 times 600x340's width, x2 at 1200x680; 0: never scaled. A finer
+    # image holds more detail for the same map to learn ("Steps by resolution").
+    steps_reference_pixels: int = ranged(204000, 0)
 
 
 @dataclass
