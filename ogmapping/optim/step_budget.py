@@ -1,7 +1,7 @@
 """How many times its configured steps a frame gets, by the image's resolution.
 
 A finer image of the same scene holds more detail for the map to learn; at 1200x680 the steps tuned
-at 600x340 leave Replica room0 3 dB under its 600x340 score (bench/RESULTS.md "Steps by
+at 600x340 leave Replica room0 2.5 dB under its 600x340 score (bench/RESULTS.md "Steps by
 resolution"). The multiple grows with the image's linear size, in whole steps, so every image up to
 about 1.5 times the reference's width maps exactly as before.
 """
