@@ -168,8 +168,8 @@ class Mapper:
         with self._timed("keyframes"):
             codes = self.octree.seen_from(depth, frame.color_intrinsics, c2w)
             is_keyframe = self.keyframes.should_insert(codes)
-            iterations = self._iterations_for(is_keyframe, step_multiple(self.config.keyframes,
-                                                                         frame.color_intrinsics))
+            multiple = step_multiple(self.config.keyframes, frame.color_intrinsics)
+            iterations = multiple * self._iterations_for(is_keyframe)
             if is_keyframe:
                 self.keyframes.insert(Keyframe.capture(frame.index, rgb, depth, frame.color_intrinsics, c2w, codes,
                                                        pinned=self.device.type == "cuda"))
@@ -230,23 +230,23 @@ class Mapper:
         depth = keyframe.depth.to(self.device, non_blocking=keyframe.pinned).to(torch.float32)
         return self.octree.seen_from(depth, keyframe.intrinsics, keyframe.c2w)
 
-    def _iterations_for(self, is_keyframe: bool, multiple: int = 1) -> int:
+    def _iterations_for(self, is_keyframe: bool) -> int:
         """k for a keyframe (more for the very first), ``frame_iterations`` for any other frame, but
-        no more than ``frame_renders`` renders of the view and its window (at least one step); each
-        count times ``multiple`` (``step_multiple``: by the image's resolution).
+        no more than ``frame_renders`` renders of the view and its window (at least one step); the
+        frame then gets ``step_multiple`` times this (by the image's resolution).
 
         The cap bounds a streamed frame's cost as the window fills: with ``frame_renders`` 4 a frame
         with a full window (the view, a local and two global keyframes) takes one step, a frame whose
         only window keyframe is the newest takes two (bench/RESULTS.md; commit b0334d6, 2026-11-24)."""
         settings = self.config.keyframes
         if is_keyframe:
-            return multiple * (settings.first_iterations if not self.keyframes else settings.iterations)
+            return settings.first_iterations if not self.keyframes else settings.iterations
         if not self.keyframes or settings.frame_iterations == 0:
             return 0
         if settings.frame_renders == 0:
-            return multiple * settings.frame_iterations
+            return settings.frame_iterations
         renders_per_step = 1 + self.keyframes.window_size(view_is_newest=False)
-        return multiple * min(settings.frame_iterations, max(1, settings.frame_renders // renders_per_step))
+        return min(settings.frame_iterations, max(1, settings.frame_renders // renders_per_step))
 
     def _optimise(
         self, iterations: int, view: View | None, view_is_newest: bool, budget: Budget, started: float

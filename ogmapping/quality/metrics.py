@@ -168,8 +168,13 @@ class Lpips:
         return float(self.model(2 * a - 1, 2 * b - 1)[0])
 
 
+def _numbers(values: list[Any]) -> list[float]:
+    """The values that are numbers (None and NaN left out)."""
+    return [float(v) for v in values if v is not None and not math.isnan(float(v))]
+
+
 def _mean(values: list[Any]) -> float | None:
-    kept = [float(v) for v in values if v is not None and not math.isnan(float(v))]
+    kept = _numbers(values)
     return sum(kept) / len(kept) if kept else None
 
 
@@ -184,7 +189,7 @@ def summarise(per_frame: list[dict[str, Any]]) -> dict[str, Any]:
 
 def _spread(values: list[Any]) -> dict[str, float] | None:
     """Lowest, highest and (population) standard deviation of the values that are numbers."""
-    kept = [float(v) for v in values if v is not None and not math.isnan(float(v))]
+    kept = _numbers(values)
     if not kept:
         return None
     mean = sum(kept) / len(kept)

@@ -14,6 +14,7 @@ The kernels still run view after view (each is parallel within its image).
 
 from __future__ import annotations
 
+import functools
 import itertools
 from dataclasses import dataclass
 
@@ -52,7 +53,7 @@ class Layout:
     counts: tuple[int, ...]
     sizes: tuple[tuple[int, int], ...]  # (width, height) per view
 
-    @property
+    @functools.cached_property
     def spans(self) -> list[slice]:
         return [slice(int(a), int(b)) for a, b in itertools.pairwise(np.cumsum((0, *self.counts)))]
 
@@ -150,8 +151,7 @@ class _Composite(torch.autograd.Function):
         grad_colors, grad_depths, grad_alphas = grads[:count], grads[count:2 * count], grads[2 * count:]
         n_threads = numba.get_num_threads()
         gaussian_grads, bg_grad = [], np.zeros(3, np.float64)
-        for v, (span, (width, height)) in enumerate(zip(layout.spans, layout.sizes, strict=True)):
-            view = views[v]
+        for v, (view, span, (width, height)) in enumerate(zip(views, layout.spans, layout.sizes, strict=True)):
             m2d, con, opa, col, dep = (a[span] for a in arrays)
             tile_offsets, ids, pair_start, pair_of = view.bins
             upstream = [
