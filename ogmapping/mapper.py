@@ -36,6 +36,7 @@ from ogmapping.optim.averaging import MapAverage
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
 from ogmapping.optim.lazy_adam import LazyAdam
 from ogmapping.optim.losses import mapping_loss
+from ogmapping.optim.poses import PoseCorrection, PoseReport
 from ogmapping.optim.step_budget import step_multiple
 from ogmapping.persist import snapshot, training
 from ogmapping.persist.state import MapState
@@ -46,7 +47,7 @@ from ogmapping.runtime.stage_timer import StageTimer
 from ogmapping.runtime.streams import handed_in, handed_out, on_stream, session_stream
 from ogmapping.runtime.threads import torch_threads
 from ogmapping.runtime.time_budget import Budget, Stop
-from ogmapping.stats import MapStats
+from ogmapping.stats import MapStats, PoseSummary
 from ogmapping.structure import allocation
 from ogmapping.structure.anchor_colour import cell_colour_logits, colour_sample_stride
 from ogmapping.structure.anchors import AnchorMap
@@ -64,6 +65,17 @@ class FrameResult:
     loss: float
     seconds: float
     stopped: Stop | None = None  # why optimisation ended before ``iterations`` reached the planned count
+    pose: PoseReport | None = None  # the frame's pose after its steps (``poses.refine``; else the client's)
+
+
+@dataclass(frozen=True)
+class KeyframePose:
+    """A keyframe's pose as the client gave it and as refinement left it (the same without refinement)."""
+
+    index: int
+    client_c2w: np.ndarray  # (4, 4)
+    refined_c2w: np.ndarray  # (4, 4)
+    clamped: bool
 
 
 @dataclass
@@ -170,12 +182,17 @@ class Mapper:
             is_keyframe = self.keyframes.should_insert(codes)
             multiple = step_multiple(self.config.keyframes, frame.color_intrinsics)
             iterations = multiple * self._iterations_for(is_keyframe)
+            # The first keyframe keeps the client's pose: the map stays in the client's frame.
+            correction = PoseCorrection(self.device, c2w.dtype) if self.config.poses.refine and self.keyframes else None
             if is_keyframe:
                 self.keyframes.insert(Keyframe.capture(frame.index, rgb, depth, frame.color_intrinsics, c2w, codes,
-                                                       pinned=self.device.type == "cuda"))
+                                                       pinned=self.device.type == "cuda", correction=correction))
         # The frame itself, at full precision, is the view every step trains on.
-        view = View.of(rgb, depth, frame.color_intrinsics, c2w, compiled=self.profile.compiled) if iterations else None
+        view = (View.of(rgb, depth, frame.color_intrinsics, c2w, compiled=self.profile.compiled, correction=correction)
+                if iterations else None)
         loss, grown, done, stopped = self._optimise(iterations, view, is_keyframe, budget, start)
+        with self.lock:
+            pose = correction.report(c2w) if correction is not None else PoseReport.unrefined(frame.c2w)
         self.frames += 1
         self.camera_position_sum += torch.as_tensor(frame.c2w[:3, 3], dtype=torch.float64)
         self.camera_positions += 1
@@ -189,6 +206,7 @@ class Mapper:
             loss=loss,
             seconds=time.perf_counter() - start,
             stopped=stopped,
+            pose=pose,
         )
 
     def _add_coarse_anchors(self, codes: torch.Tensor, rgb: torch.Tensor, depth: torch.Tensor,
@@ -280,14 +298,18 @@ class Mapper:
             self.hash_optimizer.zero_grad()
         with self._timed("window"):
             window = [view, *(self._drawn(keyframe) for keyframe in keyframes)]
+            poses = [drawn.pose() for drawn in window]
+            corrections = list({id(drawn.correction): drawn.correction for drawn in window
+                                if drawn.correction is not None}.values())
         with self._timed("decode"):
-            rows = [self._rows_in_view(drawn.c2w, drawn.intrinsics) for drawn in window]
+            views = list(zip(poses, window, strict=True))
+            rows = [self._rows_in_view(pose.detach(), drawn.intrinsics) for pose, drawn in views]
             window_gaussians = generate_window(self.anchors, self._window_features(rows), self.decoders,
-                                               [drawn.c2w[:3, 3] for drawn in window], rows,
+                                               [pose.detach()[:3, 3] for pose in poses], rows,
                                                compiled=self.profile.compiled, shared_decode=self.profile.shared_decode)
         with self._timed("rasterize"):
-            outputs = rasterize_batch(window_gaussians, [self._camera(drawn.c2w, drawn.intrinsics) for drawn in window],
-                                      backend=self.backend)
+            cameras = [self._camera(pose, drawn.intrinsics) for pose, drawn in views]
+            outputs = rasterize_batch(window_gaussians, cameras, backend=self.backend)
         renders = list(zip(window_gaussians, outputs, window, strict=True))
         total = torch.zeros((), device=self.device)
         weights = self._window_weights(keyframes)
@@ -298,6 +320,8 @@ class Mapper:
                                        gaussians.scales, self.config.loss, drawn.ssim_reference,
                                        compiled=self.profile.compiled)
                 total = total + loss * weight / weight_sum
+            for correction in corrections:
+                total = total + correction.prior(self.config.poses)
         with self._timed("backward"):
             if total.requires_grad:
                 total.backward()
@@ -311,6 +335,8 @@ class Mapper:
             if self.hash_optimizer is not None:
                 self.hash_optimizer.step()
             self.average.update()
+            for correction in corrections:
+                correction.step(self.config.poses)
         self.last_gaussians = len(renders[0][0]) if renders else 0
         return total.detach()
 
@@ -399,7 +425,30 @@ class Mapper:
                 device=str(self.device),
                 backend=self.backend,
                 timings=self.timings,
+                poses=self._pose_summary(),
             )
+
+    def _pose_summary(self) -> PoseSummary | None:
+        """Pose refinement over the keyframes' corrections (hold the lock); None without refinement."""
+        if not self.config.poses.refine:
+            return None
+        reports = [keyframe.correction.report(keyframe.c2w) for keyframe in self.keyframes.keyframes
+                   if keyframe.correction is not None]
+        metres = [report.translation_m for report in reports] or [0.0]
+        degrees = [report.rotation_deg for report in reports] or [0.0]
+        return PoseSummary(len(reports), float(np.mean(metres)), max(metres), float(np.mean(degrees)), max(degrees),
+                           sum(report.clamped for report in reports))
+
+    def keyframe_poses(self) -> list[KeyframePose]:
+        """Every keyframe's pose as the client gave it and as refinement has left it so far."""
+        with on_stream(self.stream), self.lock:
+            poses = []
+            for keyframe in self.keyframes.keyframes:
+                client = keyframe.c2w.detach().double().cpu().numpy()
+                report = keyframe.correction.report(keyframe.c2w) if keyframe.correction is not None else None
+                poses.append(KeyframePose(keyframe.index, client, client if report is None else report.refined_c2w,
+                                          report is not None and report.clamped))
+            return poses
 
     def decode_at(self, camera_center: np.ndarray, max_anchors: int = 0) -> GaussianSet:
         """Every anchor's Gaussians as seen from ``camera_center`` (colours and opacities depend on
@@ -464,10 +513,22 @@ class Mapper:
             tensors.update({f"octree.{name}": value for name, value in self.octree.state_dict().items()})
             tensors["trajectory.camera_position_sum"] = self.camera_position_sum
             tensors["trajectory.camera_positions"] = torch.tensor([self.camera_positions], dtype=torch.int64)
+            if self.config.poses.refine:
+                tensors.update(self._keyframe_pose_tensors())
             tensors = {name: value.detach().clone() for name, value in tensors.items()}
             if training_state:
                 tensors.update(training.capture(self._optimisation()))
             return MapState(self.config, tensors, self.frames, self.iterations)
+
+    def _keyframe_pose_tensors(self) -> dict[str, torch.Tensor]:
+        """The keyframes' client and refined poses, so a snapshot keeps what refinement found (a map
+        loaded from it does not read them back: they describe its making, not the map)."""
+        poses = self.keyframe_poses()
+        return {
+            "poses.keyframe_indices": training.frame_indices_as_int64([pose.index for pose in poses]),
+            "poses.client_c2w": torch.from_numpy(np.array([pose.client_c2w for pose in poses]).reshape(-1, 4, 4)),
+            "poses.refined_c2w": torch.from_numpy(np.array([pose.refined_c2w for pose in poses]).reshape(-1, 4, 4)),
+        }
 
     @classmethod
     def from_state(cls, state: MapState, device: str | torch.device = "cpu", training_state: bool = False) -> Mapper:

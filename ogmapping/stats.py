@@ -7,6 +7,20 @@ from typing import Any
 
 
 @dataclass(frozen=True)
+class PoseSummary:
+    """Pose refinement over the keyframes that carry a correction (all but the first): how many, the
+    mean and largest correction of the camera centre (metres) and of its rotation (degrees), and how
+    many reached the bound and were clamped there."""
+
+    refined_keyframes: int
+    mean_correction_m: float
+    max_correction_m: float
+    mean_correction_deg: float
+    max_correction_deg: float
+    clamped_keyframes: int
+
+
+@dataclass(frozen=True)
 class MapStats:
     """What ``Mapper.stats`` reports: counts of the map and the seconds spent per stage."""
 
@@ -20,7 +34,10 @@ class MapStats:
     device: str
     backend: str
     timings: dict[str, float]
+    poses: PoseSummary | None = None  # with ``poses.refine``
 
     def to_dict(self) -> dict[str, Any]:
-        """The JSON shape of the server's ``engine_json`` and the runner's results (lists, in field order)."""
-        return {name: list(value) if isinstance(value, tuple) else value for name, value in asdict(self).items()}
+        """The JSON shape of the server's ``engine_json`` and the runner's results (lists, in field order;
+        ``poses`` only where refinement runs, so other sessions' stats read as they always have)."""
+        return {name: list(value) if isinstance(value, tuple) else value for name, value in asdict(self).items()
+                if not (name == "poses" and value is None)}

@@ -30,6 +30,7 @@ from ogmapping.config.sections import (
     ModelConfig,
     OctreeConfig,
     OptimConfig,
+    PosesConfig,
     RefineConfig,
     Window,
     apply_overrides,
@@ -39,8 +40,8 @@ from ogmapping.config.sections import (
 __all__ = [
     "MIB", "PRESETS", "PRESET_VALUES", "Allocation", "AnchorColourStart", "Backend", "ConfigBounds", "Encoding",
     "Growth", "KeyframeConfig", "LossConfig", "MapperConfig", "ModelConfig", "OctreeConfig", "OptimConfig",
-    "RefineConfig", "Window", "apply_overrides", "flatten", "hash_table_bytes", "load_file", "parse_override_args",
-    "preset", "resolve", "validate",
+    "PosesConfig", "RefineConfig", "Window", "apply_overrides", "flatten", "hash_table_bytes", "load_file",
+    "parse_override_args", "preset", "resolve", "validate",
 ]
 
 

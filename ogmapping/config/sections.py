@@ -149,6 +149,21 @@ class OptimConfig:
 
 
 @dataclass
+class PosesConfig:
+    # Refine each keyframe's and the streamed view's client pose against the map, in the mapping
+    # steps (ogmapping.optim.poses); the first keyframe stays fixed, so the map keeps the client's frame.
+    refine: bool = False
+    translation_lr: float = _learning_rate(0.001)  # metres per Adam step
+    rotation_lr: float = _learning_rate(0.001)  # radians per Adam step
+    # Weight of the prior that holds a correction near the client's pose: prior x ((|t| / max_translation)^2
+    # + (|r| / max_rotation)^2) joins each view's loss.
+    prior: float = _weight(0.1)
+    # A correction beyond these is clamped back to them and reported, never silently applied.
+    max_translation: float = ranged(0.1, 0, open_low=True)  # metres
+    max_rotation: float = ranged(5.0, 0, 180, open_low=True)  # degrees
+
+
+@dataclass
 class MapperConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
     octree: OctreeConfig = field(default_factory=OctreeConfig)
@@ -156,6 +171,7 @@ class MapperConfig:
     refine: RefineConfig = field(default_factory=RefineConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
+    poses: PosesConfig = field(default_factory=PosesConfig)
     backend: Backend = "auto"  # on the CPU only "cpu" runs the compiled kernels
     seed: int = ranged(0, *SEED_RANGE)
 

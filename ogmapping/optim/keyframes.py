@@ -24,6 +24,7 @@ import torch
 from ogmapping.config import KeyframeConfig, Window
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.preprocess import resize_depth
+from ogmapping.optim.poses import PoseCorrection
 from ogmapping.optim.ssim import ReferenceStatistics, reference_statistics
 
 
@@ -34,14 +35,19 @@ class View:
     rgb: torch.Tensor  # (H, W, 3) in [0, 1]
     depth: torch.Tensor  # (H, W), metres, 0 = invalid
     intrinsics: Intrinsics
-    c2w: torch.Tensor  # (4, 4)
+    c2w: torch.Tensor  # (4, 4), the client's pose
     ssim_reference: ReferenceStatistics
+    correction: PoseCorrection | None = None  # with ``poses.refine``: the pose's learnable correction
 
     @classmethod
     def of(cls, rgb: torch.Tensor, depth: torch.Tensor, intrinsics: Intrinsics, c2w: torch.Tensor, *,
-           compiled: bool) -> View:
+           compiled: bool, correction: PoseCorrection | None = None) -> View:
         """The view of these images; ``compiled`` as ``ssim.reference_statistics``."""
-        return cls(rgb, depth, intrinsics, c2w, reference_statistics(rgb, compiled=compiled))
+        return cls(rgb, depth, intrinsics, c2w, reference_statistics(rgb, compiled=compiled), correction)
+
+    def pose(self) -> torch.Tensor:
+        """The camera-to-world to render at: the client's, corrected (differentiably) where refined."""
+        return self.c2w if self.correction is None else self.correction.refined(self.c2w)
 
 
 @dataclass
@@ -59,25 +65,27 @@ class Keyframe:
     rgb: torch.Tensor  # (H, W, 3) uint8, host memory
     depth: torch.Tensor  # (H, W) float16 metres, 0 = invalid, host memory
     intrinsics: Intrinsics
-    c2w: torch.Tensor  # (4, 4), on the mapper's device
+    c2w: torch.Tensor  # (4, 4), the client's pose, on the mapper's device
     codes: torch.Tensor  # sorted unique occupied coarsest-cell codes this frame sees
     pinned: bool = False
+    correction: PoseCorrection | None = None  # with ``poses.refine``, every keyframe's but the first
     _downscaled: dict[float, Keyframe] = field(default_factory=dict, repr=False)
 
     @classmethod
     def capture(cls, index: int, rgb: torch.Tensor, depth: torch.Tensor, intrinsics: Intrinsics,
-                c2w: torch.Tensor, codes: torch.Tensor, *, pinned: bool = False) -> Keyframe:
+                c2w: torch.Tensor, codes: torch.Tensor, *, pinned: bool = False,
+                correction: PoseCorrection | None = None) -> Keyframe:
         """Store float ``rgb`` in [0, 1] (rounded to 1/255: exact for 8-bit images at their own size)
         and ``depth`` in metres (float16: steps of 2 mm from 2 to 4 m, 4 mm from 4 to 8 m) from any device."""
         colour = (rgb.detach() * 255.0).round_().clamp_(0.0, 255.0).to("cpu", torch.uint8)
         return cls(index, _host(colour, pinned), _host(depth.detach().to("cpu", torch.float16), pinned),
-                   intrinsics, c2w, codes, pinned)
+                   intrinsics, c2w, codes, pinned, correction)
 
     def view(self, device: torch.device, *, compiled: bool) -> View:
         """This keyframe as float32 images on ``device`` (copied there now), with SSIM statistics."""
         rgb = self.rgb.to(device, non_blocking=self.pinned).to(torch.float32) / 255.0
         depth = self.depth.to(device, non_blocking=self.pinned).to(torch.float32)
-        return View.of(rgb, depth, self.intrinsics, self.c2w, compiled=compiled)
+        return View.of(rgb, depth, self.intrinsics, self.c2w, compiled=compiled, correction=self.correction)
 
     def downscaled(self, scale: float) -> Keyframe:
         """This keyframe with its images resized by ``scale`` (colour by area, depth nearest), cached."""
@@ -89,7 +97,8 @@ class Keyframe:
             rgb = cv2.resize(self.rgb.numpy().astype("float32") / 255.0, size, interpolation=cv2.INTER_AREA)
             depth = torch.from_numpy(resize_depth(self.depth.numpy(), *size))
             self._downscaled[scale] = Keyframe.capture(self.index, torch.from_numpy(rgb), depth, intrinsics,
-                                                       self.c2w, self.codes, pinned=self.pinned)
+                                                       self.c2w, self.codes, pinned=self.pinned,
+                                                       correction=self.correction)
         return self._downscaled[scale]
 
 

@@ -19,6 +19,7 @@ from ogmapping.frames.camera import Intrinsics
 from ogmapping.optim.averaging import MapAverage
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet
 from ogmapping.optim.lazy_adam import LazyAdam
+from ogmapping.optim.poses import PoseCorrection
 from ogmapping.structure.anchors import LEARNABLE, AnchorMap
 
 PREFIX = "training."
@@ -43,10 +44,10 @@ def _scalar(value: float | int, dtype: torch.dtype) -> torch.Tensor:
     return torch.tensor([value], dtype=dtype)
 
 
-def _frame_index_as_int64(index: int) -> torch.Tensor:
-    """A frame index (the protocol's uint64) in an int64 tensor: indices from 2^63 on wrap to negative
+def frame_indices_as_int64(indices: list[int]) -> torch.Tensor:
+    """Frame indices (the protocol's uint64) in an int64 tensor: indices from 2^63 on wrap to negative
     values (two's complement), as a fuzzed client's 2^64 - 1 once made a checkpoint write fail."""
-    return _scalar(index - (1 << 64) if index >= 1 << 63 else index, torch.int64)
+    return torch.tensor([index - (1 << 64) if index >= 1 << 63 else index for index in indices], dtype=torch.int64)
 
 
 def _frame_index_from_int64(value: torch.Tensor) -> int:
@@ -80,7 +81,7 @@ def capture(mapper: Optimisation) -> dict[str, torch.Tensor]:
     for position, keyframe in enumerate(keyframes.keyframes):
         camera = keyframe.intrinsics
         tensors.update({
-            f"keyframes.{position}.index": _frame_index_as_int64(keyframe.index),
+            f"keyframes.{position}.index": frame_indices_as_int64([keyframe.index]),
             f"keyframes.{position}.rgb": keyframe.rgb,
             f"keyframes.{position}.depth": keyframe.depth,
             f"keyframes.{position}.intrinsics": torch.tensor(
@@ -88,6 +89,8 @@ def capture(mapper: Optimisation) -> dict[str, torch.Tensor]:
             f"keyframes.{position}.c2w": keyframe.c2w,
             f"keyframes.{position}.codes": keyframe.codes,
         })
+        if keyframe.correction is not None:
+            tensors[f"keyframes.{position}.correction"] = keyframe.correction.state()
     return {PREFIX + name: value.detach().cpu().clone() for name, value in tensors.items()}
 
 
@@ -145,6 +148,10 @@ def _restore_average(mapper: Optimisation, section: dict[str, torch.Tensor]) -> 
                          for name, value in section.items() if name.startswith(prefix)})
 
 
+def _correction(row: torch.Tensor | None, c2w: torch.Tensor, device: torch.device) -> PoseCorrection | None:
+    return None if row is None else PoseCorrection.from_state(row, device, c2w.dtype)
+
+
 def _restore_keyframes(mapper: Optimisation, section: dict[str, torch.Tensor]) -> None:
     keyframes = mapper.keyframes
     pinned = mapper.device.type == "cuda"
@@ -157,6 +164,7 @@ def _restore_keyframes(mapper: Optimisation, section: dict[str, torch.Tensor]) -
             _frame_index_from_int64(section[prefix + "index"]), rgb.pin_memory() if pinned else rgb,
             depth.pin_memory() if pinned else depth, Intrinsics(fx, fy, cx, cy, int(width), int(height)),
             section[prefix + "c2w"].to(mapper.device), section[prefix + "codes"].to(mapper.device), pinned,
+            _correction(section.get(prefix + "correction"), section[prefix + "c2w"], mapper.device),
         ))
     keyframes.keyframes = restored
     for name in ("local", "global_", "fixed"):

@@ -1,0 +1,148 @@
+"""Pose refinement: a learnable SE(3) correction of a client's camera pose (``poses.refine``).
+
+Clients send the poses they have (odometry, ARKit, KinectFusion), none exact. Each keyframe but
+the first, and the streamed view, carries a ``PoseCorrection``: a translation of the camera centre
+and a rotation about it, both in world axes, so the refined camera-to-world is
+``[exp(r) R | t + dt]`` for the client's ``[R | t]``. It is optimised with the map in the same
+steps, by its own Adam (learning rates ``poses.translation_lr`` / ``rotation_lr``), under a prior
+that holds it near the client's pose; a correction beyond ``poses.max_translation`` /
+``max_rotation`` is clamped back to the bound and reported as clamped.
+
+The first keyframe has none, so the map stays in the client's frame. The rasterizer gives the
+gradient of the loss with respect to each view's world-to-camera matrix (every backend), which
+autograd carries to the correction through ``refined``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ogmapping.config import PosesConfig
+
+ADAM_BETAS = (0.9, 0.999)
+ADAM_EPS = 1e-15
+STATE_SIZE = 20  # a correction's checkpoint row: delta, two moments (6 each), steps, clamped
+
+
+def skew(vector: torch.Tensor) -> torch.Tensor:
+    """The cross-product matrix of a 3-vector (differentiable)."""
+    zero = vector.new_zeros(())
+    x, y, z = vector.unbind()
+    return torch.stack([torch.stack([zero, -z, y]), torch.stack([z, zero, -x]), torch.stack([-y, x, zero])])
+
+
+def rotation_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
+    """exp of an axis-angle 3-vector: its rotation matrix, differentiable also at zero."""
+    return torch.linalg.matrix_exp(skew(axis_angle))
+
+
+@dataclass(frozen=True)
+class PoseReport:
+    """A frame's correction as results report it: world-axis translation of the camera centre
+    (metres), rotation about it (axis-angle, radians), whether it hit the bound, and the pose."""
+
+    translation: np.ndarray  # (3,)
+    rotation: np.ndarray  # (3,)
+    clamped: bool
+    refined_c2w: np.ndarray  # (4, 4)
+
+    @property
+    def translation_m(self) -> float:
+        return float(np.linalg.norm(self.translation))
+
+    @property
+    def rotation_deg(self) -> float:
+        return math.degrees(float(np.linalg.norm(self.rotation)))
+
+    @classmethod
+    def unrefined(cls, c2w: np.ndarray) -> PoseReport:
+        return cls(np.zeros(3), np.zeros(3), False, np.asarray(c2w, dtype=np.float64))
+
+
+class PoseCorrection:
+    """One pose's correction (translation, then axis-angle rotation, as one leaf 6-vector) with its
+    own Adam moments, so corrections come and go with keyframes without touching the map's optimiser."""
+
+    def __init__(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> None:
+        self.delta = torch.zeros(6, device=device, dtype=dtype, requires_grad=True)
+        self.exp_avg = torch.zeros(6, device=device, dtype=dtype)
+        self.exp_avg_sq = torch.zeros(6, device=device, dtype=dtype)
+        self.steps = 0
+        self.clamped = False  # hit the bound at some step since ``clamped`` was last cleared
+
+    @property
+    def translation(self) -> torch.Tensor:
+        return self.delta[:3]
+
+    @property
+    def rotation(self) -> torch.Tensor:
+        return self.delta[3:]
+
+    def refined(self, c2w: torch.Tensor) -> torch.Tensor:
+        """The corrected camera-to-world of the client's ``c2w``, differentiable in ``delta``."""
+        delta = self.delta.to(c2w.dtype)
+        rotation = rotation_matrix(delta[3:]) @ c2w[:3, :3]
+        top = torch.cat([rotation, (c2w[:3, 3] + delta[:3]).unsqueeze(1)], dim=1)
+        return torch.cat([top, c2w[3:]], dim=0)
+
+    def prior(self, settings: PosesConfig) -> torch.Tensor:
+        """The cost of straying from the client's pose, ``poses.prior`` at the bound."""
+        scale = math.radians(settings.max_rotation)
+        return settings.prior * (self.translation.square().sum() / settings.max_translation**2
+                                 + self.rotation.square().sum() / scale**2)
+
+    def step(self, settings: PosesConfig) -> None:
+        """One Adam step on ``delta`` from its gradient (none: nothing), then clamp to the bounds."""
+        grad = self.delta.grad
+        if grad is None:
+            return
+        self.steps += 1
+        beta1, beta2 = ADAM_BETAS
+        with torch.no_grad():
+            self.exp_avg.mul_(beta1).add_(grad, alpha=1 - beta1)
+            self.exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+            corrected_avg = self.exp_avg / (1 - beta1**self.steps)
+            corrected_sq = self.exp_avg_sq / (1 - beta2**self.steps)
+            lr = self.delta.new_tensor([settings.translation_lr] * 3 + [settings.rotation_lr] * 3)
+            self.delta.sub_(lr * corrected_avg / (corrected_sq.sqrt() + ADAM_EPS))
+            self._clamp(self.delta[:3], settings.max_translation)
+            self._clamp(self.delta[3:], math.radians(settings.max_rotation))
+        self.delta.grad = None
+
+    def _clamp(self, part: torch.Tensor, bound: float) -> None:
+        norm = float(part.norm())
+        if norm > bound:
+            part.mul_(bound / norm)
+            self.clamped = True
+
+    def report(self, c2w: torch.Tensor) -> PoseReport:
+        """This correction of the client's ``c2w`` as results report it."""
+        with torch.no_grad():
+            refined = self.refined(c2w)
+        return PoseReport(self.translation.detach().double().cpu().numpy(),
+                          self.rotation.detach().double().cpu().numpy(), self.clamped,
+                          refined.double().cpu().numpy())
+
+    def state(self) -> torch.Tensor:
+        """Everything it carries as one float64 row: delta, moments, steps, clamped (for checkpoints)."""
+        numbers = torch.cat([self.delta.detach(), self.exp_avg, self.exp_avg_sq]).double().cpu()
+        return torch.cat([numbers, torch.tensor([self.steps, float(self.clamped)], dtype=torch.float64)])
+
+    @classmethod
+    def from_state(cls, row: torch.Tensor, device: torch.device | str, dtype: torch.dtype) -> PoseCorrection:
+        """The correction a ``state`` row holds; ValueError when it is not one."""
+        if tuple(row.shape) != (STATE_SIZE,) or not bool(torch.isfinite(row).all()):
+            raise ValueError(f"a pose correction is {STATE_SIZE} finite numbers, got shape {tuple(row.shape)}")
+        correction = cls(device, dtype)
+        with torch.no_grad():
+            correction.delta.copy_(row[:6])
+        correction.exp_avg = row[6:12].to(device, dtype)
+        correction.exp_avg_sq = row[12:18].to(device, dtype)
+        correction.steps = int(row[18])
+        correction.clamped = bool(row[19])
+        return correction
+

@@ -1,0 +1,148 @@
+"""Pose refinement: the correction's algebra, its optimiser and bound, and the mapper carrying it."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from ogmapping.config import PosesConfig, resolve
+from ogmapping.mapper import Mapper
+from ogmapping.optim.poses import STATE_SIZE, PoseCorrection, rotation_matrix
+from ogmapping.persist import snapshot
+from ogmapping.quality.evaluation import open_frames
+
+TINY = {"keyframes.first_iterations": "6", "keyframes.iterations": "2"}
+
+
+def _rodrigues(axis_angle: np.ndarray) -> np.ndarray:
+    angle = np.linalg.norm(axis_angle)
+    k = axis_angle / angle
+    cross = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(angle) * cross + (1 - math.cos(angle)) * cross @ cross
+
+
+def _client_pose() -> torch.Tensor:
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[:3, :3] = torch.from_numpy(_rodrigues(np.array([0.3, -0.2, 0.5])))
+    c2w[:3, 3] = torch.tensor([1.0, -2.0, 0.5])
+    return c2w
+
+
+def test_rotation_matrix_is_rodrigues_and_differentiable_at_zero():
+    vector = np.array([0.1, -0.4, 0.25])
+    assert np.allclose(rotation_matrix(torch.from_numpy(vector)).numpy(), _rodrigues(vector), atol=1e-12)
+    zero = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    rotation_matrix(zero)[0, 1].backward()
+    assert torch.allclose(zero.grad, torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64))
+
+
+def test_zero_correction_is_the_client_pose_and_a_correction_moves_centre_and_axes():
+    c2w = _client_pose()
+    correction = PoseCorrection("cpu", torch.float64)
+    assert torch.equal(correction.refined(c2w), c2w)
+    with torch.no_grad():
+        correction.delta.copy_(torch.tensor([0.01, 0.0, -0.02, 0.0, 0.0, 0.1], dtype=torch.float64))
+    refined = correction.refined(c2w)
+    assert torch.allclose(refined[:3, 3], c2w[:3, 3] + torch.tensor([0.01, 0.0, -0.02], dtype=torch.float64))
+    expected = torch.from_numpy(_rodrigues(np.array([0.0, 0.0, 0.1]))) @ c2w[:3, :3]
+    assert torch.allclose(refined[:3, :3], expected, atol=1e-12)
+    assert torch.equal(refined[3], c2w[3])
+    report = correction.report(c2w)
+    assert report.translation_m == pytest.approx(math.hypot(0.01, 0.02))
+    assert report.rotation_deg == pytest.approx(math.degrees(0.1))
+
+
+def test_a_step_follows_the_gradient_at_the_learning_rates():
+    settings = PosesConfig(translation_lr=0.002, rotation_lr=0.001)
+    correction = PoseCorrection("cpu")
+    correction.step(settings)  # no gradient yet: nothing happens
+    assert correction.steps == 0
+    correction.delta.grad = torch.tensor([1.0, -3.0, 0.0, 0.5, 0.0, -2.0])
+    correction.step(settings)
+    # Adam's first step moves each coordinate by its learning rate against the gradient's sign.
+    assert torch.allclose(correction.delta.detach(), torch.tensor([-0.002, 0.002, 0.0, -0.001, 0.0, 0.001]))
+    assert correction.delta.grad is None and correction.steps == 1 and not correction.clamped
+
+
+def test_the_prior_costs_its_weight_at_the_bound():
+    settings = PosesConfig(prior=0.3, max_translation=0.05, max_rotation=2.0)
+    correction = PoseCorrection("cpu", torch.float64)
+    with torch.no_grad():
+        correction.delta[0] = 0.05
+    assert float(correction.prior(settings).detach()) == pytest.approx(0.3)
+    with torch.no_grad():
+        correction.delta.zero_()
+        correction.delta[4] = math.radians(2.0)
+    assert float(correction.prior(settings).detach()) == pytest.approx(0.3)
+
+
+def test_a_runaway_correction_is_clamped_to_the_bound_and_reported():
+    settings = PosesConfig(translation_lr=0.5, rotation_lr=0.5, max_translation=0.1, max_rotation=5.0)
+    correction = PoseCorrection("cpu", torch.float64)
+    correction.delta.grad = torch.tensor([-1.0, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    correction.step(settings)
+    assert float(correction.translation.detach().norm()) == pytest.approx(0.1)
+    assert correction.clamped
+    correction.delta.grad = torch.tensor([0.0, 0.0, 0.0, 1.0, 1.0, 0.0], dtype=torch.float64)
+    correction.step(settings)
+    assert float(correction.rotation.detach().norm()) == pytest.approx(math.radians(5.0))
+    assert correction.report(_client_pose()).clamped
+
+
+def test_state_round_trip_and_bad_rows():
+    correction = PoseCorrection("cpu")
+    correction.delta.grad = torch.arange(6, dtype=torch.float32) - 2.5
+    correction.step(PosesConfig())
+    row = correction.state()
+    assert row.shape == (STATE_SIZE,)
+    again = PoseCorrection.from_state(row, "cpu", torch.float32)
+    assert torch.equal(again.delta.detach(), correction.delta.detach()) and again.delta.requires_grad
+    assert torch.equal(again.exp_avg_sq, correction.exp_avg_sq) and again.steps == 1
+    with pytest.raises(ValueError, match="pose correction"):
+        PoseCorrection.from_state(row[:-1], "cpu", torch.float32)
+    with pytest.raises(ValueError, match="pose correction"):
+        PoseCorrection.from_state(torch.full((STATE_SIZE,), math.nan, dtype=torch.float64), "cpu", torch.float32)
+
+
+def _frames(count: int):
+    frames = open_frames("synthetic", "synthetic", f"0:{count}", 1, 0.25, n_frames=40)
+    return [frames.load(position) for position in range(count)]
+
+
+def test_without_refinement_the_frame_reports_the_client_pose_and_snapshots_hold_no_poses():
+    mapper = Mapper(resolve("sparse-fast", overrides=TINY))
+    for frame in _frames(2):
+        result = mapper.process(frame)
+        assert np.array_equal(result.pose.refined_c2w, frame.c2w) and not result.pose.clamped
+    assert not any(name.startswith("poses.") for name in mapper.state().tensors)
+    assert mapper.stats().poses is None and "poses" not in mapper.stats().to_dict()
+
+
+def test_refinement_keeps_the_first_keyframe_and_its_poses_survive_checkpoints_and_snapshots():
+    config = resolve("sparse-fast", overrides={**TINY, "poses.refine": "true", "keyframes.overlap_threshold": "0.99",
+                                                 "backend": "torch"})
+    mapper = Mapper(config)
+    frames = _frames(4)
+    results = [mapper.process(frame) for frame in frames]
+    assert np.array_equal(results[0].pose.refined_c2w, frames[0].c2w)
+    assert mapper.keyframes.keyframes[0].correction is None
+    later = mapper.keyframes.keyframes[1:]
+    assert later and all(keyframe.correction is not None for keyframe in later)
+    poses = mapper.keyframe_poses()
+    tensors = snapshot.decode(mapper.snapshot()).tensors
+    assert tensors["poses.keyframe_indices"].tolist() == [pose.index for pose in poses]
+    assert np.allclose(tensors["poses.refined_c2w"].numpy(), np.array([pose.refined_c2w for pose in poses]))
+    assert np.array_equal(tensors["poses.client_c2w"][0].numpy(), poses[0].client_c2w)
+    resumed = Mapper.from_state(snapshot.decode(snapshot.encode(mapper.state(training_state=True), half=False)),
+                                training_state=True)
+    for kept, original in zip(resumed.keyframes.keyframes, mapper.keyframes.keyframes, strict=True):
+        if original.correction is None:
+            assert kept.correction is None
+        else:
+            assert torch.equal(kept.correction.state(), original.correction.state())
+    summary = mapper.stats().poses
+    assert summary.refined_keyframes == len(mapper.keyframes) - 1
+    assert summary.max_correction_m >= summary.mean_correction_m > 0.0
