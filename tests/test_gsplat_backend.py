@@ -3,7 +3,7 @@
 Which backend ``auto`` picks, when gsplat counts as usable (gsplat 1.5 reports kernels it could not
 build only by setting ``gsplat.cuda._backend._C`` to None) and what ``render_group`` does around
 ``gsplat.rasterization`` (views padded into one batch and cut out again, float32 in, the caller's
-dtype out, culled ``means2d`` zero, each view's screen-space gradient its own). The real
+dtype out, culled ``means2d`` zero, each view's screen-space and viewmat gradients its own). The real
 kernels are checked against the reference in ``test_gpu_gsplat.py``.
 """
 
@@ -111,7 +111,8 @@ def fake_rasterization(culled: torch.Tensor):
         assert options["packed"] is False and options["render_mode"] == "RGB+ED"
         batch, n = means.shape[:2]
         assert viewmats.shape == (batch, 1, 4, 4) and Ks.shape == (batch, 1, 3, 3) and culled.shape == (batch, n)
-        projected = means[..., :2] * Ks[:, :, 0, 0, None] / means[..., 2:] + Ks[:, 0, None, :2, 2]
+        camera = means @ viewmats[:, 0, :3, :3].transpose(1, 2) + viewmats[:, 0, None, :3, 3]
+        projected = camera[..., :2] * Ks[:, :, 0, 0, None] / camera[..., 2:] + Ks[:, 0, None, :2, 2]
         means2d = torch.where(culled.unsqueeze(-1), torch.full_like(projected, 1e30), projected)[:, None]
         weight = torch.stack([
             (means2d[b, 0, ~culled[b]].sum() + opacities[b].sum() + colors[b].sum()) * 1e-3 * (b + 1)
@@ -163,6 +164,27 @@ def test_render_group_pads_views_casts_to_float32_and_back_and_zeroes_culled_mea
             assert leaf.grad is not None and leaf.grad.dtype == torch.float64, name
     # Each view's screen gradient is its own: the fake weighs view b by b + 1.
     assert bool((outputs[1].means2d.grad[0] > 1.5 * outputs[0].means2d.grad[0]).all())
+
+
+def test_render_group_routes_each_viewmat_its_gradient():
+    """Viewmats that require grad (refined poses) get their own view's gradient, in their dtype;
+    a fixed one in the same batch gets none."""
+    generator = torch.Generator().manual_seed(1)
+    scene = random_scene(generator, 4)
+    K = torch.tensor([[10.0, 0.0, 4.0], [0.0, 10.0, 3.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    pose = torch.eye(4, dtype=torch.float64)
+    pose[:3, 3] = torch.tensor([0.1, -0.2, 0.3])
+    viewmats = [pose.clone().requires_grad_(posed) for posed in (False, True, True)]
+    culled = torch.tensor([[False, True, False, False]] * 3)
+    outputs = gsplat_backend.render_group(fake_rasterization(culled), [scene] * 3,
+                                          [Camera(viewmat, K, 8, 6) for viewmat in viewmats], None)
+    sum(output.color.sum() for output in outputs).backward()
+    assert viewmats[0].grad is None
+    for viewmat in viewmats[1:]:
+        assert viewmat.grad.dtype == torch.float64 and viewmat.grad.shape == (4, 4)
+        assert bool(viewmat.grad[:3].any()) and not bool(viewmat.grad[3].any())
+    # Identical views, the fake weighing view b by b + 1: each gradient is its own view's.
+    torch.testing.assert_close(viewmats[2].grad, 1.5 * viewmats[1].grad, rtol=1e-5, atol=0)
 
 
 def test_views_are_grouped_by_image_size_in_order_of_appearance():

@@ -4,7 +4,9 @@
 per view; the cpu backend projects and composites the whole batch in one autograd node each. Its
 images and gradients must be those of the reference (relative norm error below 1e-4, the cpu
 rasterizer's tolerance, tests/test_render_cpu.py) and exactly those of the cpu backend rendering
-each view alone. Views differ in size, pose and Gaussian count (one has none).
+each view alone. Views differ in size, pose and Gaussian count (one has none). With poses to
+refine, each view's viewmat gets its own gradient, the reference's, and every other output and
+gradient stays what it is with fixed poses.
 """
 
 from __future__ import annotations
@@ -34,7 +36,8 @@ def pose(seed: int) -> torch.Tensor:
     return viewmat
 
 
-def views(dtype: torch.dtype) -> tuple[list[SplatSet], list[Camera]]:
+def views(dtype: torch.dtype, posed: bool = False) -> tuple[list[SplatSet], list[Camera]]:
+    """The scenes and cameras of VIEWS; with ``posed`` every viewmat is a leaf that requires grad."""
     scenes, cameras = [], []
     for seed, n, width, height in VIEWS:
         scene = {k: v.to(dtype).clone().requires_grad_(True) for k, v in mixed_scene(seed, max(n, 1), width,
@@ -42,7 +45,8 @@ def views(dtype: torch.dtype) -> tuple[list[SplatSet], list[Camera]]:
         scenes.append(SplatSet(*(scene[k][:n] if n else scene[k][:0] for k in PARAMS)))
         for k in PARAMS:
             getattr(scenes[-1], k).retain_grad()
-        cameras.append(Camera(pose(seed).to(dtype), intrinsics(width, height).to(dtype), width, height))
+        viewmat = pose(seed).to(dtype).requires_grad_(posed)
+        cameras.append(Camera(viewmat, intrinsics(width, height).to(dtype), width, height))
     return scenes, cameras
 
 
@@ -55,8 +59,8 @@ def weighted_loss(outputs) -> torch.Tensor:
     return total
 
 
-def render_and_grad(batched: bool, backend: str, dtype: torch.dtype) -> dict[str, torch.Tensor]:
-    scenes, cameras = views(dtype)
+def render_and_grad(batched: bool, backend: str, dtype: torch.dtype, posed: bool = False) -> dict[str, torch.Tensor]:
+    scenes, cameras = views(dtype, posed)
     background = torch.tensor([0.3, 0.6, 0.1], dtype=dtype, requires_grad=True)
     if batched:
         outputs = rasterize_batch(scenes, cameras, background, backend=backend)
@@ -65,10 +69,10 @@ def render_and_grad(batched: bool, backend: str, dtype: torch.dtype) -> dict[str
                              backend=backend) for s, c in zip(scenes, cameras, strict=True)]
     weighted_loss(outputs).backward()
     results = {"background.grad": background.grad}
-    for v, (out, scene) in enumerate(zip(outputs, scenes, strict=True)):
+    for v, (out, scene, camera) in enumerate(zip(outputs, scenes, cameras, strict=True)):
         results.update({f"{v}.color": out.color, f"{v}.depth": out.depth, f"{v}.alpha": out.alpha,
                         f"{v}.visible": out.visible, f"{v}.means2d": out.means2d,
-                        f"{v}.means2d.grad": out.means2d.grad})
+                        f"{v}.means2d.grad": out.means2d.grad, f"{v}.viewmat.grad": camera.viewmat.grad})
         results.update({f"{v}.{k}.grad": getattr(scene, k).grad for k in PARAMS})
     return {k: v.detach() for k, v in results.items() if v is not None}
 
@@ -84,10 +88,26 @@ def test_cpu_batch_matches_the_reference_values_and_gradients() -> None:
     assert cpu["2.means.grad"].shape == (0, 3) and cpu["2.means2d.grad"].shape == (0, 2)
 
 
+def test_cpu_batch_viewmat_gradients_match_the_reference() -> None:
+    cpu = render_and_grad(True, "cpu", torch.float32, posed=True)
+    ref = render_and_grad(True, "torch", torch.float64, posed=True)
+    assert cpu.keys() == ref.keys()
+    for v in range(len(VIEWS)):
+        key = f"{v}.viewmat.grad"
+        assert cpu[key].shape == (4, 4) and not cpu[key][3].any() and not ref[key][3].any(), key
+        assert relative_error(cpu[key], ref[key]) < TOLERANCE, (key, relative_error(cpu[key], ref[key]))
+    assert not cpu["2.viewmat.grad"].any()  # the view without Gaussians
+    fixed = render_and_grad(True, "cpu", torch.float32)
+    assert fixed.keys() == {k for k in cpu if not k.endswith("viewmat.grad")}
+    for key, value in fixed.items():
+        assert torch.equal(cpu[key], value), key
+
+
+@pytest.mark.parametrize("posed", [False, True])
 @pytest.mark.parametrize("backend", ["cpu", "torch"])
-def test_a_batch_is_exactly_one_render_per_view(backend: str) -> None:
-    batched = render_and_grad(True, backend, torch.float32)
-    alone = render_and_grad(False, backend, torch.float32)
+def test_a_batch_is_exactly_one_render_per_view(backend: str, posed: bool) -> None:
+    batched = render_and_grad(True, backend, torch.float32, posed)
+    alone = render_and_grad(False, backend, torch.float32, posed)
     assert batched.keys() == alone.keys()
     # The shared background's gradient sums the views' in another order (float64 in the batch).
     torch.testing.assert_close(batched.pop("background.grad"), alone.pop("background.grad"), rtol=1e-6, atol=0)

@@ -2,8 +2,9 @@
 
 Outputs are compared with the torch projection run in float32 on the same inputs (the kernel
 follows it operation by operation, so they agree to float32 rounding and cull identically);
-gradients with torch autograd through it in float64, as relative norm errors below 1e-4, overall
-and separately on the Gaussians that exercise each branch (visible, clamped Jacobian, culled).
+gradients (the Gaussians' and the viewmat's) with torch autograd through it in float64, as
+relative norm errors below 1e-4, overall and separately on the Gaussians that exercise each branch
+(visible, clamped Jacobian, culled).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts
 import pytest
 import torch
 
-from ogmapping.render import cpu_backend, cpu_projection
+from ogmapping.render import cpu_backend, cpu_projection, rasterize
 from ogmapping.render.projection import FOV_MARGIN, project_gaussians
 from ogmapping.render.rules import ALPHA_MIN
 
@@ -105,7 +106,9 @@ def test_gradients_match_autograd(seed: int) -> None:
     )
     outputs = (ref.means2d, ref.conics, ref.depths)
     sum((o * u.double()).sum() for o, u in zip(outputs, upstream, strict=True)).backward()
-    grads = cpu_projection.project_backward(*fused(params, viewmat, K), *(u.numpy() for u in upstream))
+    *grads, grad_viewmat = cpu_projection.project_backward(*fused(params, viewmat, K),
+                                                           *(u.numpy() for u in upstream), False)
+    assert not grad_viewmat.any()
 
     visible = ref.radii > 0
     groups = {"all": torch.ones_like(visible), "visible": visible, "clamped": (kind == 3) | (kind == 4),
@@ -125,8 +128,8 @@ def test_clamped_jacobian_passes_no_gradient_through_the_clamp() -> None:
               "scales": torch.tensor([[0.3, 0.2, 0.1]]), "opacities": torch.tensor([0.8])}
     conic_only = (torch.zeros(1, 2), torch.ones(1, 3), torch.zeros(1))
     arrays = [params[k].numpy() for k in ("means", "quats", "scales", "opacities")]
-    grad_means, _, _ = cpu_projection.project_backward(*arrays, viewmat.numpy(), K.numpy(), 64, 48,
-                                                       *(u.numpy() for u in conic_only))
+    grad_means, _, _, _ = cpu_projection.project_backward(*arrays, viewmat.numpy(), K.numpy(), 64, 48,
+                                                          *(u.numpy() for u in conic_only), False)
     assert grad_means[0, 0] == 0.0 and grad_means[0, 2] != 0.0
 
 
@@ -147,8 +150,67 @@ def test_backend_opacity_gradient_comes_from_compositing_only() -> None:
         assert len(kernel.signatures) == 1, kernel.signatures
 
 
-def test_camera_gradient_is_refused() -> None:
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_viewmat_gradient_matches_autograd(seed: int) -> None:
+    """The viewmat's gradient, from all Gaussians and from each kind alone (a clamped Jacobian, a
+    centre behind the near plane), with the rest of the backward bit for bit the one without it."""
+    viewmat, K = camera(seed)
+    params, kind = scene(seed, 4000, viewmat, K)
+    n = kind.shape[0]
+    g = torch.Generator().manual_seed(seed + 200)
+    upstream = (torch.randn(n, 2, generator=g), torch.randn(n, 3, generator=g), torch.randn(n, generator=g))
+    groups = {"all": torch.ones(n, dtype=torch.bool), "visible": None, "clamped": (kind == 3) | (kind == 4),
+              "behind": kind == 1, "off-screen": kind == 2, "tiny": kind == 5, "huge": kind == 6}
+    for group, mask in groups.items():
+        leaf = viewmat.double().clone().requires_grad_(True)
+        ref = project_gaussians(*(params[k].double() for k in ("means", "quats", "scales", "opacities")), leaf,
+                                K.double(), WIDTH, HEIGHT)
+        mask = ref.radii > 0 if mask is None else mask
+        masked = [u * mask.view(-1, *(1,) * (u.dim() - 1)) for u in upstream]
+        sum((o * u.double()).sum() for o, u in zip((ref.means2d, ref.conics, ref.depths), masked,
+                                                   strict=True)).backward()
+        arrays = [*fused(params, viewmat, K), *(u.numpy() for u in masked)]
+        *with_camera, grad_viewmat = cpu_projection.project_backward(*arrays, True)
+        error = relative_error(torch.from_numpy(grad_viewmat), leaf.grad)
+        assert error < TOLERANCE, (group, error)
+        assert not grad_viewmat[3].any() and not leaf.grad[3].any()
+        *without, _ = cpu_projection.project_backward(*arrays, False)
+        for a, b in zip(with_camera, without, strict=True):
+            assert a.tobytes() == b.tobytes(), group
+
+
+def test_backend_routes_each_viewmat_its_gradient_only_when_asked(monkeypatch) -> None:
+    """A viewmat that requires grad gets the reference's gradient; with fixed poses the projection's
+    backward is never asked for camera terms and every other gradient is the same, bit for bit."""
+    viewmat, K = camera(5)
+    params, _ = scene(5, 500, viewmat, K)
+    colors = torch.rand(500, 3, generator=torch.Generator().manual_seed(5))
+    asked = []
+    backward = cpu_projection.project_backward
+
+    def recording(*args):
+        asked.append(args[-1])
+        return backward(*args)
+
+    monkeypatch.setattr(cpu_projection, "project_backward", recording)
+    results = {}
+    for backend, dtype, posed in (("cpu", torch.float32, False), ("cpu", torch.float32, True),
+                                  ("torch", torch.float64, True)):
+        leaves = {k: v.to(dtype).clone().requires_grad_(True) for k, v in params.items()}
+        pose = viewmat.to(dtype).clone().requires_grad_(posed)
+        out = rasterize(*leaves.values(), colors.to(dtype), pose, K.to(dtype), WIDTH, HEIGHT, backend=backend)
+        (out.color.sum() + 0.1 * out.depth.sum() + out.alpha.sum()).backward()
+        results[backend, posed] = {**{k: v.grad for k, v in leaves.items()}, "viewmat": pose.grad}
+    assert asked == [False, True]
+    fixed, posed = results["cpu", False], results["cpu", True]
+    assert fixed.pop("viewmat") is None and posed["viewmat"].dtype == torch.float32
+    for name, grad in fixed.items():
+        assert torch.equal(grad, posed[name]), name
+    assert relative_error(posed["viewmat"], results["torch", True]["viewmat"]) < TOLERANCE
+
+
+def test_intrinsics_gradient_is_refused() -> None:
     viewmat, K = camera(4)
     params, _ = scene(4, 10, viewmat, K)
-    with pytest.raises(NotImplementedError):
-        cpu_backend.rasterize(*params.values(), torch.rand(10, 3), viewmat.requires_grad_(True), K, WIDTH, HEIGHT)
+    with pytest.raises(NotImplementedError, match="no gradient for K"):
+        cpu_backend.rasterize(*params.values(), torch.rand(10, 3), viewmat, K.requires_grad_(True), WIDTH, HEIGHT)

@@ -186,9 +186,8 @@ def smooth_scene() -> dict[str, torch.Tensor]:
     }
 
 
-def test_gradcheck() -> None:
-    scene = smooth_scene()
-    viewmat, K = camera()
+def assert_smooth(scene: dict[str, torch.Tensor], viewmat: torch.Tensor, K: torch.Tensor) -> None:
+    """Every Gaussian visible, and alpha and transmittance at every pixel clear of the thresholds."""
     proj = project_gaussians(
         scene["means"], scene["quats"], scene["scales"], scene["opacities"], viewmat, K, WIDTH, HEIGHT
     )
@@ -201,6 +200,12 @@ def test_gradcheck() -> None:
     assert float(raw_alpha.min()) > 2 * ALPHA_MIN and float(raw_alpha.max()) < 0.9 * ALPHA_MAX
     assert float(torch.prod(1.0 - raw_alpha, dim=1).min()) > 100 * TRANSMITTANCE_MIN
 
+
+def test_gradcheck() -> None:
+    scene = smooth_scene()
+    viewmat, K = camera()
+    assert_smooth(scene, viewmat, K)
+
     background = torch.tensor([0.3, 0.1, 0.7], dtype=torch.float64)
     names = ("means", "quats", "scales", "opacities", "colors")
     inputs = tuple(scene[name].clone().requires_grad_(True) for name in names)
@@ -210,6 +215,31 @@ def test_gradcheck() -> None:
         return out.color, out.depth, out.alpha
 
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_gradcheck_viewmat() -> None:
+    """The viewmat's gradient (pose refinement) against finite differences, at a rotated and
+    translated pose; its last row, which the projection never reads, gets none."""
+    scene = smooth_scene()
+    _, K = camera()
+    wx, wy, wz = 0.03, -0.02, 0.05
+    viewmat = torch.eye(4, dtype=torch.float64)
+    viewmat[:3, :3] = torch.linalg.matrix_exp(
+        torch.tensor([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]], dtype=torch.float64))
+    viewmat[:3, 3] = torch.tensor([0.02, -0.03, 0.05], dtype=torch.float64)
+    assert_smooth(scene, viewmat, K)
+    background = torch.tensor([0.3, 0.1, 0.7], dtype=torch.float64)
+    params = tuple(scene[name] for name in ("means", "quats", "scales", "opacities", "colors"))
+
+    def fn(pose: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        out = rasterize(*params, pose, K, WIDTH, HEIGHT, background)
+        return out.color, out.depth, out.alpha
+
+    leaf = viewmat.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(fn, (leaf,), eps=1e-6, atol=1e-6, rtol=1e-4)
+    out = rasterize(*params, leaf, K, WIDTH, HEIGHT, background)
+    (out.color.sum() + out.depth.sum() + out.alpha.sum()).backward()
+    assert bool(leaf.grad[:3].abs().gt(0).all()) and not bool(leaf.grad[3].any())
 
 
 def test_means2d_gradient_is_retained() -> None:

@@ -1,6 +1,7 @@
 """One public entry, ``rasterize()`` (and ``rasterize_batch()`` for several views), over interchangeable backends.
 
-Backends (all render colour, expected depth and alpha, and expose the screen-space gradient):
+Backends (all render colour, expected depth and alpha, expose the screen-space gradient, and give
+a camera's ``viewmat`` its gradient when it requires one, for pose refinement):
 - ``torch``: pure PyTorch through autograd; the reference the others are checked against.
 - ``cpu``: compiled CPU kernels with a hand-written backward (Numba).
 - ``gsplat``: CUDA through ``gsplat.rasterization``.

@@ -59,8 +59,9 @@ class Layout:
 
 
 class _Project(torch.autograd.Function):
-    """Gaussian parameters -> (means2d, conics, depths, radii) of every view, concatenated; opacity
-    only culls, so gets no gradient, and cameras are fixed (no gradient)."""
+    """Gaussian parameters and cameras -> (means2d, conics, depths, radii) of every view, concatenated;
+    opacity only culls, so gets no gradient. Each view's viewmat gets its gradient only when the
+    stacked viewmats need one, so fixed poses cost nothing; intrinsics get none."""
 
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, viewmats, Ks, layout):
@@ -72,7 +73,7 @@ class _Project(torch.autograd.Function):
         ]
         means2d, conics, depths, radii = (np.concatenate(parts) for parts in zip(*per_view, strict=True))
         ctx.state = (inputs, cameras, layout)
-        ctx.dtypes = (means.dtype, quats.dtype, scales.dtype)
+        ctx.dtypes = (means.dtype, quats.dtype, scales.dtype, viewmats.dtype)
         ctx.device = means.device
         radii = torch.from_numpy(radii).to(means.device)
         ctx.mark_non_differentiable(radii)
@@ -92,16 +93,20 @@ class _Project(torch.autograd.Function):
             np.zeros(shape, np.float32) if g is None else float32_array(g)
             for g, shape in ((grad_means2d, (n, 2)), (grad_conics, (n, 3)), (grad_depths, (n,)))
         ]
+        camera = ctx.needs_input_grad[4]
         per_view = [
             cpu_projection.project_backward(*(a[span] for a in inputs), viewmats[v], Ks[v], *layout.sizes[v],
-                                            *(g[span] for g in upstream))
+                                            *(g[span] for g in upstream), camera)
             for v, span in enumerate(layout.spans)
         ]
-        grads = (np.concatenate(parts) for parts in zip(*per_view, strict=True))
-        means, quats, scales = (
-            torch.from_numpy(g).to(dtype=dtype, device=ctx.device) for g, dtype in zip(grads, ctx.dtypes, strict=True)
+        *gaussian_parts, viewmat_parts = zip(*per_view, strict=True)
+        grads = [np.concatenate(parts) for parts in gaussian_parts]
+        grads.append(np.stack(viewmat_parts) if camera else None)
+        means, quats, scales, grad_viewmats = (
+            None if g is None else torch.from_numpy(g).to(dtype=dtype, device=ctx.device)
+            for g, dtype in zip(grads, ctx.dtypes, strict=True)
         )
-        return means, quats, scales, None, None, None, None
+        return means, quats, scales, None, grad_viewmats, None, None
 
 
 @dataclass
@@ -185,8 +190,8 @@ def rasterize(
 ) -> RenderOutput:
     """Render with the compiled kernels; see ``ogmapping.render.rasterize`` for the arguments.
 
-    Camera poses and intrinsics are fixed here: the projection's backward has no gradient for them,
-    so asking for one is an error rather than a silent zero.
+    ``viewmat`` may require grad (pose refinement); intrinsics are fixed here: the projection's
+    backward has no gradient for ``K``, so asking for one is an error rather than a silent zero.
     """
     scene = SplatSet(means, quats, scales, opacities, colors)
     return rasterize_batch([scene], [Camera(viewmat, K, int(width), int(height))], background)[0]
@@ -197,8 +202,8 @@ def rasterize_batch(scenes: list[Splats], cameras: list[Camera],
     """Render scene i into camera i with one projection and one compositing node for all of them;
     see ``ogmapping.render.rasterize_batch``."""
     check_batch(scenes, cameras)
-    if any(camera.viewmat.requires_grad or camera.K.requires_grad for camera in cameras):
-        raise NotImplementedError("the cpu backend has no gradient for viewmat or K; use backend='torch'")
+    if any(camera.K.requires_grad for camera in cameras):
+        raise NotImplementedError("the cpu backend has no gradient for K; use backend='torch'")
     means, quats, scales, opacities, colors = (
         torch.cat(tensors) if len(scenes) > 1 else tensors[0]
         for tensors in zip(*(parameters(scene) for scene in scenes), strict=True)

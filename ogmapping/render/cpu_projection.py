@@ -12,6 +12,11 @@ the Jacobian's clamped x/z, y/z pass gradient only inside their (inclusive) limi
 Gaussians' constant stand-ins (z := 1 behind the near plane, det := 1 when invalid) pass none,
 and quaternions below the normalisation epsilon are divided by it. Opacity only gates validity
 and sizes the integer radius, so the projection gives it no gradient.
+
+The viewmat's gradient (for pose refinement) is computed only when asked for: each Gaussian's
+float32 terms (through its camera-frame centre and the Jacobian's rows) summed in float64 per
+view. Asking for it adds operations after the others and changes none of them, so the Gaussians'
+gradients are the same bits with or without it.
 """
 
 from __future__ import annotations
@@ -108,6 +113,8 @@ class _Terms(NamedTuple):
     z_safe: float  # the depth divided by: 1 behind the near plane
     x_z: float
     y_z: float
+    tx: float  # x/z, y/z clamped to the Jacobian's limits
+    ty: float
     gx: float  # fx / z, fy / z
     gy: float
     e: tuple  # rows of (W - clamped (x/z, y/z) W's third row): J W = (gx e[:3], gy e[3:])
@@ -163,7 +170,7 @@ def _forward_terms(means, quats, scales, opacities, viewmat, fx, fy, limits, i):
     valid = in_front and det > _ZERO and opacities[i] >= _ALPHA_MIN
     inv_det = _ONE / (det if valid else _ONE)
     return _Terms(
-        z, in_front, z_safe, x_z, y_z, gx, gy,
+        z, in_front, z_safe, x_z, y_z, tx, ty, gx, gy,
         (e00, e01, e02, e10, e11, e12), (j00, j01, j02, j10, j11, j12), (qw, qx, qy, qz), norm,
         (r00, r01, r02, r10, r11, r12, r20, r21, r22), (s0, s1, s2),
         (m00, m01, m02, m10, m11, m12), (t00, t01, t02, t10, t11, t12), a, b, c, valid, inv_det,
@@ -197,16 +204,19 @@ def project_forward(means, quats, scales, opacities, viewmat, K, width, height):
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def project_backward(means, quats, scales, opacities, viewmat, K, width, height, grad_means2d, grad_conics,
-                     grad_depths):
-    """Gradients w.r.t. means (N, 3), quats (N, 4) and scales (N, 3) of ``project_forward``'s outputs.
+                     grad_depths, camera):
+    """Gradients w.r.t. means (N, 3), quats (N, 4), scales (N, 3) and, where ``camera``, the viewmat
+    (4, 4, float64; zeros otherwise) of ``project_forward``'s outputs.
 
     Recomputes each Gaussian's forward terms; Gaussians with no incoming gradient (all culled ones,
-    in the renderer) are skipped.
+    in the renderer) are skipped. Each Gaussian's viewmat terms go to its own row, summed after the
+    parallel loop, so no two threads write one entry.
     """
     n = means.shape[0]
     grad_means = np.zeros((n, 3), np.float32)
     grad_quats = np.zeros((n, 4), np.float32)
     grad_scales = np.zeros((n, 3), np.float32)
+    camera_terms = np.zeros((n if camera else 0, 12), np.float32)
     fx, fy = K[0, 0], K[1, 1]
     limits = _clamp_limits(K, width, height)
     lo_x, hi_x, lo_y, hi_y = limits
@@ -275,7 +285,31 @@ def project_backward(means, quats, scales, opacities, viewmat, K, width, height,
             g_z -= (g_xz * x_z + g_yz * y_z + g_gx * gx + g_gy * gy) / z_safe
         for k in range(3):
             grad_means[i, k] = viewmat[0, k] * g_x + viewmat[1, k] * g_y + viewmat[2, k] * g_z
-    return grad_means, grad_quats, grad_scales
+        if camera:
+            _camera_backward(camera_terms, i, means, f.tx, f.ty, g_x, g_y, g_z,
+                             gx * g_j00, gx * g_j01, gx * g_j02, gy * g_j10, gy * g_j11, gy * g_j12)
+    grad_viewmat = np.zeros((4, 4), np.float64)
+    for i in range(camera_terms.shape[0]):
+        for k in range(12):
+            grad_viewmat[k // 4, k % 4] += camera_terms[i, k]
+    return grad_means, grad_quats, grad_scales, grad_viewmat
+
+
+@njit(cache=True, error_model="numpy")
+def _camera_backward(terms, i, means, tx, ty, g_x, g_y, g_z, g_e00, g_e01, g_e02, g_e10, g_e11, g_e12):
+    """Gaussian ``i``'s part of the viewmat gradient, rows 0-2 of (4, 4) row-major into ``terms[i]``.
+
+    The viewmat enters twice: the camera-frame centre (x, y, z) = W m + t, whose gradient is
+    (g_x, g_y, g_z), and the Jacobian rows e0k = W0k - tx W2k, e1k = W1k - ty W2k, whose gradient
+    is g_e; tx, ty are the clamped x/z, y/z, whose own gradient already reached (g_x, g_y, g_z).
+    """
+    m0, m1, m2 = means[i, 0], means[i, 1], means[i, 2]
+    terms[i, 0], terms[i, 1], terms[i, 2], terms[i, 3] = g_x * m0 + g_e00, g_x * m1 + g_e01, g_x * m2 + g_e02, g_x
+    terms[i, 4], terms[i, 5], terms[i, 6], terms[i, 7] = g_y * m0 + g_e10, g_y * m1 + g_e11, g_y * m2 + g_e12, g_y
+    terms[i, 8] = g_z * m0 - tx * g_e00 - ty * g_e10
+    terms[i, 9] = g_z * m1 - tx * g_e01 - ty * g_e11
+    terms[i, 10] = g_z * m2 - tx * g_e02 - ty * g_e12
+    terms[i, 11] = g_z
 
 
 @njit(cache=True, error_model="numpy")

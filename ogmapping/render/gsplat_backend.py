@@ -28,6 +28,8 @@ code, not settable from Python), with these details:
 - batches: a step's views are rendered with one call per image size through gsplat 1.5.3's
   leading batch dimension (one scene and one camera per batch entry), which gsplat 1.5.0-1.5.2 lack.
 - dtype: gsplat takes float32 only; other inputs are cast to it and the outputs back.
+- poses: gsplat's projection computes the viewmats' gradient when they require grad; the stack and
+  cast that pass them in keep the graph, so each view's viewmat gets its own gradient.
 """
 
 from __future__ import annotations
