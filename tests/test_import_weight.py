@@ -19,6 +19,7 @@ CHECKS = {
     "engine's torch-free modules": (
         "import ogmapping.config, ogmapping.datasets, ogmapping.frames.camera, ogmapping.frames.frame, "
         "ogmapping.frames.preprocess, ogmapping.frames.rotation, ogmapping.frames.selection, ogmapping.cli.options, "
+        "ogmapping.frames.trajectory, "
         "ogmapping.quality.evaluation, "
         f"sys; {NO_TORCH}"
     ),

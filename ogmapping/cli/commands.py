@@ -1,4 +1,5 @@
-"""``ogmap``: map a dataset (``run``), render a snapshot (``render``), export Gaussians (``export``)."""
+"""``ogmap``: map a dataset (``run``), write its poses (``trajectory``), render a snapshot (``render``), export
+Gaussians (``export``)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import cv2
 import numpy as np
 
 from ogmapping.cli.options import add_config_arguments, add_dataset_arguments, dataset_source, parse_intrinsics
+from ogmapping.cli.trajectory import command_trajectory
 from ogmapping.config import parse_override_args, resolve
 from ogmapping.frames.camera import validate_pose
 
@@ -18,9 +20,17 @@ EPILOG = """examples:
   ogmap run --data ../shared/data/7scenes-redkitchen --frames 0:100 --scale 0.25 --out runs/kitchen
   ogmap run --data synthetic --format synthetic --preset sparse-fast --out runs/synthetic
   ogmap run --bag recording.bag --scale 0.5 --out runs/robot     # ROS 1 or 2 bag, see docs/robots.md
+  ogmap trajectory --data synthetic --format synthetic --frames 0:20 --out exact.tum
+  ogmap trajectory --data synthetic --format synthetic --frames 0:20 --noise-translation 0.01 \
+      --noise-rotation 0.5 --noise-seed 1 --out noisy.tum
+  ogmap run --data synthetic --format synthetic --frames 0:20 --poses noisy.tum --eval-poses exact.tum
   ogmap render --snapshot runs/kitchen/map.safetensors --pose pose.txt --intrinsics 146,146,80,60 \\
       --size 160x120 --out renders/
 """
+
+
+def optional_path(text: str | None) -> Path | None:
+    return Path(text) if text else None
 
 
 def command_run(args: argparse.Namespace) -> int:
@@ -30,10 +40,12 @@ def command_run(args: argparse.Namespace) -> int:
     data, format, dataset_options = dataset_source(args)
     options = RunOptions(data=data, format=format, frames=args.frames, stride=args.stride,
                          scale=args.scale, preset=args.preset, device=args.device, out=Path(args.out),
-                         dataset_options=dataset_options, progress=not args.quiet)
+                         dataset_options=dataset_options, progress=not args.quiet,
+                         poses=optional_path(args.poses), eval_poses=optional_path(args.eval_poses))
     results = run(options, config)
-    summary = {key: results[key] for key in ("streamed", "heldout", "processing_fps", "snapshot_bytes",
-                                             "anchors", "gaussians", "device", "resolution")}
+    summary = {key: results[key] for key in ("streamed", "heldout", "at_eval_poses", "processing_fps",
+                                             "snapshot_bytes", "anchors", "gaussians", "device", "resolution")
+               if key in results}
     print(json.dumps(summary, indent=2))
     print(f"wrote {Path(args.out) / 'results.json'}, previews and map.safetensors")
     return 0
@@ -97,7 +109,35 @@ def parser() -> argparse.ArgumentParser:
     run.add_argument("--device", default="auto", help="auto, cpu or cuda[:N] (default auto)")
     run.add_argument("--out", default="runs/latest", help="output folder (default runs/latest)")
     run.add_argument("--quiet", action="store_true", help="no progress bars")
+    poses = run.add_argument_group(
+        "poses", "TUM trajectory files ('timestamp tx ty tz qx qy qz qw', camera-to-world, OpenCV camera axes; "
+        "`ogmap trajectory` writes them). A frame's key in them is its timestamp (matched within 0.1 ms), or its "
+        "index in the source where the data gives none; a selected frame without a pose is an error before "
+        "mapping starts.")
+    poses.add_argument("--poses", metavar="FILE", help="map with these poses instead of the data's, e.g. odometry; "
+                       "views are then judged at them too")
+    poses.add_argument("--eval-poses", metavar="FILE",
+                       help="also judge every view at this (exact) trajectory's pose: results.json 'at_eval_poses', "
+                       "previews at_eval_poses_*.png")
     run.set_defaults(handler=command_run)
+    trajectory = commands.add_parser(
+        "trajectory", help="write a dataset's poses as a TUM trajectory, optionally moved by seeded noise",
+        description="Writes the poses of the frames `ogmap run` streams and holds out with the same --data, "
+        "--frames and --stride (--scale does not change poses) as a TUM trajectory: 'timestamp tx ty tz qx qy qz "
+        "qw' a line, camera-to-world with OpenCV camera axes; a frame's key is its timestamp, else its index in "
+        "the source. With --noise-translation or --noise-rotation every pose but the first is moved by seeded "
+        "Gaussian noise: odometry-like input for `ogmap run --poses`, to judge against the exact trajectory "
+        "with --eval-poses.")
+    add_dataset_arguments(trajectory)
+    trajectory.add_argument("--noise-translation", type=float, default=0.0, metavar="METRES",
+                            help="standard deviation of each camera centre's noise per world axis (default 0)")
+    trajectory.add_argument("--noise-rotation", type=float, default=0.0, metavar="DEGREES",
+                            help="standard deviation of the angle each camera turns about its centre, about a "
+                            "uniformly random axis (default 0)")
+    trajectory.add_argument("--noise-seed", type=int, default=0, metavar="N", help="seed of the noise (default 0)")
+    trajectory.add_argument("--out", required=True, metavar="FILE", help="the TUM file to write")
+    trajectory.add_argument("--quiet", action="store_true", help="no progress bar")
+    trajectory.set_defaults(handler=command_trajectory)
     render = commands.add_parser("render", help="render a snapshot from a pose")
     render.add_argument("--snapshot", required=True, help="map.safetensors written by ogmap run")
     render.add_argument("--pose", required=True, help="text file with a 4x4 camera-to-world matrix")

@@ -1,7 +1,13 @@
-"""``ogmap run``: stream a dataset through the mapper, then score it on streamed and held-out views."""
+"""``ogmap run``: stream a dataset through the mapper, then score it on streamed and held-out views.
+
+The mapper takes the data's poses, or a trajectory file's (``--poses``), and views are judged at the poses
+it was given; with ``--eval-poses`` they are judged a second time at a trajectory file's (the exact one),
+so a map made from noisy poses is also scored against the truth.
+"""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import resource
 import time
@@ -14,8 +20,10 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from ogmapping.cli.trajectory import check_covers
 from ogmapping.config import MapperConfig
 from ogmapping.frames.frame import Frame
+from ogmapping.frames.trajectory import read_tum
 from ogmapping.mapper import Mapper
 from ogmapping.quality.evaluation import evaluate_views, open_frames
 from ogmapping.runtime.machine import machine
@@ -23,6 +31,7 @@ from ogmapping.runtime.profile import resolve_device
 from ogmapping.warmup import warm_up
 
 MEMORY_LOG_INTERVAL = 100  # streamed frames between peak-memory records
+EVAL_POSES_KEY = "at_eval_poses"  # results.json's scores at --eval-poses, and their previews' name prefix
 STEP_STAGES = ("window", "decode", "rasterize", "loss", "backward", "statistics", "optimizer", "refine")
 
 
@@ -38,6 +47,8 @@ class RunOptions:
     out: Path = Path("runs/latest")
     dataset_options: dict = field(default_factory=dict)
     progress: bool = True
+    poses: Path | None = None  # TUM file to map with instead of the data's poses
+    eval_poses: Path | None = None  # TUM file to judge every view at as well
 
 
 def step_seconds(timings: dict[str, float]) -> float:
@@ -76,6 +87,10 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
     selection = frames.selection
     for line in frames.source.report():
         print(f"{frames.source.name}: {line}", flush=True)
+    mapped_poses = read_tum(options.poses) if options.poses is not None else None
+    eval_poses = read_tum(options.eval_poses) if options.eval_poses is not None else None
+    check_covers(frames, [t for t in (mapped_poses, eval_poses) if t is not None], options.progress)
+    frames = dataclasses.replace(frames, poses=mapped_poses)
     out = Path(options.out)
     out.mkdir(parents=True, exist_ok=True)
     warm_up_seconds = warm_up(device, config.backend)  # kernel loads, CUDA context: not mapping time
@@ -102,11 +117,18 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
     snapshot = mapper.snapshot()
     (out / "map.safetensors").write_bytes(snapshot)
     evaluation = evaluate_views(frames, config, mapper.render, out, options.progress, device)
+    at_eval_poses: dict[str, dict] = {}
+    if eval_poses is not None:
+        judged = evaluate_views(frames, config, mapper.render, out, options.progress, device, eval_poses.pose_of,
+                                f"{EVAL_POSES_KEY}_")
+        at_eval_poses = {EVAL_POSES_KEY: {**judged.splits, "poses": eval_poses.name}}
 
     stats = mapper.stats()
     sample = frames.load(selection.streamed[0])
     results = {
         **evaluation.splits,
+        **at_eval_poses,
+        "poses": mapped_poses.name if mapped_poses is not None else None,
         "processing_fps": len(selection.streamed) / mapping_seconds,
         "mapping_seconds": mapping_seconds,
         "warm_up_seconds": warm_up_seconds,

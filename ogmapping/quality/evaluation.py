@@ -1,14 +1,17 @@
 """Scoring a map on the streamed and held-out views: one loop for ``ogmap run`` and ``ogclient eval``.
 
-A ``FrameSet`` chooses frames as ``ogmap run`` does (``selection.select``), and ``evaluate_views``
-renders each chosen view through a render function (the local mapper, or the server), scores it
-against the frame as the mapper saw it and writes the same previews, so both commands report
-comparable numbers. No torch at import: the metrics (SSIM and LPIPS run on torch) are loaded when
-scoring starts, so the client's other commands can share the frame set and stay light.
+A ``FrameSet`` chooses frames as ``ogmap run`` does (``selection.select``), optionally with the poses
+of a trajectory file in place of the data's, and ``evaluate_views`` renders each chosen view through a
+render function (the local mapper, or the server) at the pose a function picks (the frame's own by
+default, or that of a second, exact trajectory), scores it against the frame as the mapper saw it and
+writes the same previews, so both commands report comparable numbers. No torch at import: the metrics
+(SSIM and LPIPS run on torch) are loaded when scoring starts, so the client's other commands can share
+the frame set and stay light.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -25,6 +28,7 @@ from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.preprocess import prepare, resize_frame
 from ogmapping.frames.selection import Selection, select
+from ogmapping.frames.trajectory import Trajectory
 
 if TYPE_CHECKING:
     import torch
@@ -42,18 +46,28 @@ class Rendering(Protocol):
 
 
 Render = Callable[[np.ndarray, Intrinsics], Rendering]  # (c2w, intrinsics) -> rendering
+Pose = Callable[[Frame], np.ndarray]  # the frame as the mapper saw it -> the c2w to render it at
 
 
 @dataclass
 class FrameSet:
-    """A dataset, which of its positions are streamed and held out, and the image scale."""
+    """A dataset, which of its positions are streamed and held out, the image scale, and ``poses`` to
+    give the frames instead of the data's (matched by ``trajectory.frame_key``)."""
 
     source: FrameSource
     selection: Selection
     scale: float = 1.0
+    poses: Trajectory | None = None
+
+    @property
+    def positions(self) -> list[int]:
+        """Every streamed and held-out position, in source order."""
+        return sorted(self.selection.streamed + self.selection.heldout)
 
     def load(self, position: int) -> Frame:
         frame = self.source[position]
+        if self.poses is not None:
+            frame = dataclasses.replace(frame, c2w=self.poses.pose_of(frame))
         return resize_frame(frame, self.scale) if self.scale != 1.0 else frame
 
 
@@ -116,13 +130,19 @@ class Evaluation:
         return self.renders / self.render_seconds if self.render_seconds > 0 else None
 
 
+def own_pose(frame: Frame) -> np.ndarray:
+    """Judge a view at the pose the mapper was given with it."""
+    return frame.c2w
+
+
 def evaluate_views(
     frames: FrameSet, config: MapperConfig, render: Render, out: Path | None = None, progress: bool = True,
-    device: str | torch.device = "cpu",
+    device: str | torch.device = "cpu", pose: Pose = own_pose, prefix: str = "",
 ) -> Evaluation:
-    """Render and score every streamed and held-out view; with ``out``, write previews of ``spread`` positions.
+    """Render every streamed and held-out view at ``pose(frame)`` and score it against the frame; with
+    ``out``, write previews of ``spread`` positions.
 
-    ``device`` is where LPIPS runs; previews are ``out/{split}_{position:06d}.png``.
+    ``device`` is where LPIPS runs; previews are ``out/{prefix}{split}_{position:06d}.png``.
     """
     from ogmapping.quality.metrics import Lpips, summarise
 
@@ -135,14 +155,16 @@ def evaluate_views(
     render_seconds, renders = 0.0, 0
     for split, positions in (("streamed", selection.streamed), ("heldout", selection.heldout)):
         per_frame = []
-        for position in tqdm(positions, desc=f"evaluating {split}", unit="frame", disable=not progress):
+        desc = f"evaluating {prefix}{split}"
+        for position in tqdm(positions, desc=desc, unit="frame", disable=not progress):
             truth = ground_truth(frames.load(position), config)
+            at = pose(truth)
             tic = time.perf_counter()
-            rendered = render(truth.c2w, truth.color_intrinsics)
+            rendered = render(at, truth.color_intrinsics)
             render_seconds += time.perf_counter() - tic
             renders += 1
             per_frame.append(score(rendered, truth, lpips))
             if out is not None and position in previews:
-                cv2.imwrite(str(out / f"{split}_{position:06d}.png"), side_by_side(rendered, truth))
+                cv2.imwrite(str(out / f"{prefix}{split}_{position:06d}.png"), side_by_side(rendered, truth))
         splits[split] = summarise(per_frame)
     return Evaluation(splits, renders, render_seconds, lpips.description)
