@@ -190,6 +190,8 @@ class Mapper:
         # The frame itself, at full precision, is the view every step trains on.
         view = (View.of(rgb, depth, frame.color_intrinsics, c2w, compiled=self.profile.compiled, correction=correction)
                 if iterations else None)
+        if correction is not None and view is not None:
+            self._track(view, correction, budget, start)
         loss, grown, done, stopped = self._optimise(iterations, view, is_keyframe, budget, start)
         with self.lock:
             pose = correction.report(c2w) if correction is not None else PoseReport.unrefined(frame.c2w)
@@ -265,6 +267,29 @@ class Mapper:
             return settings.frame_iterations
         renders_per_step = 1 + self.keyframes.window_size(view_is_newest=False)
         return min(settings.frame_iterations, max(1, settings.frame_renders // renders_per_step))
+
+    def _track(self, view: View, correction: PoseCorrection, budget: Budget, started: float) -> None:
+        """``poses.track_iterations`` steps on ``view``'s pose alone, the map held fixed (its Gaussians
+        decoded once, from the client's pose), until ``budget`` says stop."""
+        settings = self.config.poses
+        if not settings.track_iterations:
+            return
+        with self.lock, self._timed("track"):
+            with torch.no_grad():
+                rows = self._rows_in_view(view.c2w, view.intrinsics)
+                gaussians = generate(self.anchors, self._features, self.decoders, view.c2w[:3, 3], rows,
+                                     compiled=self.profile.compiled)
+            for _ in range(settings.track_iterations):
+                if budget.stop(started) is not None:
+                    return
+                camera = self._camera(view.pose(), view.intrinsics)
+                output = rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
+                                   gaussians.colors, camera.viewmat, camera.K, camera.width, camera.height,
+                                   backend=self.backend)
+                loss, _ = mapping_loss(output.color, output.depth, view.rgb, view.depth, gaussians.scales,
+                                       self.config.loss, view.ssim_reference, compiled=self.profile.compiled)
+                (loss + correction.prior(settings)).backward()
+                correction.step(settings)
 
     def _optimise(
         self, iterations: int, view: View | None, view_is_newest: bool, budget: Budget, started: float

@@ -122,8 +122,7 @@ def test_without_refinement_the_frame_reports_the_client_pose_and_snapshots_hold
 
 
 def test_refinement_keeps_the_first_keyframe_and_its_poses_survive_checkpoints_and_snapshots():
-    config = resolve("sparse-fast", overrides={**TINY, "poses.refine": "true", "keyframes.overlap_threshold": "0.99",
-                                                 "backend": "torch"})
+    config = resolve("sparse-fast", overrides={**TINY, "poses.refine": "true", "keyframes.overlap_threshold": "0.99"})
     mapper = Mapper(config)
     frames = _frames(4)
     results = [mapper.process(frame) for frame in frames]

@@ -117,3 +117,20 @@ def test_a_bad_trajectory_file_or_noise_is_a_one_line_error(tmp_path: Path, caps
     assert capsys.readouterr().err.strip() == ("ogmap: error: translation noise must be a finite number >= 0 metres, "
                                                "got -1.0")
     assert not (tmp_path / "t.tum").exists()
+
+
+def test_a_refining_run_writes_its_trajectory_and_scores_its_poses_against_the_exact_ones(runs: Path) -> None:
+    out = runs / "refined"
+    assert ogmap("run", *DATA, *FAST, "--set", "poses.refine=true", "--poses", runs / "noisy.tum",
+                 "--eval-poses", runs / "exact.tum", "--out", out) == 0
+    refinement = results(out)["pose_refinement"]
+    refined, noisy = read_tum(out / refinement["trajectory"]), read_tum(runs / "noisy.tum")
+    assert refined.keys.tolist() == noisy.keys[:5].tolist()  # the streamed frames
+    # The first keyframe stays the client's (up to the mapper's float32).
+    np.testing.assert_allclose(refined.poses[0], noisy.poses[0], rtol=0, atol=1e-6)
+    corrections, _ = pose_errors(refined.poses, noisy.poses[:5])
+    assert refinement["per_frame"]["correction_cm"] == pytest.approx((100 * corrections).tolist())
+    assert refinement["max_correction_cm"] > 0 and refinement["clamped_frames"] == 0
+    assert refinement["given_error_cm"] == pytest.approx(
+        100 * pose_errors(noisy.poses[:5], read_tum(runs / "exact.tum").poses[:5])[0].mean())
+    assert len(refinement["per_frame"]["refined_error_cm"]) == 5

@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from ogmapping.cli.pose_log import PoseLog
 from ogmapping.cli.trajectory import check_covers
 from ogmapping.config import MapperConfig
 from ogmapping.frames.frame import Frame
@@ -31,6 +32,7 @@ from ogmapping.runtime.profile import resolve_device
 from ogmapping.warmup import warm_up
 
 MEMORY_LOG_INTERVAL = 100  # streamed frames between peak-memory records
+REFINED_POSES = "refined.tum"  # with poses.refine: the streamed frames' refined poses, keyframes' as they ended
 EVAL_POSES_KEY = "at_eval_poses"  # results.json's scores at --eval-poses, and their previews' name prefix
 STEP_STAGES = ("window", "decode", "rasterize", "loss", "backward", "statistics", "optimizer", "refine")
 
@@ -99,12 +101,15 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
     mapper = Mapper(config, device)
 
     keyframes = 0
+    pose_log = PoseLog() if config.poses.refine else None
     start = time.perf_counter()
     memory_log = []
     progress = tqdm(total=len(selection.streamed), desc="mapping", unit="frame", disable=not options.progress)
     for count, frame in enumerate(prefetched(frames.load, selection.streamed), start=1):
         result = mapper.process(frame)
         keyframes += result.keyframe
+        if pose_log is not None:
+            pose_log.add(frame, result)
         progress.set_postfix(anchors=result.anchors, keyframes=keyframes, refresh=False)
         progress.update()
         if count % MEMORY_LOG_INTERVAL == 0:
@@ -123,11 +128,17 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
                                 f"{EVAL_POSES_KEY}_")
         at_eval_poses = {EVAL_POSES_KEY: {**judged.splits, "poses": eval_poses.name}}
 
+    refinement: dict[str, dict] = {}
+    if pose_log is not None:
+        pose_log.settle(mapper.keyframe_poses())
+        pose_log.write(out / REFINED_POSES)
+        refinement = {"pose_refinement": {**pose_log.summary(eval_poses), "trajectory": REFINED_POSES}}
     stats = mapper.stats()
     sample = frames.load(selection.streamed[0])
     results = {
         **evaluation.splits,
         **at_eval_poses,
+        **refinement,
         "poses": mapped_poses.name if mapped_poses is not None else None,
         "processing_fps": len(selection.streamed) / mapping_seconds,
         "mapping_seconds": mapping_seconds,

@@ -155,6 +155,9 @@ class PosesConfig:
     refine: bool = False
     translation_lr: float = _learning_rate(0.001)  # metres per Adam step
     rotation_lr: float = _learning_rate(0.001)  # radians per Adam step
+    # Steps on the frame's pose alone, against the map as it stands, before its mapping steps: a few
+    # mapping steps move a pose little, and meanwhile pull the map towards the pose's error.
+    track_iterations: int = ranged(0, 0)
     # Weight of the prior that holds a correction near the client's pose: prior x ((|t| / max_translation)^2
     # + (|r| / max_rotation)^2) joins each view's loss.
     prior: float = _weight(0.1)
