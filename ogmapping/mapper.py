@@ -14,6 +14,7 @@ device runs on it, and device tensors cross it only through ``handed_in`` and ``
 
 from __future__ import annotations
 
+import copy
 import threading
 import time
 from collections.abc import Callable
@@ -24,10 +25,11 @@ import numpy as np
 import torch
 
 from ogmapping.config import ConfigBounds, MapperConfig
+from ogmapping.config.sections import MAX_SCALED_OFFSETS
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.geometry import intrinsics_matrix, world_to_camera
-from ogmapping.frames.preprocess import prepare
+from ogmapping.frames.preprocess import prepare, resize_frame
 from ogmapping.model.decoders import Decoders
 from ogmapping.model.encoding import HashGridEncoding, feature_dim, initial_anchor_features
 from ogmapping.model.gaussians import GaussianSet, anchors_in_view, decoded_logits, generate, generate_window
@@ -89,7 +91,8 @@ class Mapper:
     """One session's map and the optimisation that builds it."""
 
     def __init__(self, config: MapperConfig, device: str | torch.device = "cpu") -> None:
-        self.config = config
+        # A copy: the first frame may resolve values that depend on its resolution (``_fit_to``).
+        self.config = copy.deepcopy(config)
         self.profile = execution_profile(device, config.backend, config.model.encoding)
         self.stream = session_stream(self.device)
         self.lock = threading.RLock()
@@ -97,8 +100,8 @@ class Mapper:
         # would otherwise interleave draws from torch's global one (and reseed it for each other).
         self.generator = torch.Generator().manual_seed(config.seed)
         with on_stream(self.stream):
-            self._build_model(config)
-        self.keyframes = KeyframeSet(config.keyframes, config.seed, self._footprint)
+            self._build_model(self.config)
+        self.keyframes = KeyframeSet(self.config.keyframes, config.seed, self._footprint)
         self.frames = 0
         self.iterations = 0
         # Sum of the mapped frames' camera centres (float64): their mean is where a .ply export
@@ -168,6 +171,7 @@ class Mapper:
         start = time.perf_counter()
         with self._timed("preprocess"):
             frame = prepare(frame, self.config.octree.depth_min, self.config.octree.depth_max)
+            self._fit_to(frame.color_intrinsics)
             rgb = torch.as_tensor(frame.rgb, dtype=self.profile.precision, device=self.device)
             depth = torch.as_tensor(frame.depth, dtype=self.profile.precision, device=self.device)
             c2w = torch.as_tensor(frame.c2w, dtype=self.profile.precision, device=self.device)
@@ -191,7 +195,7 @@ class Mapper:
         view = (View.of(rgb, depth, frame.color_intrinsics, c2w, compiled=self.profile.compiled, correction=correction)
                 if iterations else None)
         if correction is not None and view is not None:
-            self._track(view, correction, budget, start)
+            self._track(frame, correction, budget, start)
         loss, grown, done, stopped = self._optimise(iterations, view, is_keyframe, budget, start)
         with self.lock:
             pose = correction.report(c2w) if correction is not None else PoseReport.unrefined(frame.c2w)
@@ -210,6 +214,22 @@ class Mapper:
             stopped=stopped,
             pose=pose,
         )
+
+    def _fit_to(self, intrinsics: Intrinsics) -> None:
+        """On the first frame, with ``model.offsets_by_resolution``: rebuild the (still empty) model with
+        ``n_offsets`` times the frame's step multiple, drawn afresh from the seed, and keep the count in
+        the config. A multiple of 1 keeps the model as built, so such maps are exactly as without it."""
+        model = self.config.model
+        if not model.offsets_by_resolution or self.frames or len(self.anchors):
+            return
+        model.offsets_by_resolution = False
+        multiple = step_multiple(self.config.keyframes, intrinsics)
+        if multiple == 1:
+            return
+        model.n_offsets = min(model.n_offsets * multiple, MAX_SCALED_OFFSETS)
+        self.generator.manual_seed(self.config.seed)
+        with self.lock:
+            self._build_model(self.config)
 
     def _add_coarse_anchors(self, codes: torch.Tensor, rgb: torch.Tensor, depth: torch.Tensor,
                             intrinsics: Intrinsics, c2w: torch.Tensor) -> None:
@@ -268,13 +288,19 @@ class Mapper:
         renders_per_step = 1 + self.keyframes.window_size(view_is_newest=False)
         return min(settings.frame_iterations, max(1, settings.frame_renders // renders_per_step))
 
-    def _track(self, view: View, correction: PoseCorrection, budget: Budget, started: float) -> None:
-        """``poses.track_iterations`` steps on ``view``'s pose alone, the map held fixed (its Gaussians
-        decoded once, from the client's pose), until ``budget`` says stop."""
+    def _track(self, frame: Frame, correction: PoseCorrection, budget: Budget, started: float) -> None:
+        """``poses.track_iterations`` steps on the pose of ``frame`` (prepared) alone, its images at
+        ``poses.track_scale``, the map held fixed (its Gaussians decoded once, from the client's pose),
+        until ``budget`` says stop."""
         settings = self.config.poses
         if not settings.track_iterations:
             return
         with self.lock, self._timed("track"):
+            frame = resize_frame(frame, settings.track_scale)
+            view = View.of(torch.as_tensor(frame.rgb, dtype=self.profile.precision, device=self.device),
+                           torch.as_tensor(frame.depth, dtype=self.profile.precision, device=self.device),
+                           frame.color_intrinsics, correction.delta.new_tensor(frame.c2w),
+                           compiled=self.profile.compiled, correction=correction)
             with torch.no_grad():
                 rows = self._rows_in_view(view.c2w, view.intrinsics)
                 gaussians = generate(self.anchors, self._features, self.decoders, view.c2w[:3, 3], rows,

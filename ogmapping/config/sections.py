@@ -24,6 +24,7 @@ Window = Literal["dynamic", "random", "overlap", "coverage"]  # the paper's, or 
 Growth = Literal["anchor", "error", "none"]  # the paper's progressive growth, Scaffold-GS's error-based, none
 
 MAX_OCTREE_LEVEL = 4
+MAX_SCALED_OFFSETS = 32  # model.offsets_by_resolution never makes more Gaussians per anchor than this
 # Pixels per axis between allocation samples: wider than any image samples at most one pixel; beyond int64
 # torch's slicing fails.
 MAX_ALLOCATION_STRIDE = 1 << 16
@@ -48,6 +49,12 @@ def _learning_rate(default: float) -> Any:
 class ModelConfig:
     encoding: Encoding = "hash"
     n_offsets: int = ranged(5, 1)  # Scaffold-GS uses 10; 5 renders as well here at half the cost
+    # Gaussians per anchor scale with the image: n_offsets times the first frame's step multiple
+    # (``keyframes.steps_reference_pixels``; x1 up to about 900x510, x2 at 1200x680), at most
+    # MAX_SCALED_OFFSETS. An anchor's Gaussians stand for a fixed patch of surface, which a finer image
+    # sees as more pixels ("Gaussians by resolution"). Resolved when the first frame arrives: the map
+    # is then built with the count, and the config keeps it (with this cleared).
+    offsets_by_resolution: bool = False
     feature_dim: int = ranged(32, 1)
     hidden_dim: int = ranged(32, 1)
     hash_levels: int = ranged(8, 1)
@@ -158,6 +165,7 @@ class PosesConfig:
     # Steps on the frame's pose alone, against the map as it stands, before its mapping steps: a few
     # mapping steps move a pose little, and meanwhile pull the map towards the pose's error.
     track_iterations: int = ranged(0, 0)
+    track_scale: float = ranged(0.5, 0, 1, open_low=True)  # image scale of those steps: a quarter of the pixels
     # Weight of the prior that holds a correction near the client's pose: prior x ((|t| / max_translation)^2
     # + (|r| / max_rotation)^2) joins each view's loss.
     prior: float = _weight(0.1)

@@ -1,0 +1,48 @@
+"""``model.offsets_by_resolution``: Gaussians per anchor times the first frame's step multiple."""
+
+from __future__ import annotations
+
+import torch
+
+from ogmapping.config import resolve
+from ogmapping.mapper import Mapper
+from ogmapping.persist import snapshot
+from ogmapping.quality.evaluation import open_frames
+
+TINY = {"keyframes.first_iterations": "4", "keyframes.iterations": "2"}
+
+
+def _frames(count: int):
+    frames = open_frames("synthetic", "synthetic", f"0:{count}", 1, 0.25, n_frames=40)  # 80x60
+    return [frames.load(position) for position in range(count)]
+
+
+def test_a_multiple_of_one_maps_exactly_as_without_it():
+    frames = _frames(2)
+    maps = []
+    for scaled in ("false", "true"):
+        mapper = Mapper(resolve("sparse-fast", overrides={**TINY, "model.offsets_by_resolution": scaled}))
+        for frame in frames:
+            mapper.process(frame)
+        assert mapper.config.model.n_offsets == 5 and not mapper.config.model.offsets_by_resolution
+        maps.append(mapper.state().tensors)
+    assert maps[0].keys() == maps[1].keys()
+    assert all(torch.equal(value, maps[1][name]) for name, value in maps[0].items())
+
+
+def test_a_finer_first_frame_builds_more_gaussians_per_anchor_and_the_config_keeps_the_count():
+    # 80x60 against a reference of 1200 pixels: a linear multiple of sqrt(4) = 2.
+    overrides = {**TINY, "model.offsets_by_resolution": "true", "keyframes.steps_reference_pixels": "1200"}
+    config = resolve("sparse-fast", overrides=overrides)
+    mapper = Mapper(config)
+    for frame in _frames(2):
+        mapper.process(frame)
+    assert mapper.anchors.offsets.shape[1] == 10 and mapper.decoders.n == 10
+    assert config.model.n_offsets == 5 and config.model.offsets_by_resolution  # the caller's config is left alone
+    restored = Mapper.restore(mapper.snapshot())
+    assert restored.config.model.n_offsets == 10 and not restored.config.model.offsets_by_resolution
+    assert snapshot.decode(mapper.snapshot()).tensors["anchors.offsets"].shape[1] == 10
+    again = Mapper(config)
+    for frame in _frames(2):
+        again.process(frame)
+    assert torch.equal(again.anchors.offsets, mapper.anchors.offsets)  # drawn afresh from the seed: the same map
