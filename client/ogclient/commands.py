@@ -244,6 +244,9 @@ def stats(ctx: Context, args: argparse.Namespace) -> int:
     data = {field.name: getattr(response, field.name) for field in response.DESCRIPTOR.fields}
     data["anchors_per_level"] = list(response.anchors_per_level)
     data["timings"] = dict(response.timings)
+    poses = data.pop("poses")
+    if response.HasField("poses"):  # a session that refines poses
+        data["poses"] = {field.name: getattr(poses, field.name) for field in poses.DESCRIPTOR.fields}
     data["engine"] = json.loads(data.pop("engine_json") or "{}")
     data["config"] = json.loads(data.pop("config_json") or "{}")
     print(json.dumps(data, indent=2))

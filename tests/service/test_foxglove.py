@@ -82,6 +82,10 @@ def test_foxglove_client_sees_render_transform_and_point_cloud(tmp_path) -> None
         assert transform.child_frame_id == f"{session.session_id}/camera"
         assert tuple(np.round([transform.translation.x, transform.translation.y, transform.translation.z], 6)) in poses
 
+    _, path = received.messages[prefix + TOPIC_TRAJECTORY][-1]
+    sent = [tuple(np.array(frame.c2w).reshape(4, 4)[:3, 3]) for frame in frames]
+    assert path.poses and path_positions(path) == sent[: len(path.poses)]
+
     width, height = frames[0].color_intrinsics.width, frames[0].color_intrinsics.height
     _, render = received.messages[prefix + recording.TOPIC_RENDER][-1]
     assert received.channels[prefix + recording.TOPIC_RENDER].schema_name == "foxglove.CompressedImage"

@@ -4,6 +4,7 @@ refines them the same, and ogclient writes either trajectory in TUM format."""
 
 from __future__ import annotations
 
+import json
 import logging
 import urllib.request
 from pathlib import Path
@@ -36,7 +37,7 @@ def same_pose(a: np.ndarray, b: np.ndarray) -> bool:
     return bool(np.array_equal(a[:3, 3], b[:3, 3]) and min(np.abs(qa - qb).max(), np.abs(qa + qb).max()) < 1e-12)
 
 
-def test_a_refining_session_reports_records_and_replays_its_corrections(tmp_path: Path, caplog) -> None:
+def test_a_refining_session_reports_records_and_replays_its_corrections(tmp_path: Path, caplog, capsys) -> None:
     configured = settings(tmp_path)
     configured.access.metrics_address = "127.0.0.1:0"
     frames = messages(scene())
@@ -47,6 +48,10 @@ def test_a_refining_session_reports_records_and_replays_its_corrections(tmp_path
         stats = running.stub.GetStats(pb.GetStatsRequest(session_id=session.session_id), metadata=session.metadata())
         with urllib.request.urlopen(f"http://127.0.0.1:{running.server.metrics.port}/metrics", timeout=5) as page:
             scraped = page.read().decode()
+        session.save(tmp_path / "session.json", running.address)
+        capsys.readouterr()
+        assert ogclient_main(["--server", running.address, "stats", "--session", str(tmp_path / "session.json")]) == 0
+        printed = json.loads(capsys.readouterr().out)["poses"]
         running.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id), metadata=session.metadata())
         path = running.record_dir / credentials.recording
 
@@ -67,6 +72,11 @@ def test_a_refining_session_reports_records_and_replays_its_corrections(tmp_path
         keyframes = sum(ack.keyframe for ack in acks)
         assert stats.HasField("poses") and stats.poses.refined_keyframes == keyframes - 1
         assert 0 < stats.poses.max_correction_m <= 1e-4 * (1 + 1e-5) and stats.poses.clamped_keyframes >= 1
+        assert printed == {"refined_keyframes": keyframes - 1, "mean_correction_m": stats.poses.mean_correction_m,
+                           "max_correction_m": stats.poses.max_correction_m,
+                           "mean_correction_deg": stats.poses.mean_correction_deg,
+                           "max_correction_deg": stats.poses.max_correction_deg,
+                           "clamped_keyframes": stats.poses.clamped_keyframes}
 
         # The recording keeps both poses: the frames as sent, each ack's refined pose and a Foxglove transform.
         recorded = recording.load(path)
@@ -99,6 +109,9 @@ def test_without_refinement_acks_and_stats_carry_no_poses(tmp_path: Path, capsys
         session = SessionRef.from_credentials(credentials)
         acks = list(running.stub.StreamFrames(iter(frames), metadata=session.stream_metadata(), timeout=60))
         stats = running.stub.GetStats(pb.GetStatsRequest(session_id=session.session_id), metadata=session.metadata())
+        session.save(tmp_path / "session.json", running.address)
+        assert ogclient_main(["--server", running.address, "stats", "--session", str(tmp_path / "session.json")]) == 0
+        assert "poses" not in json.loads(capsys.readouterr().out)
         running.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id), metadata=session.metadata())
         path = running.record_dir / credentials.recording
     assert acks and not any(ack.HasField("pose_correction") for ack in acks)
