@@ -128,3 +128,22 @@ def test_a_bad_poses_value_is_invalid_argument(tmp_path: Path, key: str, value: 
         running.stub.CreateSession(pb.CreateSessionRequest(preset=PRESET, overrides={key: value}))
     assert caught.value.code() == grpc.StatusCode.INVALID_ARGUMENT
     assert key in caught.value.details() and "\n" not in caught.value.details()
+
+
+def test_ogclient_stream_writes_the_refined_trajectory(tmp_path: Path, capsys) -> None:
+    dataset = ["--data", "synthetic", "--format", "synthetic", "--frames", "0:4", "--scale", "0.25", "--quiet",
+               "--preset", PRESET]
+    with serving(settings(tmp_path)) as running:
+        base = ["--server", running.address, "stream", *dataset, "--close", "--session-out", str(tmp_path / "s.json")]
+        streamed = tmp_path / "streamed.tum"
+        refine = [item for key, value in REFINE.items() for item in ("--set", f"{key}={value}")]
+        assert ogclient_main([*base, *refine, "--trajectory", str(streamed)]) == 0
+        path = running.record_dir / f"{SessionRef.load(tmp_path / 's.json').session_id}.mcap"
+        assert ogclient_main(["trajectory", str(path), "--out", str(tmp_path / "recorded.tum")]) == 0
+        lines = streamed.read_text().splitlines()
+        assert len(lines) == 2 + 4 and lines[2:] == (tmp_path / "recorded.tum").read_text().splitlines()[2:]
+
+        plain = tmp_path / "plain.tum"
+        capsys.readouterr()
+        assert ogclient_main([*base, "--set", "keyframes.iterations=2", "--trajectory", str(plain)]) == 2
+        assert "does not refine poses: poses.refine" in capsys.readouterr().err and not plain.exists()
