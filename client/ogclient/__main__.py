@@ -25,6 +25,7 @@ typical session:
   ogclient close --session kitchen.json
   ogclient replay recordings/<session>.mcap --close
   ogclient repair-recording recordings/<session>.mcap repaired.mcap   # after a server crash
+  ogclient trajectory recordings/<session>.mcap --out refined.tum   # poses.refine; --client: the sent poses
 
 Session commands read the credentials file written by create/stream/replay/restore (--session-out,
 default session.json). --server defaults to $OGMAP_SERVER or 127.0.0.1:50051. A server with API keys
@@ -42,6 +43,12 @@ def add_realtime(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--realtime", action="store_true",
                         help="a realtime session: frames that arrive while the mapper is busy are skipped (recorded "
                              "and acknowledged as skipped, never mapped) instead of holding the sender back")
+
+
+def add_trajectory(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--trajectory", metavar="FILE",
+                        help="a session that refines poses (poses.refine): write the refined pose of each mapped "
+                             "frame to FILE as a TUM trajectory")
 
 
 def add_session(parser: argparse.ArgumentParser, required: bool = True) -> None:
@@ -98,6 +105,7 @@ def parser() -> argparse.ArgumentParser:
                              "acknowledged in between (default 8; 0: stop at the first)")
     stream.add_argument("--close", action="store_true", help="close the session when done")
     stream.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_trajectory(stream)
     stream.set_defaults(handler=commands.stream)
 
     replay = sub.add_parser(
@@ -110,6 +118,7 @@ def parser() -> argparse.ArgumentParser:
     add_session_out(replay)
     replay.add_argument("--close", action="store_true", help="close the session when done")
     replay.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_trajectory(replay)
     replay.set_defaults(handler=commands.replay)
 
     repair = sub.add_parser(
@@ -121,6 +130,17 @@ def parser() -> argparse.ArgumentParser:
     repair.add_argument("recording", help="the .mcap file to read")
     repair.add_argument("out", help="the .mcap file to write")
     repair.set_defaults(handler=commands.repair_recording, offline=True)
+
+    trajectory = sub.add_parser(
+        "trajectory", help="write a recording's refined (or the client's) trajectory in TUM format (no server needed)",
+        description="Write the refined camera poses a recording holds (a session with poses.refine acknowledges "
+        "each mapped frame with its refined pose), or with --client the poses the client sent, as a TUM trajectory: "
+        "`timestamp tx ty tz qx qy qz qw` a line, keyed by the frame's timestamp, else its index.",
+    )
+    trajectory.add_argument("recording", help="an .mcap file from the server's record dir (crashed ones work too)")
+    trajectory.add_argument("--out", required=True, help="the TUM file to write")
+    trajectory.add_argument("--client", action="store_true", help="the client's poses, not the refined ones")
+    trajectory.set_defaults(handler=commands.trajectory, offline=True)
 
     render = sub.add_parser(
         "render", help="render a pose to PNGs",

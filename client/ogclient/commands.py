@@ -17,11 +17,12 @@ from ogapi.v1 import mapping_pb2 as pb
 from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 
 from ogclient import replay as replaying
+from ogclient import trajectory as trajectories
 from ogclient.connection import ClientError, SessionRef
 from ogclient.evaluation import evaluate, snapshot_bytes
 from ogclient.messages import frame_to_proto, intrinsics_to_proto
 from ogclient.resuming import Backoff, stream_resuming
-from ogclient.streaming import paced, stream_frames
+from ogclient.streaming import StreamResult, paced, stream_frames
 from ogmapping.cli.options import dataset_source, open_frame_set, parse_intrinsics
 from ogmapping.config import load_file, parse_override_args, resolve
 from ogmapping.frames.camera import validate_pose
@@ -111,16 +112,36 @@ def stream(ctx: Context, args: argparse.Namespace) -> int:
     if args.resume:
         positions = resumed_positions(ctx, session, positions)
 
+    keys: dict[int, float] = {}  # Frame.index -> the frame's key in a TUM file
+
+    def load(position: int) -> pb.Frame:
+        message = frame_to_proto(frame_set.load(position), encoding)
+        keys[message.index] = trajectories.frame_key(message)
+        return message
+
     def after(last_index: int | None) -> Iterator[pb.Frame]:
         """The selected frames after the last one the session holds (ogclient sets Frame.index to the position)."""
         chosen = [position for position in positions if last_index is None or position > last_index]
-        return paced((frame_to_proto(frame_set.load(position), encoding) for position in chosen), args.fps)
+        return paced((load(position) for position in chosen), args.fps)
 
     result = stream_resuming(ctx.stub, session, after, total=len(positions), progress=not args.quiet,
                              backoff=Backoff(retries=args.retries))
     print(result.summary())
     close_if_asked(ctx, session, args)
+    write_refined(args.trajectory, keys, result)
     return 1 if result.rejected else 0
+
+
+def write_refined(path: str | None, keys: dict[int, float], result: StreamResult) -> None:
+    """--trajectory: the refined pose of every frame acknowledged with one, in TUM format."""
+    if not path:
+        return
+    poses = trajectories.refined_poses(keys, result.acks)
+    if not poses.keys:
+        raise ClientError(f"no frame's ack carries a refined pose (the session does not refine poses: "
+                          f"poses.refine); {path} was not written")
+    poses.write(path, "refined camera-to-world poses of the frames the session mapped")
+    print(f"wrote {path}: {len(poses.keys)} refined poses")
 
 
 def replay(ctx: Context, args: argparse.Namespace) -> int:
@@ -139,7 +160,18 @@ def replay(ctx: Context, args: argparse.Namespace) -> int:
                            total=len(recorded.frames), progress=not args.quiet)
     print(result.summary())
     close_if_asked(ctx, session, args)
+    write_refined(args.trajectory, {frame.index: trajectories.frame_key(frame) for _, frame in recorded.frames},
+                  result)
     return 1 if result.rejected else 0
+
+
+def trajectory(args: argparse.Namespace) -> int:
+    """Needs no server: a recording's refined trajectory (or with --client the client's), in TUM format."""
+    poses = trajectories.from_recording(recording.load(args.recording), args.recording, args.client)
+    whose = "client's" if args.client else "refined"
+    poses.write(args.out, f"the {whose} camera-to-world poses recorded in {Path(args.recording).name}")
+    print(f"wrote {args.out}: {len(poses.keys)} {whose} poses")
+    return 0
 
 
 def repair_recording(args: argparse.Namespace) -> int:
@@ -212,6 +244,9 @@ def stats(ctx: Context, args: argparse.Namespace) -> int:
     data = {field.name: getattr(response, field.name) for field in response.DESCRIPTOR.fields}
     data["anchors_per_level"] = list(response.anchors_per_level)
     data["timings"] = dict(response.timings)
+    poses = data.pop("poses")
+    if response.HasField("poses"):  # a session that refines poses
+        data["poses"] = {field.name: getattr(poses, field.name) for field in poses.DESCRIPTOR.fields}
     data["engine"] = json.loads(data.pop("engine_json") or "{}")
     data["config"] = json.loads(data.pop("config_json") or "{}")
     print(json.dumps(data, indent=2))

@@ -31,10 +31,14 @@ TOPIC_COLOR = "/camera/color"  # foxglove.CompressedImage
 TOPIC_DEPTH = "/camera/depth"  # foxglove.CompressedImage, 16-bit PNG
 TOPIC_CALIBRATION = "/camera/calibration"  # foxglove.CameraCalibration
 TOPIC_TRANSFORM = "/tf"  # foxglove.FrameTransform, world -> camera
+# foxglove.FrameTransform, world -> camera_refined: with poses.refine, the refined pose of each mapped
+# frame (its ack's pose_correction.refined_c2w), written with the ack
+TOPIC_REFINED_TRANSFORM = "/tf_refined"
 TOPIC_RENDER = "/ogmap/render"  # foxglove.CompressedImage, the map rendered from a keyframe's pose (JPEG)
 TOPIC_MAP = "/ogmap/map"  # foxglove.PointCloud, the map's Gaussians (centres, RGBA) as of that keyframe
 WORLD_FRAME = "world"
 CAMERA_FRAME = "camera"
+REFINED_CAMERA_FRAME = "camera_refined"
 
 
 class RecordingError(ValueError):

@@ -1,4 +1,5 @@
-"""Prometheus metrics (``metrics_address``): sessions, frames, mapping rate, queues, ack latency, statuses.
+"""Prometheus metrics (``metrics_address``): sessions, frames, mapping rate, queues, ack latency, statuses,
+clamped pose corrections.
 
 Counters that the sessions already keep (frames) are read from the registry when scraped, so a
 scrape costs nothing while nobody scrapes; what only a call sees (statuses, ack latency) is counted
@@ -80,6 +81,9 @@ class Metrics:
                                  ["code"], registry=self.collectors)
         self._latency = Histogram("ogserver_ack_latency_seconds", "From reading a frame to its ack",
                                   buckets=LATENCY_BUCKETS, registry=self.collectors)
+        self._clamped = Counter("ogserver_clamped_pose_corrections",
+                                "Frames whose ack reports a pose correction clamped at the bound "
+                                "(poses.max_translation / max_rotation)", registry=self.collectors)
 
     def call(self, method: str, code: grpc.StatusCode) -> None:
         self._calls.labels(method, code.name).inc()
@@ -87,6 +91,8 @@ class Metrics:
     def ack(self, ack: pb.FrameAck) -> None:
         if ack.accepted:
             self._latency.observe(ack.latency_seconds)
+            if ack.pose_correction.clamped:
+                self._clamped.inc()
         else:
             self._refusals.labels(ack.error.code_name).inc()
 

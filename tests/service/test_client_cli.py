@@ -14,8 +14,8 @@ from ogclient.commands import overrides_from_args
 from ogserver import healthcheck
 from ogserver.recording.recorder import Recorder
 
-COMMANDS = ["create", "stream", "replay", "repair-recording", "render", "snapshot", "restore", "stats", "eval", "list",
-            "close"]
+COMMANDS = ["create", "stream", "replay", "repair-recording", "trajectory", "render", "snapshot", "restore", "stats",
+            "eval", "list", "close"]
 
 
 def free_port() -> int:

@@ -15,10 +15,11 @@ import pytest
 from ogapi import recording
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.connection import SessionRef
-from ogclient.streaming import stream_frames
+from ogclient.streaming import StreamResult, stream_frames
 from ogserver import apikeys
 from ogserver.live.port_access import port_access
-from ogserver.live.publisher import LIVE_TOPICS, session_prefix
+from ogserver.live.publisher import LIVE_TOPICS, REFINED_TOPICS, session_prefix
+from ogserver.live.views import TOPIC_REFINED_TRAJECTORY, TOPIC_TRAJECTORY
 from ogserver.settings import load
 
 from .certificates import make_ca
@@ -46,15 +47,17 @@ def live_settings(tmp_path):
     return configured
 
 
-def watch_while_streaming(running, session: SessionRef, url: str, topics: list[str], frames):
-    """What a client at ``url`` receives of the session's ``topics`` while ``frames`` are streamed."""
+def watch_while_streaming(running, session: SessionRef, url: str, topics: list[str], frames,
+                          acks: StreamResult | None = None):
+    """What a client at ``url`` receives of the session's ``topics`` while ``frames`` are streamed (their
+    acks into ``acks``, when given)."""
     fox, prefix = running.server.live.foxglove, session_prefix(session.session_id)
 
     async def watch():
         watcher = asyncio.create_task(foxglove_client.watch(url, prefix, topics, {prefix + t for t in topics}, 30))
         # Stream once the client has subscribed to every topic of the session.
         await asyncio.to_thread(wait_for, lambda: all(fox.wants(prefix + topic) for topic in topics))
-        await asyncio.to_thread(stream_frames, running.stub, session, frames, None, False)
+        await asyncio.to_thread(stream_frames, running.stub, session, frames, None, False, acks)
         return await watcher
 
     return asyncio.run(watch())
@@ -78,6 +81,10 @@ def test_foxglove_client_sees_render_transform_and_point_cloud(tmp_path) -> None
         assert transform.parent_frame_id == f"{session.session_id}/world"
         assert transform.child_frame_id == f"{session.session_id}/camera"
         assert tuple(np.round([transform.translation.x, transform.translation.y, transform.translation.z], 6)) in poses
+
+    _, path = received.messages[prefix + TOPIC_TRAJECTORY][-1]
+    sent = [tuple(np.array(frame.c2w).reshape(4, 4)[:3, 3]) for frame in frames]
+    assert path.poses and path_positions(path) == sent[: len(path.poses)]
 
     width, height = frames[0].color_intrinsics.width, frames[0].color_intrinsics.height
     _, render = received.messages[prefix + recording.TOPIC_RENDER][-1]
@@ -105,6 +112,37 @@ def test_foxglove_client_sees_render_transform_and_point_cloud(tmp_path) -> None
     recording.repair(path, repaired)
     maps = list(recording.read_messages(repaired, {recording.TOPIC_MAP}))
     assert maps and all(0 < len(decode_points(type(cloud).FromString(item.data))) <= MAX_POINTS for item in maps)
+
+
+def path_positions(message) -> list[tuple[float, float, float]]:
+    return [(pose.position.x, pose.position.y, pose.position.z) for pose in message.poses]
+
+
+def test_a_refining_session_shows_both_trajectories(tmp_path) -> None:
+    frames = messages(scene())
+    refine = {**TINY, "poses.refine": "true", "poses.translation_lr": "0.01"}
+    with serving(live_settings(tmp_path)) as running:
+        session = SessionRef.from_credentials(running.stub.CreateSession(create_request(refine)))
+        prefix = session_prefix(session.session_id)
+        url = f"ws://127.0.0.1:{running.server.live.foxglove.port}"
+        acks = StreamResult()
+        topics = [TOPIC_TRAJECTORY, *REFINED_TOPICS]
+        received = watch_while_streaming(running, session, url, topics, frames, acks)
+        running.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id), metadata=session.metadata())
+
+    client = [tuple(np.array(frame.c2w).reshape(4, 4)[:3, 3]) for frame in frames]
+    refined = [tuple(np.array(ack.pose_correction.refined_c2w).reshape(4, 4)[:3, 3]) for ack in acks.acks]
+    assert client != refined, "refinement moved no pose"
+    for topic, poses in ((TOPIC_TRAJECTORY, client), (TOPIC_REFINED_TRAJECTORY, refined)):
+        assert received.channels[prefix + topic].schema_name == "foxglove.PosesInFrame"
+        _, path = received.messages[prefix + topic][-1]
+        assert path.frame_id == f"{session.session_id}/world"
+        shown = path_positions(path)
+        assert shown and shown == poses[: len(shown)], "the path is not the session's poses so far, in order"
+    transforms = [message for _, message in received.messages[prefix + recording.TOPIC_REFINED_TRANSFORM]]
+    assert transforms and all(transform.child_frame_id == f"{session.session_id}/camera_refined"
+                              for transform in transforms)
+    assert {(t.translation.x, t.translation.y, t.translation.z) for t in transforms} <= set(refined)
 
 
 def decode_points(cloud) -> np.ndarray:

@@ -167,7 +167,7 @@ class Error(_message.Message):
     def __init__(self, code: _Optional[int] = ..., code_name: _Optional[str] = ..., message: _Optional[str] = ...) -> None: ...
 
 class FrameAck(_message.Message):
-    __slots__ = ("index", "accepted", "sequence", "keyframe", "anchors", "gaussians", "iterations", "latency_seconds", "process_seconds", "queue_depth", "error", "skipped", "unrecorded")
+    __slots__ = ("index", "accepted", "sequence", "keyframe", "anchors", "gaussians", "iterations", "latency_seconds", "process_seconds", "queue_depth", "error", "skipped", "unrecorded", "pose_correction")
     INDEX_FIELD_NUMBER: _ClassVar[int]
     ACCEPTED_FIELD_NUMBER: _ClassVar[int]
     SEQUENCE_FIELD_NUMBER: _ClassVar[int]
@@ -181,6 +181,7 @@ class FrameAck(_message.Message):
     ERROR_FIELD_NUMBER: _ClassVar[int]
     SKIPPED_FIELD_NUMBER: _ClassVar[int]
     UNRECORDED_FIELD_NUMBER: _ClassVar[int]
+    POSE_CORRECTION_FIELD_NUMBER: _ClassVar[int]
     index: int
     accepted: bool
     sequence: int
@@ -194,7 +195,20 @@ class FrameAck(_message.Message):
     error: Error
     skipped: bool
     unrecorded: bool
-    def __init__(self, index: _Optional[int] = ..., accepted: _Optional[bool] = ..., sequence: _Optional[int] = ..., keyframe: _Optional[bool] = ..., anchors: _Optional[int] = ..., gaussians: _Optional[int] = ..., iterations: _Optional[int] = ..., latency_seconds: _Optional[float] = ..., process_seconds: _Optional[float] = ..., queue_depth: _Optional[int] = ..., error: _Optional[_Union[Error, _Mapping]] = ..., skipped: _Optional[bool] = ..., unrecorded: _Optional[bool] = ...) -> None: ...
+    pose_correction: PoseCorrection
+    def __init__(self, index: _Optional[int] = ..., accepted: _Optional[bool] = ..., sequence: _Optional[int] = ..., keyframe: _Optional[bool] = ..., anchors: _Optional[int] = ..., gaussians: _Optional[int] = ..., iterations: _Optional[int] = ..., latency_seconds: _Optional[float] = ..., process_seconds: _Optional[float] = ..., queue_depth: _Optional[int] = ..., error: _Optional[_Union[Error, _Mapping]] = ..., skipped: _Optional[bool] = ..., unrecorded: _Optional[bool] = ..., pose_correction: _Optional[_Union[PoseCorrection, _Mapping]] = ...) -> None: ...
+
+class PoseCorrection(_message.Message):
+    __slots__ = ("translation", "rotation", "clamped", "refined_c2w")
+    TRANSLATION_FIELD_NUMBER: _ClassVar[int]
+    ROTATION_FIELD_NUMBER: _ClassVar[int]
+    CLAMPED_FIELD_NUMBER: _ClassVar[int]
+    REFINED_C2W_FIELD_NUMBER: _ClassVar[int]
+    translation: _containers.RepeatedScalarFieldContainer[float]
+    rotation: _containers.RepeatedScalarFieldContainer[float]
+    clamped: bool
+    refined_c2w: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, translation: _Optional[_Iterable[float]] = ..., rotation: _Optional[_Iterable[float]] = ..., clamped: _Optional[bool] = ..., refined_c2w: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class RenderRequest(_message.Message):
     __slots__ = ("session_id", "c2w", "intrinsics", "outputs", "color_encoding", "depth_encoding", "jpeg_quality")
@@ -235,7 +249,7 @@ class GetStatsRequest(_message.Message):
     def __init__(self, session_id: _Optional[str] = ...) -> None: ...
 
 class Stats(_message.Message):
-    __slots__ = ("session_id", "preset", "device", "frames", "keyframes", "anchors", "anchors_per_level", "gaussians", "iterations", "timings", "frames_received", "frames_rejected", "queue_depth", "processing_fps", "uptime_seconds", "engine_json", "config_json", "last_sequence", "last_index", "mapped_sequence", "frames_skipped")
+    __slots__ = ("session_id", "preset", "device", "frames", "keyframes", "anchors", "anchors_per_level", "gaussians", "iterations", "timings", "frames_received", "frames_rejected", "queue_depth", "processing_fps", "uptime_seconds", "engine_json", "config_json", "last_sequence", "last_index", "mapped_sequence", "frames_skipped", "poses")
     class TimingsEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -264,6 +278,7 @@ class Stats(_message.Message):
     LAST_INDEX_FIELD_NUMBER: _ClassVar[int]
     MAPPED_SEQUENCE_FIELD_NUMBER: _ClassVar[int]
     FRAMES_SKIPPED_FIELD_NUMBER: _ClassVar[int]
+    POSES_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     preset: str
     device: str
@@ -285,7 +300,24 @@ class Stats(_message.Message):
     last_index: int
     mapped_sequence: int
     frames_skipped: int
-    def __init__(self, session_id: _Optional[str] = ..., preset: _Optional[str] = ..., device: _Optional[str] = ..., frames: _Optional[int] = ..., keyframes: _Optional[int] = ..., anchors: _Optional[int] = ..., anchors_per_level: _Optional[_Iterable[int]] = ..., gaussians: _Optional[int] = ..., iterations: _Optional[int] = ..., timings: _Optional[_Mapping[str, float]] = ..., frames_received: _Optional[int] = ..., frames_rejected: _Optional[int] = ..., queue_depth: _Optional[int] = ..., processing_fps: _Optional[float] = ..., uptime_seconds: _Optional[float] = ..., engine_json: _Optional[str] = ..., config_json: _Optional[str] = ..., last_sequence: _Optional[int] = ..., last_index: _Optional[int] = ..., mapped_sequence: _Optional[int] = ..., frames_skipped: _Optional[int] = ...) -> None: ...
+    poses: PoseSummary
+    def __init__(self, session_id: _Optional[str] = ..., preset: _Optional[str] = ..., device: _Optional[str] = ..., frames: _Optional[int] = ..., keyframes: _Optional[int] = ..., anchors: _Optional[int] = ..., anchors_per_level: _Optional[_Iterable[int]] = ..., gaussians: _Optional[int] = ..., iterations: _Optional[int] = ..., timings: _Optional[_Mapping[str, float]] = ..., frames_received: _Optional[int] = ..., frames_rejected: _Optional[int] = ..., queue_depth: _Optional[int] = ..., processing_fps: _Optional[float] = ..., uptime_seconds: _Optional[float] = ..., engine_json: _Optional[str] = ..., config_json: _Optional[str] = ..., last_sequence: _Optional[int] = ..., last_index: _Optional[int] = ..., mapped_sequence: _Optional[int] = ..., frames_skipped: _Optional[int] = ..., poses: _Optional[_Union[PoseSummary, _Mapping]] = ...) -> None: ...
+
+class PoseSummary(_message.Message):
+    __slots__ = ("refined_keyframes", "mean_correction_m", "max_correction_m", "mean_correction_deg", "max_correction_deg", "clamped_keyframes")
+    REFINED_KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
+    MEAN_CORRECTION_M_FIELD_NUMBER: _ClassVar[int]
+    MAX_CORRECTION_M_FIELD_NUMBER: _ClassVar[int]
+    MEAN_CORRECTION_DEG_FIELD_NUMBER: _ClassVar[int]
+    MAX_CORRECTION_DEG_FIELD_NUMBER: _ClassVar[int]
+    CLAMPED_KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
+    refined_keyframes: int
+    mean_correction_m: float
+    max_correction_m: float
+    mean_correction_deg: float
+    max_correction_deg: float
+    clamped_keyframes: int
+    def __init__(self, refined_keyframes: _Optional[int] = ..., mean_correction_m: _Optional[float] = ..., max_correction_m: _Optional[float] = ..., mean_correction_deg: _Optional[float] = ..., max_correction_deg: _Optional[float] = ..., clamped_keyframes: _Optional[int] = ...) -> None: ...
 
 class GetSnapshotRequest(_message.Message):
     __slots__ = ("session_id",)

@@ -12,12 +12,14 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import grpc
+from ogapi.convert import matrix_to_list
 from ogapi.images import encode_color, encode_depth
 from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.mapper import FrameResult, Rendered
+from ogmapping.optim.poses import PoseReport
 from ogmapping.runtime.time_budget import Stop
-from ogmapping.stats import MapStats
+from ogmapping.stats import MapStats, PoseSummary
 from ogserver.api.validation import RenderSpec
 from ogserver.errors import ServiceError
 from ogserver.sessions.counters import SessionCounters
@@ -39,12 +41,23 @@ STOPPED = {
 }
 
 
-def frame_ack(result: FrameResult, sequence: int, latency_seconds: float, queue_depth: int) -> pb.FrameAck:
+def pose_correction(report: PoseReport) -> pb.PoseCorrection:
+    return pb.PoseCorrection(translation=[float(v) for v in report.translation],
+                             rotation=[float(v) for v in report.rotation], clamped=report.clamped,
+                             refined_c2w=matrix_to_list(report.refined_c2w))
+
+
+def frame_ack(
+    result: FrameResult, sequence: int, latency_seconds: float, queue_depth: int, refines: bool = False,
+) -> pb.FrameAck:
+    """An accepted frame's ack; with ``refines`` (the session's ``poses.refine``), its pose correction."""
     ack = pb.FrameAck(
         index=result.index, accepted=True, sequence=sequence, keyframe=result.keyframe,
         anchors=result.anchors, gaussians=result.gaussians, iterations=result.iterations,
         latency_seconds=latency_seconds, process_seconds=result.seconds, queue_depth=queue_depth,
     )
+    if refines and result.pose is not None:
+        ack.pose_correction.CopyFrom(pose_correction(result.pose))
     if result.stopped is not None:
         code, reason = STOPPED[result.stopped]
         ack.error.CopyFrom(pb.Error(code=code.value[0], code_name=code.name,
@@ -75,8 +88,16 @@ def render_response(spec: RenderSpec, rendered: Rendered) -> pb.RenderResponse:
     return response
 
 
+def pose_summary(summary: PoseSummary) -> pb.PoseSummary:
+    return pb.PoseSummary(
+        refined_keyframes=summary.refined_keyframes, mean_correction_m=summary.mean_correction_m,
+        max_correction_m=summary.max_correction_m, mean_correction_deg=summary.mean_correction_deg,
+        max_correction_deg=summary.max_correction_deg, clamped_keyframes=summary.clamped_keyframes,
+    )
+
+
 def stats(config: pb.SessionConfig, engine: MapStats, counters: SessionCounters) -> pb.Stats:
-    return pb.Stats(
+    message = pb.Stats(
         session_id=config.session_id, preset=config.preset, device=engine.device,
         frames=counters.mapped, frames_received=counters.received, frames_rejected=counters.rejected,
         frames_skipped=counters.skipped,
@@ -86,6 +107,9 @@ def stats(config: pb.SessionConfig, engine: MapStats, counters: SessionCounters)
         engine_json=json.dumps(engine.to_dict()), config_json=config.config_json,
         last_sequence=counters.last_sequence, last_index=counters.last_index, mapped_sequence=counters.mapped_sequence,
     )
+    if engine.poses is not None:
+        message.poses.CopyFrom(pose_summary(engine.poses))
+    return message
 
 
 def session_info(

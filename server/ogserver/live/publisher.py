@@ -1,8 +1,9 @@
 """The live view's thread: each session's latest render, trajectory and map, to Foxglove and the recordings.
 
 Every ``view_seconds`` it takes what each session mapped since the last look (``LatestFrame``) and
-publishes, to the Foxglove clients subscribed (``--foxglove-port``): the camera poses, the input
-image, the map rendered from the latest pose and the map as a point cloud; and, when a keyframe was
+publishes, to the Foxglove clients subscribed (``--foxglove-port``): the camera poses and the camera's
+path so far (refined ones too, in a session that refines poses), the input image, the map rendered from
+the latest pose and the map as a point cloud; and, when a keyframe was
 among those frames, writes the render and point cloud of the newest keyframe into the session's
 recording (once more when the session closes, so its recording ends with the final map). Rendering
 and decoding hold the mapper's lock like a Render call, between optimisation iterations; nothing is
@@ -20,13 +21,24 @@ from dataclasses import dataclass, field
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
 from google.protobuf.message import Message
 from ogapi import recording as layout
 
 from ogmapping.persist.export import ColoredPoints, default_viewpoint, point_cloud
 from ogserver.errors import ServiceError
 from ogserver.live.foxglove_ws import FoxgloveServer
-from ogserver.live.views import FrameIds, MappedFrame, Pending, image, points_message, render_jpeg
+from ogserver.live.views import (
+    TOPIC_REFINED_TRAJECTORY,
+    TOPIC_TRAJECTORY,
+    FrameIds,
+    MappedFrame,
+    Pending,
+    Trajectory,
+    image,
+    points_message,
+    render_jpeg,
+)
 from ogserver.recording.recorder import transform
 from ogserver.sessions.registry import Registry
 from ogserver.sessions.session import Session
@@ -35,7 +47,11 @@ from ogserver.settings import Live
 log = logging.getLogger(__name__)
 LIVE_TOPICS: dict[str, type[Message]] = {
     layout.TOPIC_TRANSFORM: FrameTransform, layout.TOPIC_COLOR: CompressedImage,
-    layout.TOPIC_RENDER: CompressedImage, layout.TOPIC_MAP: PointCloud,
+    layout.TOPIC_RENDER: CompressedImage, layout.TOPIC_MAP: PointCloud, TOPIC_TRAJECTORY: PosesInFrame,
+}
+# Sessions that refine poses (``poses.refine``) have these too: the refined camera and its path.
+REFINED_TOPICS: dict[str, type[Message]] = {
+    layout.TOPIC_REFINED_TRANSFORM: FrameTransform, TOPIC_REFINED_TRAJECTORY: PosesInFrame,
 }
 
 
@@ -71,6 +87,7 @@ class LiveView:
         self.settings = settings
         self.foxglove = foxglove
         self._advertised: set[str] = set()
+        self._paths: dict[str, tuple[Trajectory, Trajectory]] = {}  # by session: the client's and the refined
         self.busy_seconds = 0.0  # spent publishing and recording views (rendering and decoding, mostly)
         self.looks = 0  # sessions looked at with something new
         self._stop = threading.Event()
@@ -97,7 +114,7 @@ class LiveView:
     def look(self) -> None:
         """Publish and record what every session mapped since the last look."""
         sessions = self.registry.sessions()
-        self._advertise({session.id for session in sessions})
+        self._advertise({session.id: session.mapper.config.poses.refine for session in sessions})
         for session in sessions:
             pending = session.latest.take()
             if pending is None:
@@ -124,15 +141,19 @@ class LiveView:
         except Exception:  # the session closes regardless
             log.exception("session %s: its last view could not be recorded", session.id)
 
-    def _advertise(self, open_ids: set[str]) -> None:
-        """Offer every open session's topics to Foxglove clients, and withdraw those of closed ones."""
+    def _advertise(self, refines: dict[str, bool]) -> None:
+        """Offer every open session's topics to Foxglove clients (``refines``: by session id, whether it
+        refines poses), and withdraw those of closed ones."""
         if self.foxglove is None:
             return
+        open_ids = set(refines)
         for session_id in open_ids - self._advertised:
-            for topic, message_type in LIVE_TOPICS.items():
+            for topic, message_type in (LIVE_TOPICS | (REFINED_TOPICS if refines[session_id] else {})).items():
                 self.foxglove.advertise(session_prefix(session_id) + topic, message_type)
+            self._paths[session_id] = (Trajectory(), Trajectory())
         for session_id in self._advertised - open_ids:
             self.foxglove.withdraw(session_prefix(session_id) + "/")
+            self._paths.pop(session_id, None)
         self._advertised = open_ids
 
     def _publish(self, session_id: str, pending: Pending, looks: Looks, foxglove: FoxgloveServer) -> None:
@@ -141,6 +162,16 @@ class LiveView:
             for sensor_ns, c2w in pending.poses:
                 foxglove.publish(prefix + layout.TOPIC_TRANSFORM, transform(sensor_ns, c2w, frames.world,
                                                                             frames.camera), sensor_ns)
+        if foxglove.wants(prefix + layout.TOPIC_REFINED_TRANSFORM):
+            for sensor_ns, c2w in pending.refined:
+                foxglove.publish(prefix + layout.TOPIC_REFINED_TRANSFORM,
+                                 transform(sensor_ns, c2w, frames.world, frames.refined_camera), sensor_ns)
+        client_path, refined_path = self._paths.setdefault(session_id, (Trajectory(), Trajectory()))
+        client_path.extend(pending.poses)
+        refined_path.extend(pending.refined)
+        for topic, path in ((TOPIC_TRAJECTORY, client_path), (TOPIC_REFINED_TRAJECTORY, refined_path)):
+            if path.poses and foxglove.wants(prefix + topic):
+                foxglove.publish(prefix + topic, path.message(frames), path.sensor_ns)
         if foxglove.wants(prefix + layout.TOPIC_COLOR):
             color = CompressedImage()
             color.CopyFrom(latest.color)

@@ -1,4 +1,4 @@
-"""What a session's map looks like: the latest mapped frame, its render and the map as points.
+"""What a session's map looks like: the latest mapped frame, its render, the camera paths and the map as points.
 
 The session's worker only hands over references (``LatestFrame.offer``: the frame's pose, its
 recorded colour image); rendering and decoding the map happen later, on the live view's thread
@@ -10,24 +10,34 @@ from __future__ import annotations
 
 import threading
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from foxglove_schemas_protobuf.Pose_pb2 import Pose
+from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
+from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
+from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
 from ogapi import recording as layout
 from ogapi.images import encode_color
 from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
+from ogmapping.frames.rotation import matrix_to_quaternion
 from ogmapping.mapper import Mapper
+from ogmapping.optim.poses import PoseReport
 from ogmapping.persist.export import ColoredPoints
 from ogserver.recording.recorder import FrameRecord, timestamp
 
 RENDER_JPEG_QUALITY = 90
 MAX_POSES = 1000  # poses kept between two looks of the live view; older ones are dropped
+MAX_TRAJECTORY_POSES = 5000  # the newest poses a live trajectory shows
+# Live only (foxglove.PosesInFrame): the session's camera path so far, as the client sent it and as refined.
+TOPIC_TRAJECTORY = "/ogmap/trajectory"
+TOPIC_REFINED_TRAJECTORY = "/ogmap/trajectory_refined"
 POINT_STRIDE = 16  # x, y, z float32, then red, green, blue, alpha uint8
 POINT_FIELDS = [
     *(PackedElementField(name=name, offset=4 * axis, type=PackedElementField.FLOAT32)
@@ -43,10 +53,12 @@ class FrameIds:
 
     world: str = layout.WORLD_FRAME
     camera: str = layout.CAMERA_FRAME
+    refined_camera: str = layout.REFINED_CAMERA_FRAME
 
     @classmethod
     def of_session(cls, session_id: str) -> FrameIds:
-        return cls(f"{session_id}/{layout.WORLD_FRAME}", f"{session_id}/{layout.CAMERA_FRAME}")
+        return cls(f"{session_id}/{layout.WORLD_FRAME}", f"{session_id}/{layout.CAMERA_FRAME}",
+                   f"{session_id}/{layout.REFINED_CAMERA_FRAME}")
 
 
 @dataclass(frozen=True)
@@ -56,11 +68,14 @@ class MappedFrame:
     intrinsics: Intrinsics
     color: CompressedImage  # the input image as recorded
     keyframe: bool
+    refined: np.ndarray | None = None  # (4, 4) the pose refinement left (``poses.refine``), else None
 
     @classmethod
-    def of(cls, frame: Frame, record: FrameRecord, keyframe: bool) -> MappedFrame:
+    def of(cls, frame: Frame, record: FrameRecord, keyframe: bool, pose: PoseReport | None = None) -> MappedFrame:
+        """``pose``: the frame's refined pose, in a session that refines poses."""
         color = next(view for topic, view in record.views if topic == layout.TOPIC_COLOR)
-        return cls(record.sensor_ns, np.array(frame.c2w, dtype=np.float64), frame.color_intrinsics, color, keyframe)
+        return cls(record.sensor_ns, np.array(frame.c2w, dtype=np.float64), frame.color_intrinsics, color, keyframe,
+                   None if pose is None else pose.refined_c2w)
 
 
 @dataclass(frozen=True)
@@ -70,6 +85,7 @@ class Pending:
     latest: MappedFrame
     poses: list[tuple[int, np.ndarray]]  # (sensor ns, c2w) of every frame mapped since, oldest first
     keyframe: MappedFrame | None  # the newest keyframe among them
+    refined: list[tuple[int, np.ndarray]] = field(default_factory=list)  # (sensor ns, refined c2w), likewise
 
 
 class LatestFrame:
@@ -80,11 +96,14 @@ class LatestFrame:
         self._latest: MappedFrame | None = None
         self._keyframe: MappedFrame | None = None
         self._poses: deque[tuple[int, np.ndarray]] = deque(maxlen=MAX_POSES)
+        self._refined: deque[tuple[int, np.ndarray]] = deque(maxlen=MAX_POSES)
 
     def offer(self, frame: MappedFrame) -> None:
         with self._lock:
             self._latest = frame
             self._poses.append((frame.sensor_ns, frame.c2w))
+            if frame.refined is not None:
+                self._refined.append((frame.sensor_ns, frame.refined))
             if frame.keyframe:
                 self._keyframe = frame
 
@@ -92,15 +111,36 @@ class LatestFrame:
         with self._lock:
             if self._latest is None:
                 return None
-            pending = Pending(self._latest, list(self._poses), self._keyframe)
+            pending = Pending(self._latest, list(self._poses), self._keyframe, list(self._refined))
             self._latest = self._keyframe = None
             self._poses.clear()
+            self._refined.clear()
             return pending
 
 
+class Trajectory:
+    """A session's camera path as the live view draws it: its newest ``MAX_TRAJECTORY_POSES`` poses."""
+
+    def __init__(self) -> None:
+        self.poses: deque[Pose] = deque(maxlen=MAX_TRAJECTORY_POSES)
+        self.sensor_ns = 0
+
+    def extend(self, poses: list[tuple[int, np.ndarray]]) -> None:
+        for sensor_ns, c2w in poses:
+            x, y, z, w = matrix_to_quaternion(c2w[:3, :3])
+            tx, ty, tz = (float(v) for v in c2w[:3, 3])
+            self.poses.append(Pose(position=Vector3(x=tx, y=ty, z=tz), orientation=Quaternion(x=x, y=y, z=z, w=w)))
+            self.sensor_ns = sensor_ns
+
+    def message(self, frames: FrameIds) -> PosesInFrame:
+        return PosesInFrame(timestamp=timestamp(self.sensor_ns), frame_id=frames.world, poses=list(self.poses))
+
+
 def render_jpeg(mapper: Mapper, frame: MappedFrame) -> bytes:
-    """The map rendered from the frame's pose and camera, to show beside the input image."""
-    return encode_color(mapper.render(frame.c2w, frame.intrinsics).color, pb.COLOR_JPEG, RENDER_JPEG_QUALITY)
+    """The map rendered from the frame's pose (refined, where the session refines poses) and camera, to
+    show beside the input image."""
+    c2w = frame.c2w if frame.refined is None else frame.refined
+    return encode_color(mapper.render(c2w, frame.intrinsics).color, pb.COLOR_JPEG, RENDER_JPEG_QUALITY)
 
 
 def image(jpeg: bytes, sensor_ns: int, frames: FrameIds) -> CompressedImage:

@@ -1,5 +1,6 @@
 """One MCAP file per session: the ogapi messages a replay needs, plus Foxglove channels to look at
-(the input frames, and at keyframes the map's render and points, written by the live view).
+(the input frames, their refined poses when the session refines poses, and at keyframes the map's
+render and points, written by the live view).
 
 A frame is recorded when the session's worker takes it up, before it is mapped, and each frame is
 followed by a flush that writes the MCAP chunk in progress and a provisional end (``RecordingFile``):
@@ -300,9 +301,15 @@ class Recorder:
             except Exception as error:
                 raise self._fail(error) from None
 
-    def write_ack(self, ack: pb.FrameAck) -> None:
-        """Buffered with the next frame's flush; after a close (a frame outlasting it), dropped."""
-        self._write_late([(layout.TOPIC_ACKS, ack)], flush=False)
+    def write_ack(self, ack: pb.FrameAck, sensor_ns: int | None = None) -> None:
+        """Buffered with the next frame's flush; after a close (a frame outlasting it), dropped. An ack
+        with a pose correction comes with the frame's refined pose (at ``sensor_ns``) for Foxglove."""
+        items: list[tuple[str, Message]] = [(layout.TOPIC_ACKS, ack)]
+        if ack.HasField("pose_correction") and sensor_ns is not None:
+            refined = np.array(ack.pose_correction.refined_c2w, dtype=np.float64).reshape(4, 4)
+            items.append((layout.TOPIC_REFINED_TRANSFORM,
+                          transform(sensor_ns, refined, layout.WORLD_FRAME, layout.REFINED_CAMERA_FRAME)))
+        self._write_late(items, flush=False)
 
     def write_views(self, views: list[tuple[str, Message]], sensor_ns: int) -> None:
         """The map as of a keyframe (its render, its points), flushed at once: the thread that made

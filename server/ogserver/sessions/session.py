@@ -54,8 +54,10 @@ from ogserver.sessions.counters import SessionCounters
 from ogserver.sessions.queued_bytes import ByteBudget, frame_bytes
 from ogserver.sessions.stream_events import Acked, SessionClosed, StreamEvent
 from ogserver.settings import Limits
+from ogserver.throttled_log import ThrottledLog
 
 log = logging.getLogger(__name__)
+CLAMPED_LOG_SECONDS = 10.0
 
 
 @dataclass
@@ -102,6 +104,7 @@ class Session:
         self._jobs: deque[Job | None] = deque()
         self._lock = threading.Lock()
         self.latest = LatestFrame()  # what the live view and the recording's map views show next
+        self._clamped_log = ThrottledLog(log, CLAMPED_LOG_SECONDS)  # poses.refine: corrections held at the bound
         self._closed = threading.Event()
         # Each frame's optimisation stops after frame_seconds (0: no limit), or at once when the session closes.
         self._time_budget = Budget(seconds=frame_seconds or math.inf)
@@ -344,7 +347,7 @@ class Session:
         with self._lock:
             self._mapped_position = Position(job.sequence, job.frame.index)
         with suppress(StorageError):  # logged by the recorder; the frame is mapped and recorded, its ack is not
-            self.recorder.write_ack(ack)
+            self.recorder.write_ack(ack, job.record.sensor_ns)
         return ack
 
     def _map(self, frame: Frame, sequence: int, received: float, record: FrameRecord | None = None) -> pb.FrameAck:
@@ -359,9 +362,13 @@ class Session:
             self._anchors, self._gaussians = result.anchors, result.gaussians
             self._last_mapped = time.monotonic()
             waiting = self._pending - 1
+        refines = self.mapper.config.poses.refine
+        if refines and result.pose is not None and result.pose.clamped:
+            self._clamped_log.warning(f"session {self.id}: frame {frame.index}'s pose correction reached the "
+                                      f"bound (poses.max_translation / max_rotation) and was clamped there")
         if record is not None:
-            self.latest.offer(MappedFrame.of(frame, record, result.keyframe))
-        return messages.frame_ack(result, sequence, time.monotonic() - received, max(waiting, 0))
+            self.latest.offer(MappedFrame.of(frame, record, result.keyframe, result.pose if refines else None))
+        return messages.frame_ack(result, sequence, time.monotonic() - received, max(waiting, 0), refines)
 
     # ------------------------------------------------------------------ queries
 
