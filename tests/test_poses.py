@@ -145,3 +145,30 @@ def test_refinement_keeps_the_first_keyframe_and_its_poses_survive_checkpoints_a
     summary = mapper.stats().poses
     assert summary.refined_keyframes == len(mapper.keyframes) - 1
     assert summary.max_correction_m >= summary.mean_correction_m > 0.0
+
+
+def _pixel_shift(frame, truth: np.ndarray, pose: np.ndarray) -> float:
+    """Mean image distance (pixels) between the frame's depth points seen from ``truth`` and from ``pose``:
+    a pose error as the images see it (a small rotation and a small translation can explain each other)."""
+    k = frame.color_intrinsics
+    v, u = np.nonzero(frame.depth > 0)
+    z = frame.depth[v, u]
+    points = truth @ np.stack([(u + 0.5 - k.cx) / k.fx * z, (v + 0.5 - k.cy) / k.fy * z, z, np.ones_like(z)])
+    x, y, depth, _ = np.linalg.inv(pose) @ points
+    return float(np.hypot(x / depth * k.fx + k.cx - 0.5 - u, y / depth * k.fy + k.cy - 0.5 - v).mean())
+
+
+def test_refinement_moves_a_displaced_pose_towards_the_truth():
+    frames = open_frames("synthetic", "synthetic", "0:7", 1, 1.0, n_frames=40)  # 320x240
+    loaded = [frames.load(position) for position in range(7)]
+    mapper = Mapper(resolve("sparse", overrides={"poses.refine": "true", "poses.track_iterations": "0"}))
+    for frame in loaded[:6]:
+        mapper.process(frame)
+    displaced = loaded[6]
+    truth = displaced.c2w.copy()
+    displaced.c2w = truth.copy()
+    displaced.c2w[:3, 3] += np.array([0.012, -0.008, 0.0])
+    result = mapper.process(displaced)
+    before = _pixel_shift(displaced, truth, displaced.c2w)
+    assert before > 1.5
+    assert _pixel_shift(displaced, truth, result.pose.refined_c2w) < 0.6 * before and not result.pose.clamped
