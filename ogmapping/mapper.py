@@ -37,7 +37,7 @@ from ogmapping.optim import refine
 from ogmapping.optim.averaging import MapAverage
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
 from ogmapping.optim.lazy_adam import LazyAdam
-from ogmapping.optim.losses import mapping_loss
+from ogmapping.optim.losses import mapping_loss, tracking_loss
 from ogmapping.optim.poses import PoseCorrection, PoseReport
 from ogmapping.optim.step_budget import step_multiple
 from ogmapping.persist import snapshot, training
@@ -175,27 +175,31 @@ class Mapper:
             rgb = torch.as_tensor(frame.rgb, dtype=self.profile.precision, device=self.device)
             depth = torch.as_tensor(frame.depth, dtype=self.profile.precision, device=self.device)
             c2w = torch.as_tensor(frame.c2w, dtype=self.profile.precision, device=self.device)
+        # With ``poses.refine`` every frame but the first keyframe's carries a correction of its client pose
+        # (the first keeps it: the map stays in the client's frame), tracked against the map before this
+        # frame adds to it; the frame is placed at the tracked pose, and its steps refine it further.
+        correction = PoseCorrection(self.device, c2w.dtype) if self.config.poses.refine and self.keyframes else None
+        placed = c2w
+        if correction is not None:
+            self._track(frame, correction, budget, start)
+            placed = correction.refined(c2w).detach()
         with self.lock, self._timed("allocate"):
             sampled = allocation.sampled_depth(self.config.octree, depth, frame.color_intrinsics)
             new_codes = allocation.allocate(self.config.octree.allocation, self.octree, sampled,
-                                            frame.color_intrinsics, c2w,
-                                            lambda: self._render(c2w, frame.color_intrinsics)[1])
-            self._add_coarse_anchors(new_codes, rgb, depth, frame.color_intrinsics, c2w)
+                                            frame.color_intrinsics, placed,
+                                            lambda: self._render(placed, frame.color_intrinsics)[1])
+            self._add_coarse_anchors(new_codes, rgb, depth, frame.color_intrinsics, placed)
         with self._timed("keyframes"):
-            codes = self.octree.seen_from(depth, frame.color_intrinsics, c2w)
+            codes = self.octree.seen_from(depth, frame.color_intrinsics, placed)
             is_keyframe = self.keyframes.should_insert(codes)
             multiple = step_multiple(self.config.keyframes, frame.color_intrinsics)
             iterations = multiple * self._iterations_for(is_keyframe)
-            # The first keyframe keeps the client's pose: the map stays in the client's frame.
-            correction = PoseCorrection(self.device, c2w.dtype) if self.config.poses.refine and self.keyframes else None
             if is_keyframe:
                 self.keyframes.insert(Keyframe.capture(frame.index, rgb, depth, frame.color_intrinsics, c2w, codes,
                                                        pinned=self.device.type == "cuda", correction=correction))
         # The frame itself, at full precision, is the view every step trains on.
         view = (View.of(rgb, depth, frame.color_intrinsics, c2w, compiled=self.profile.compiled, correction=correction)
                 if iterations else None)
-        if correction is not None and view is not None:
-            self._track(frame, correction, budget, start)
         loss, grown, done, stopped = self._optimise(iterations, view, is_keyframe, budget, start)
         with self.lock:
             pose = correction.report(c2w) if correction is not None else PoseReport.unrefined(frame.c2w)
@@ -297,23 +301,22 @@ class Mapper:
             return
         with self.lock, self._timed("track"):
             frame = resize_frame(frame, settings.track_scale)
-            view = View.of(torch.as_tensor(frame.rgb, dtype=self.profile.precision, device=self.device),
-                           torch.as_tensor(frame.depth, dtype=self.profile.precision, device=self.device),
-                           frame.color_intrinsics, correction.delta.new_tensor(frame.c2w),
-                           compiled=self.profile.compiled, correction=correction)
+            rgb = torch.as_tensor(frame.rgb, dtype=self.profile.precision, device=self.device)
+            depth = torch.as_tensor(frame.depth, dtype=self.profile.precision, device=self.device)
+            c2w = torch.as_tensor(frame.c2w, dtype=self.profile.precision, device=self.device)
             with torch.no_grad():
-                rows = self._rows_in_view(view.c2w, view.intrinsics)
-                gaussians = generate(self.anchors, self._features, self.decoders, view.c2w[:3, 3], rows,
+                rows = self._rows_in_view(c2w, frame.color_intrinsics)
+                gaussians = generate(self.anchors, self._features, self.decoders, c2w[:3, 3], rows,
                                      compiled=self.profile.compiled)
             for _ in range(settings.track_iterations):
                 if budget.stop(started) is not None:
                     return
-                camera = self._camera(view.pose(), view.intrinsics)
+                camera = self._camera(correction.refined(c2w), frame.color_intrinsics)
                 output = rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
                                    gaussians.colors, camera.viewmat, camera.K, camera.width, camera.height,
                                    backend=self.backend)
-                loss, _ = mapping_loss(output.color, output.depth, view.rgb, view.depth, gaussians.scales,
-                                       self.config.loss, view.ssim_reference, compiled=self.profile.compiled)
+                loss = tracking_loss(output.color, output.depth, output.alpha, rgb, depth, self.config.loss,
+                                     settings.track_alpha)
                 (loss + correction.prior(settings)).backward()
                 correction.step(settings)
 
@@ -349,9 +352,12 @@ class Mapper:
             self.hash_optimizer.zero_grad()
         with self._timed("window"):
             window = [view, *(self._drawn(keyframe) for keyframe in keyframes)]
-            poses = [drawn.pose() for drawn in window]
+            # Without ``poses.view_steps`` the view keeps the pose its tracking steps found.
+            fixed = None if self.config.poses.view_steps else view.correction
+            poses = [drawn.pose().detach() if fixed is not None and drawn.correction is fixed else drawn.pose()
+                     for drawn in window]
             corrections = list({id(drawn.correction): drawn.correction for drawn in window
-                                if drawn.correction is not None}.values())
+                                if drawn.correction is not None and drawn.correction is not fixed}.values())
         with self._timed("decode"):
             views = list(zip(poses, window, strict=True))
             rows = [self._rows_in_view(pose.detach(), drawn.intrinsics) for pose, drawn in views]

@@ -62,8 +62,8 @@ def test_a_step_follows_the_gradient_at_the_learning_rates():
     assert correction.steps == 0
     correction.delta.grad = torch.tensor([1.0, -3.0, 0.0, 0.5, 0.0, -2.0])
     correction.step(settings)
-    # Adam's first step moves each coordinate by its learning rate against the gradient's sign.
-    assert torch.allclose(correction.delta.detach(), torch.tensor([-0.002, 0.002, 0.0, -0.001, 0.0, 0.001]))
+    # Gradient descent: a small gradient (a pose near its optimum) makes a small step.
+    assert torch.allclose(correction.delta.detach(), torch.tensor([-0.002, 0.006, 0.0, -0.0005, 0.0, 0.002]))
     assert correction.delta.grad is None and correction.steps == 1 and not correction.clamped
 
 
@@ -80,7 +80,7 @@ def test_the_prior_costs_its_weight_at_the_bound():
 
 
 def test_a_runaway_correction_is_clamped_to_the_bound_and_reported():
-    settings = PosesConfig(translation_lr=0.5, rotation_lr=0.5, max_translation=0.1, max_rotation=5.0)
+    settings = PosesConfig(translation_lr=1.0, rotation_lr=1.0, max_translation=0.1, max_rotation=5.0)
     correction = PoseCorrection("cpu", torch.float64)
     correction.delta.grad = torch.tensor([-1.0, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64)
     correction.step(settings)
@@ -100,7 +100,7 @@ def test_state_round_trip_and_bad_rows():
     assert row.shape == (STATE_SIZE,)
     again = PoseCorrection.from_state(row, "cpu", torch.float32)
     assert torch.equal(again.delta.detach(), correction.delta.detach()) and again.delta.requires_grad
-    assert torch.equal(again.exp_avg_sq, correction.exp_avg_sq) and again.steps == 1
+    assert again.steps == 1 and again.clamped == correction.clamped
     with pytest.raises(ValueError, match="pose correction"):
         PoseCorrection.from_state(row[:-1], "cpu", torch.float32)
     with pytest.raises(ValueError, match="pose correction"):

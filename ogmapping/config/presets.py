@@ -28,6 +28,8 @@ PRESET_VALUES: dict[str, dict[str, Any]] = {
     "sparse": {
         **_DENSE_AND_SPARSE,
         "model.encoding": "anchor",
+        # Ten Gaussians an anchor at 1200x680, five up to about 900x510 ("Gaussians by resolution").
+        "model.offsets_by_resolution": True,
         "refine.prune_opacity": 0.05,
         "keyframes.iterations": 10,  # a step more than nine gains at little cost ("Keyframes and the window")
         "keyframes.first_iterations": 80,  # the anchor colours need more on the first keyframe ("Anchor colours")

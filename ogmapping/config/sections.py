@@ -162,12 +162,18 @@ class PosesConfig:
     # Off by default: on Replica room0 it gains where poses are noisy and costs a little where they
     # are exact ("Pose refinement").
     refine: bool = False
-    translation_lr: float = _learning_rate(0.004)  # metres per Adam step
-    rotation_lr: float = _learning_rate(0.002)  # radians per Adam step
+    # Gradient-descent rates: metres and radians per unit of the loss's gradient (a rotation moves a point
+    # about its depth, some 2 m here, times as far: hence the smaller rate).
+    translation_lr: float = _learning_rate(0.004)
+    rotation_lr: float = _learning_rate(0.001)
     # Steps on the frame's pose alone, against the map as it stands, before its mapping steps: a few
     # mapping steps move a pose little, and meanwhile pull the map towards the pose's error.
     track_iterations: int = ranged(5, 0)
     track_scale: float = ranged(0.5, 0, 1, open_low=True)  # image scale of those steps: a quarter of the pixels
+    track_alpha: float = ranged(0.99, 0, 1)  # ...whose loss counts the pixels the map covers this fully
+    # The streamed view's correction moves in its mapping steps too (else only its tracking steps set it;
+    # keyframes' corrections move in every step that draws them).
+    view_steps: bool = True
     # Weight of the prior that holds a correction near the client's pose: prior x ((|t| / max_translation)^2
     # + (|r| / max_rotation)^2) joins each view's loss.
     prior: float = _weight(0.1)

@@ -64,3 +64,23 @@ def mapping_loss(
         + weights.scale * parts["scale"]
     )
     return total, parts
+
+
+def tracking_loss(
+    render_color: torch.Tensor,
+    render_depth: torch.Tensor,
+    render_alpha: torch.Tensor,
+    gt_color: torch.Tensor,
+    gt_depth: torch.Tensor,
+    weights: LossConfig,
+    min_alpha: float,
+) -> torch.Tensor:
+    """Colour and depth L1 for a pose against a fixed map, over the pixels the map covers (rendered
+    alpha at least ``min_alpha``, as SplaTAM tracks): where the map has nothing yet (newly seen space,
+    always at the side the camera turns to) the loss would pull every pose the same way."""
+    covered = (render_alpha.detach() >= min_alpha).to(render_color.dtype)
+    measured = torch.nan_to_num(gt_depth, nan=0.0, posinf=0.0, neginf=0.0)
+    with_depth = covered * (measured > 0).to(render_color.dtype)
+    color = (covered.unsqueeze(-1) * (render_color - gt_color).abs()).sum() / (3 * covered.sum()).clamp_min(1)
+    depth = (with_depth * (render_depth - measured).abs()).sum() / with_depth.sum().clamp_min(1)
+    return weights.color * color + weights.depth * depth

@@ -4,8 +4,8 @@ Clients send the poses they have (odometry, ARKit, KinectFusion), none exact. Ea
 the first, and the streamed view, carries a ``PoseCorrection``: a translation of the camera centre
 and a rotation about it, both in world axes, so the refined camera-to-world is
 ``[exp(r) R | t + dt]`` for the client's ``[R | t]``. It is optimised with the map in the same
-steps, by its own Adam (learning rates ``poses.translation_lr`` / ``rotation_lr``), under a prior
-that holds it near the client's pose; a correction beyond ``poses.max_translation`` /
+steps, by gradient descent at its own rates (``poses.translation_lr`` / ``rotation_lr``), under a
+prior that holds it near the client's pose; a correction beyond ``poses.max_translation`` /
 ``max_rotation`` is clamped back to the bound and reported as clamped.
 
 The first keyframe has none, so the map stays in the client's frame. The rasterizer gives the
@@ -23,9 +23,7 @@ import torch
 
 from ogmapping.config import PosesConfig
 
-ADAM_BETAS = (0.9, 0.999)
-ADAM_EPS = 1e-15
-STATE_SIZE = 20  # a correction's checkpoint row: delta, two moments (6 each), steps, clamped
+STATE_SIZE = 8  # a correction's checkpoint row: delta (6), steps, clamped
 
 
 def skew(vector: torch.Tensor) -> torch.Tensor:
@@ -64,13 +62,11 @@ class PoseReport:
 
 
 class PoseCorrection:
-    """One pose's correction (translation, then axis-angle rotation, as one leaf 6-vector) with its
-    own Adam moments, so corrections come and go with keyframes without touching the map's optimiser."""
+    """One pose's correction (translation, then axis-angle rotation, as one leaf 6-vector), stepped
+    on its own, so corrections come and go with keyframes without touching the map's optimiser."""
 
     def __init__(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> None:
         self.delta = torch.zeros(6, device=device, dtype=dtype, requires_grad=True)
-        self.exp_avg = torch.zeros(6, device=device, dtype=dtype)
-        self.exp_avg_sq = torch.zeros(6, device=device, dtype=dtype)
         self.steps = 0
         self.clamped = False  # hit the bound at some step since ``clamped`` was last cleared
 
@@ -96,19 +92,19 @@ class PoseCorrection:
                                  + self.rotation.square().sum() / scale**2)
 
     def step(self, settings: PosesConfig) -> None:
-        """One Adam step on ``delta`` from its gradient (none: nothing), then clamp to the bounds."""
+        """One gradient step on ``delta`` (none without a gradient), then clamp to the bounds.
+
+        Plain gradient descent, not Adam: Adam's first step moves every coordinate by its learning
+        rate whatever the gradient's size, so a pose that is already right takes a step the size of the
+        noise it was meant to remove; here a small gradient (a pose near its optimum) makes a small step.
+        """
         grad = self.delta.grad
         if grad is None:
             return
         self.steps += 1
-        beta1, beta2 = ADAM_BETAS
         with torch.no_grad():
-            self.exp_avg.mul_(beta1).add_(grad, alpha=1 - beta1)
-            self.exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
-            corrected_avg = self.exp_avg / (1 - beta1**self.steps)
-            corrected_sq = self.exp_avg_sq / (1 - beta2**self.steps)
-            lr = self.delta.new_tensor([settings.translation_lr] * 3 + [settings.rotation_lr] * 3)
-            self.delta.sub_(lr * corrected_avg / (corrected_sq.sqrt() + ADAM_EPS))
+            rates = self.delta.new_tensor([settings.translation_lr] * 3 + [settings.rotation_lr] * 3)
+            self.delta.sub_(rates * grad)
             self._clamp(self.delta[:3], settings.max_translation)
             self._clamp(self.delta[3:], math.radians(settings.max_rotation))
         self.delta.grad = None
@@ -128,9 +124,9 @@ class PoseCorrection:
                           refined.double().cpu().numpy())
 
     def state(self) -> torch.Tensor:
-        """Everything it carries as one float64 row: delta, moments, steps, clamped (for checkpoints)."""
-        numbers = torch.cat([self.delta.detach(), self.exp_avg, self.exp_avg_sq]).double().cpu()
-        return torch.cat([numbers, torch.tensor([self.steps, float(self.clamped)], dtype=torch.float64)])
+        """Everything it carries as one float64 row: delta, steps, clamped (for checkpoints)."""
+        extra = torch.tensor([self.steps, float(self.clamped)], dtype=torch.float64)
+        return torch.cat([self.delta.detach().double().cpu(), extra])
 
     @classmethod
     def from_state(cls, row: torch.Tensor, device: torch.device | str, dtype: torch.dtype) -> PoseCorrection:
@@ -140,9 +136,7 @@ class PoseCorrection:
         correction = cls(device, dtype)
         with torch.no_grad():
             correction.delta.copy_(row[:6])
-        correction.exp_avg = row[6:12].to(device, dtype)
-        correction.exp_avg_sq = row[12:18].to(device, dtype)
-        correction.steps = int(row[18])
-        correction.clamped = bool(row[19])
+        correction.steps = int(row[6])
+        correction.clamped = bool(row[7])
         return correction
 
