@@ -48,6 +48,14 @@ def write(path: Path, count: int, encoding: FrameEncoding | None = None, close: 
     return recorder
 
 
+def middle_of_largest_chunk(path: Path) -> int:
+    """A byte inside the largest chunk's records, whatever the file's other records add around it."""
+    with open(path, "rb") as stream:
+        chunks = make_reader(stream).get_summary().chunk_indexes
+    largest = max(chunks, key=lambda chunk: chunk.chunk_length)
+    return largest.chunk_start_offset + largest.chunk_length // 2
+
+
 def standard_read(path: Path) -> tuple[bool, dict[str, int]]:
     """What mcap's own ``make_reader`` sees: whether there is a summary, and messages per topic."""
     with open(path, "rb") as stream:
@@ -155,7 +163,7 @@ def test_a_damaged_recording_is_a_recording_error(tmp_path: Path, damage: str) -
     if damage == "not mcap":
         data[:8] = b"NOT MCAP"
     else:
-        data[len(data) // 3] ^= 0xFF  # inside a chunk: its CRC no longer matches
+        data[middle_of_largest_chunk(path)] ^= 0xFF  # its CRC no longer matches
     path.write_bytes(bytes(data))
     with pytest.raises(layout.RecordingError, match="not a readable recording"):
         layout.load(path)
