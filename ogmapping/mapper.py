@@ -172,9 +172,7 @@ class Mapper:
         with self._timed("preprocess"):
             frame = prepare(frame, self.config.octree.depth_min, self.config.octree.depth_max)
             self._fit_to(frame.color_intrinsics)
-            rgb = torch.as_tensor(frame.rgb, dtype=self.profile.precision, device=self.device)
-            depth = torch.as_tensor(frame.depth, dtype=self.profile.precision, device=self.device)
-            c2w = torch.as_tensor(frame.c2w, dtype=self.profile.precision, device=self.device)
+            rgb, depth, c2w = self._tensors(frame)
         # With ``poses.refine`` every frame but the first keyframe's carries a correction of its client pose
         # (the first keeps it: the map stays in the client's frame), tracked against the map before this
         # frame adds to it; the frame is placed at the tracked pose, and its steps refine it further.
@@ -218,6 +216,11 @@ class Mapper:
             stopped=stopped,
             pose=pose,
         )
+
+    def _tensors(self, frame: Frame) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """A prepared frame's colour, depth and pose on the device, at the mapper's precision."""
+        return tuple(torch.as_tensor(array, dtype=self.profile.precision, device=self.device)
+                     for array in (frame.rgb, frame.depth, frame.c2w))
 
     def _fit_to(self, intrinsics: Intrinsics) -> None:
         """On the first frame, with ``model.offsets_by_resolution``: rebuild the (still empty) model with
@@ -301,9 +304,7 @@ class Mapper:
             return
         with self.lock, self._timed("track"):
             frame = resize_frame(frame, settings.track_scale)
-            rgb = torch.as_tensor(frame.rgb, dtype=self.profile.precision, device=self.device)
-            depth = torch.as_tensor(frame.depth, dtype=self.profile.precision, device=self.device)
-            c2w = torch.as_tensor(frame.c2w, dtype=self.profile.precision, device=self.device)
+            rgb, depth, c2w = self._tensors(frame)
             with torch.no_grad():
                 rows = self._rows_in_view(c2w, frame.color_intrinsics)
                 gaussians = generate(self.anchors, self._features, self.decoders, c2w[:3, 3], rows,

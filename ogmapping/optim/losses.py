@@ -15,14 +15,15 @@ from ogmapping.optim.fused_loss import image_terms
 from ogmapping.optim.ssim import ReferenceStatistics, ssim_map
 
 
-def depth_l1(render_depth: torch.Tensor, gt_depth: torch.Tensor) -> torch.Tensor:
-    """Mean |rendered - measured| over pixels with a valid (positive, finite) measurement; 0 if none.
+def depth_l1(render_depth: torch.Tensor, gt_depth: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean |rendered - measured| over pixels with a valid (positive, finite) measurement, and within
+    ``mask`` (bool) where given; 0 if none.
 
     A masked sum over whole images rather than a gather of the valid pixels: the gather's size
     depends on the data, which on CUDA makes the host wait for the device at every view.
     """
     measured = torch.nan_to_num(gt_depth, nan=0.0, posinf=0.0, neginf=0.0)  # invalid -> 0, never NaN * 0
-    valid = measured > 0
+    valid = measured > 0 if mask is None else (measured > 0) & mask
     total = torch.where(valid, (render_depth - measured).abs(), 0.0).sum()
     return total / valid.sum().clamp_min(1)
 
@@ -78,9 +79,7 @@ def tracking_loss(
     """Colour and depth L1 for a pose against a fixed map, over the pixels the map covers (rendered
     alpha at least ``min_alpha``, as SplaTAM tracks): where the map has nothing yet (newly seen space,
     always at the side the camera turns to) the loss would pull every pose the same way."""
-    covered = (render_alpha.detach() >= min_alpha).to(render_color.dtype)
-    measured = torch.nan_to_num(gt_depth, nan=0.0, posinf=0.0, neginf=0.0)
-    with_depth = covered * (measured > 0).to(render_color.dtype)
-    color = (covered.unsqueeze(-1) * (render_color - gt_color).abs()).sum() / (3 * covered.sum()).clamp_min(1)
-    depth = (with_depth * (render_depth - measured).abs()).sum() / with_depth.sum().clamp_min(1)
-    return weights.color * color + weights.depth * depth
+    covered = render_alpha.detach() >= min_alpha
+    color = torch.where(covered.unsqueeze(-1), (render_color - gt_color).abs(), 0.0).sum()
+    color = color / (3 * covered.sum()).clamp_min(1)
+    return weights.color * color + weights.depth * depth_l1(render_depth, gt_depth, covered)
