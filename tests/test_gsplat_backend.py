@@ -100,27 +100,59 @@ def test_gsplat_by_name_fails_now_with_the_reason_and_the_install_hint(monkeypat
     assert resolve_backend("gsplat", CUDA) == "gsplat"
 
 
+class WarpSummedCameraFrame(torch.autograd.Function):
+    """Means into each entry's camera frame, with the reduction of gsplat 1.5.3's projection backward
+    (ProjectionEWA3DGSFused.cu): one thread per (entry, Gaussian) in order, the viewmat's gradient
+    summed over a warp's active threads grouped by camera index (always 0 here), not by entry, and
+    the sum added to the entry of the group's first thread."""
+
+    @staticmethod
+    def forward(ctx, means: torch.Tensor, viewmats: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(means, viewmats, active)
+        return means @ viewmats[:, 0, :3, :3].transpose(1, 2) + viewmats[:, 0, None, :3, 3]
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        means, viewmats, active = ctx.saved_tensors
+        batch, n = active.shape
+        per_thread = torch.zeros(batch, n, 4, 4, dtype=grad.dtype)
+        per_thread[..., :3, :3] = grad[..., :, None] * means[..., None, :]
+        per_thread[..., :3, 3] = grad
+        per_thread = (per_thread * active[..., None, None]).reshape(batch * n, 4, 4)
+        lanes_active = active.reshape(-1)
+        v_viewmats = torch.zeros_like(viewmats)
+        for start in range(0, batch * n, 32):
+            lanes = torch.nonzero(lanes_active[start:start + 32]).flatten() + start
+            if len(lanes):
+                v_viewmats[int(lanes[0]) // n, 0] += per_thread[lanes].sum(dim=0)
+        return grad @ viewmats[:, 0, :3, :3], v_viewmats, None
+
+
 def fake_rasterization(culled: torch.Tensor):
     """A stand-in for ``gsplat.rasterization`` with its output shapes (``packed=False``, ``RGB+ED``, a
     leading batch dimension B and one camera per batch entry): it takes float32 only, as gsplat's
-    kernels do, and leaves culled ``means2d`` rows as garbage. ``culled`` (B, N) marks the culled."""
+    kernels do, leaves culled ``means2d`` rows as garbage and reduces the viewmats' gradient as
+    gsplat does (``WarpSummedCameraFrame``). ``culled`` (B, N) marks the culled; rows past N, the
+    padding, are culled too."""
 
     def rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, **options):
         for tensor in (means, quats, scales, opacities, colors, viewmats, Ks):
             assert tensor.dtype == torch.float32
         assert options["packed"] is False and options["render_mode"] == "RGB+ED"
         batch, n = means.shape[:2]
-        assert viewmats.shape == (batch, 1, 4, 4) and Ks.shape == (batch, 1, 3, 3) and culled.shape == (batch, n)
-        camera = means @ viewmats[:, 0, :3, :3].transpose(1, 2) + viewmats[:, 0, None, :3, 3]
+        assert viewmats.shape == (batch, 1, 4, 4) and Ks.shape == (batch, 1, 3, 3) and culled.shape[0] == batch
+        hidden = torch.ones(batch, n, dtype=torch.bool)
+        hidden[:, :culled.shape[1]] = culled
+        camera = WarpSummedCameraFrame.apply(means, viewmats, ~hidden)
         projected = camera[..., :2] * Ks[:, :, 0, 0, None] / camera[..., 2:] + Ks[:, 0, None, :2, 2]
-        means2d = torch.where(culled.unsqueeze(-1), torch.full_like(projected, 1e30), projected)[:, None]
+        means2d = torch.where(hidden.unsqueeze(-1), torch.full_like(projected, 1e30), projected)[:, None]
         weight = torch.stack([
-            (means2d[b, 0, ~culled[b]].sum() + opacities[b].sum() + colors[b].sum()) * 1e-3 * (b + 1)
+            (means2d[b, 0, ~hidden[b]].sum() + opacities[b].sum() + colors[b].sum()) * 1e-3 * (b + 1)
             for b in range(batch)
         ])
         render = weight[:, None, None, None, None] * torch.ones(batch, 1, height, width, 4)
         alpha = torch.sigmoid(weight)[:, None, None, None, None] * torch.ones(batch, 1, height, width, 1)
-        radii = torch.where(culled, 0, 3).to(torch.int32)[:, None, :, None].expand(batch, 1, n, 2)
+        radii = torch.where(hidden, 0, 3).to(torch.int32)[:, None, :, None].expand(batch, 1, n, 2)
         return render, alpha, {"means2d": means2d, "radii": radii}
 
     return rasterization
@@ -185,6 +217,40 @@ def test_render_group_routes_each_viewmat_its_gradient():
         assert bool(viewmat.grad[:3].any()) and not bool(viewmat.grad[3].any())
     # Identical views, the fake weighing view b by b + 1: each gradient is its own view's.
     torch.testing.assert_close(viewmats[2].grad, 1.5 * viewmats[1].grad, rtol=1e-5, atol=0)
+
+
+def batched_and_alone_viewmat_gradients(counts: tuple[int, ...]) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """Each view's viewmat gradient rendered in one batch, and rendered as a batch of one."""
+    generator = torch.Generator().manual_seed(2)
+    scenes = [random_scene(generator, n) for n in counts]
+    K = torch.tensor([[10.0, 0.0, 4.0], [0.0, 10.0, 3.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+
+    def gradients(group: list[int]) -> list[torch.Tensor]:
+        viewmats = [torch.eye(4, dtype=torch.float64).requires_grad_() for _ in group]
+        padding = torch.arange(max(counts[i] for i in group)) >= torch.tensor([[counts[i]] for i in group])
+        outputs = gsplat_backend.render_group(fake_rasterization(padding), [scenes[i] for i in group],
+                                              [Camera(viewmat, K, 8, 6) for viewmat in viewmats], None)
+        sum(output.color.sum() for output in outputs).backward()
+        return [viewmat.grad for viewmat in viewmats]
+
+    return gradients(list(range(len(counts)))), [gradients([i])[0] for i in range(len(counts))]
+
+
+def test_each_batch_entry_holds_whole_warps_so_its_viewmat_gradient_is_its_own():
+    assert gsplat_backend.batch_rows([20]) == 20
+    assert gsplat_backend.batch_rows([20, 7, 33]) == 64
+    assert gsplat_backend.batch_rows([32, 32]) == 32
+    batched, alone = batched_and_alone_viewmat_gradients((40, 7, 45))
+    for b, (in_batch, by_itself) in enumerate(zip(batched, alone, strict=True)):
+        # The fake weighs entry b by b + 1; rendered alone, a view is entry 0.
+        torch.testing.assert_close(in_batch, (b + 1) * by_itself, rtol=1e-5, atol=1e-9)
+
+
+def test_entries_that_split_a_warp_would_mix_their_viewmat_gradients(monkeypatch):
+    """The stand-in reproduces what whole warps prevent: rows of the largest count alone."""
+    monkeypatch.setattr(gsplat_backend, "batch_rows", max)
+    batched, alone = batched_and_alone_viewmat_gradients((40, 7, 45))
+    assert not torch.allclose(batched[0], alone[0], rtol=1e-3)
 
 
 def test_views_are_grouped_by_image_size_in_order_of_appearance():
