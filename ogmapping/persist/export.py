@@ -56,6 +56,13 @@ def default_viewpoint(mapper: Decodable) -> Viewpoint:
 def export_ply(mapper: Decodable, path: str | Path, camera_center: np.ndarray) -> int:
     """Write the map's Gaussians, decoded as seen from ``camera_center``, to ``path``; returns how many."""
     gaussians = mapper.decode_at(camera_center)
+    with open(path, "wb") as handle:
+        handle.write(ply_bytes(gaussians))
+    return gaussians.means.shape[0]
+
+
+def ply_bytes(gaussians: GaussianSet) -> bytes:
+    """Decoded Gaussians as a standard 3DGS .ply file's bytes."""
     means = gaussians.means.cpu().numpy().astype(np.float32)
     count = means.shape[0]
     opacity = gaussians.opacities.clamp(1e-6, 1 - 1e-6).cpu().numpy()
@@ -78,10 +85,7 @@ def export_ply(mapper: Decodable, path: str | Path, camera_center: np.ndarray) -
         table[name] = values
     header = "ply\nformat binary_little_endian 1.0\n" f"element vertex {count}\n"
     header += "".join(f"property float {name}\n" for name in columns) + "end_header\n"
-    with open(path, "wb") as handle:
-        handle.write(header.encode("ascii"))
-        handle.write(table.tobytes())
-    return count
+    return header.encode("ascii") + table.tobytes()
 
 
 @dataclass(frozen=True)

@@ -122,6 +122,12 @@ def parser() -> argparse.ArgumentParser:
     live.add_argument("--foxglove-origin", dest="foxglove_origins", action="append", metavar="ORIGIN",
                       help="a browser origin allowed on the Foxglove port, e.g. https://app.foxglove.dev "
                            "(repeatable; clients that send no Origin are always allowed)")
+    web = p.add_argument_group("web view: each session's map as Gaussians in a browser (docs/service.md)")
+    web.add_argument("--web-port", dest="web_port", type=int,
+                     help="serve the web view over HTTP (HTTPS with --tls-cert) on the --address host and this "
+                          "port (0 = any free port; default off); the same API keys and tokens as gRPC")
+    web.add_argument("--web-seconds", dest="web_seconds", type=float,
+                     help="decode a map's Gaussians for the web view at most this often, seconds (0.5)")
     p.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING (default INFO)")
     return p
 

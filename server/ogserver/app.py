@@ -34,6 +34,8 @@ from ogserver.sessions.hosting import Closed, SessionHost
 from ogserver.sessions.registry import Registry
 from ogserver.sessions.resume import resume_all
 from ogserver.settings import Settings
+from ogserver.web.http_server import WebServer
+from ogserver.web.serving import start_web
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +57,7 @@ class Server:
     expiry: Expiry
     metrics: Endpoint | None  # the /metrics HTTP server, when metrics_address is set
     live: LiveView | None  # renders and point clouds for Foxglove and the recordings, unless views are off
+    web: WebServer | None = None  # the web view (live.web_port)
 
     def stop(self, grace: float, timeout: float) -> Stopped:
         """Report NOT_SERVING, let calls in flight finish (up to ``grace``), wait up to ``timeout`` more
@@ -70,6 +73,8 @@ class Server:
             log.warning("gRPC calls were still running %.1f s after the grace; closing the sessions anyway", timeout)
         if self.live is not None:
             self.live.stop()
+        if self.web is not None:
+            self.web.stop()
         closed = self.registry.close_all(timeout)
         drained = _drain(self.pool, timeout)
         if drained:  # else calls still running may need the loop to end theirs
@@ -121,11 +126,13 @@ def build(settings: Settings) -> Server:
     endpoint = Endpoint.start(access.metrics_address, metrics, access.max_metrics_connections) \
         if access.metrics_address else None
     live = _live_view(settings, registry) if isinstance(registry, Registry) else None
+    web = start_web(settings, registry, callers) \
+        if settings.live.web_port >= 0 and isinstance(registry, Registry) else None
     loop.run(server.start())
     log.info("device %s, %d torch threads, record dir %s", device, torch.get_num_threads(), settings.record_dir)
     _announce_access(settings, callers, credentials is not None, endpoint)
     return Server(server, loop, pool, registry, health_servicer, port, Expiry(registry).start(), endpoint,
-                  live.start() if live is not None else None)
+                  live.start() if live is not None else None, web)
 
 
 async def _grpc_server(

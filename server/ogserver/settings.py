@@ -118,6 +118,10 @@ class Live:
     # browser origins allowed (clients that send no Origin always are)
     foxglove_token_file: str = ""
     foxglove_origins: list[str] = field(default_factory=list)
+    # --- the web view (docs/service.md, "Web view"): each session's map as Gaussians in a browser, served
+    # on the address's host with the gRPC port's TLS and callers
+    web_port: int = -1  # -1: off; 0: any free port (the log names it)
+    web_seconds: float = 0.5  # a map's Gaussians are decoded for the web view at most this often
 
     def validate(self) -> None:
         for origin in self.foxglove_origins:
@@ -133,6 +137,11 @@ class Live:
             raise ValueError("live.foxglove_port needs live.view_seconds > 0 (0 turns the views off)")
         if self.view_points < 1:
             raise ValueError(f"live.view_points must be >= 1 (got {self.view_points})")
+        if not -1 <= self.web_port <= 65535:
+            raise ValueError(f"live.web_port must be -1 (off), 0 (any free port) or a port number "
+                             f"(got {self.web_port})")
+        if not (math.isfinite(self.web_seconds) and self.web_seconds > 0):
+            raise ValueError(f"live.web_seconds must be a finite number > 0 (got {self.web_seconds})")
 
     @property
     def foxglove(self) -> bool:
@@ -186,6 +195,8 @@ class Settings:
             raise ValueError(f"frame_seconds must be >= 0 and finite (got {self.frame_seconds})")
         if self.cluster and self.live.foxglove:
             raise ValueError("live.foxglove_port: the live view is not available in cluster mode yet")
+        if self.cluster and self.live.web_port >= 0:
+            raise ValueError("live.web_port: the web view is not available in cluster mode yet")
         for name in ("session_cpus", "session_gpus", "cluster_connect_seconds"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):

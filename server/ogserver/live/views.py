@@ -89,7 +89,8 @@ class Pending:
 
 
 class LatestFrame:
-    """A one-slot mailbox from the session's worker to the live view: offering costs a lock and an append."""
+    """A one-slot mailbox from the session's worker to the live view: offering costs a lock and an append.
+    ``last`` and ``keyframes`` stay when the live view takes: the web view reads them, never takes."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
@@ -97,10 +98,13 @@ class LatestFrame:
         self._keyframe: MappedFrame | None = None
         self._poses: deque[tuple[int, np.ndarray]] = deque(maxlen=MAX_POSES)
         self._refined: deque[tuple[int, np.ndarray]] = deque(maxlen=MAX_POSES)
+        self.last: MappedFrame | None = None  # the newest frame mapped
+        self.keyframes = 0  # keyframes offered so far: the web view's map version
 
     def offer(self, frame: MappedFrame) -> None:
         with self._lock:
-            self._latest = frame
+            self._latest = self.last = frame
+            self.keyframes += frame.keyframe
             self._poses.append((frame.sensor_ns, frame.c2w))
             if frame.refined is not None:
                 self._refined.append((frame.sensor_ns, frame.refined))

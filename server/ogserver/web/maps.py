@@ -1,0 +1,115 @@
+"""What the web view shows of one map: its Gaussians as a .ply, the newest input frame and the render
+from its pose, the keyframes' path and the map's statistics.
+
+The Gaussians are decoded as seen from one point (colours and opacities depend on the viewpoint), like
+``ogmap export``: the page's camera when it asks for one, else the mapped cameras' centroid. Decoding
+holds the mapper's lock like a Render call, so it is done at most once per ``min_seconds`` for a map
+and kept until the map has a new keyframe: however many pages watch, mapping pays for one decode.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+from ogapi.images import encode_color
+from ogapi.v1 import mapping_pb2 as pb
+
+from ogmapping.mapper import Mapper
+from ogmapping.persist.export import default_viewpoint, ply_bytes
+from ogserver.live.views import RENDER_JPEG_QUALITY, MappedFrame
+
+CENTER_DECIMALS = 3  # a viewpoint to the millimetre: pages at one pose share one decode
+
+
+class Source(Protocol):
+    """One map as the web view sees it: a session's, or a snapshot's (``ogclient view``)."""
+
+    id: str
+    label: str
+    mapper: Mapper
+
+    def latest(self) -> MappedFrame | None:
+        """The newest mapped input frame, None where there is none."""
+        ...
+
+    def version(self) -> int:
+        """Changes when the map has changed enough to be fetched again (each keyframe)."""
+        ...
+
+    def counters(self) -> dict[str, Any]:
+        """Frame counts and rates to show beside the map's statistics."""
+        ...
+
+
+@dataclass
+class Decoded:
+    version: int
+    center: tuple[float, ...]
+    ply: bytes
+    count: int
+    at: float  # time.monotonic() when it was decoded
+
+
+class MapView:
+    """One source's decoded Gaussians and render, made at most once per ``min_seconds`` each."""
+
+    def __init__(self, source: Source, min_seconds: float) -> None:
+        self.source = source
+        self.min_seconds = min_seconds
+        self._lock = threading.Lock()
+        self._decoded: Decoded | None = None
+        self._render: tuple[int, bytes] | None = None  # id() of the frame rendered, the JPEG
+
+    def splats(self, center: np.ndarray | None) -> Decoded:
+        """The map's Gaussians seen from ``center`` (None: the default viewpoint), decoded again only when
+        the map has a new keyframe or another viewpoint is asked for, and not sooner than ``min_seconds``
+        after the last decode (what is asked for meanwhile waits, or gets the last decode of that viewpoint)."""
+        with self._lock:
+            if center is None:
+                center = default_viewpoint(self.source.mapper).center
+            key = tuple(np.round(np.asarray(center, dtype=np.float64), CENTER_DECIMALS).tolist())
+            version, last = self.source.version(), self._decoded
+            if last is not None and last.center == key:
+                if last.version == version or time.monotonic() - last.at < self.min_seconds:
+                    return last
+            elif last is not None:
+                time.sleep(max(0.0, last.at + self.min_seconds - time.monotonic()))
+            gaussians = self.source.mapper.decode_at(np.asarray(key))
+            self._decoded = Decoded(version, key, ply_bytes(gaussians), int(gaussians.means.shape[0]),
+                                    time.monotonic())
+            return self._decoded
+
+    def render_jpeg(self) -> bytes | None:
+        """The map rendered from the newest frame's pose, once per frame."""
+        frame = self.source.latest()
+        if frame is None:
+            return None
+        with self._lock:
+            if self._render is None or self._render[0] != id(frame):
+                c2w = frame.c2w if frame.refined is None else frame.refined
+                color = self.source.mapper.render(c2w, frame.intrinsics).color
+                self._render = (id(frame), encode_color(color, pb.COLOR_JPEG, RENDER_JPEG_QUALITY))
+            return self._render[1]
+
+    def state(self) -> dict[str, Any]:
+        """What the page polls: the map's version, statistics, the keyframes' path and the newest frame."""
+        mapper, frame = self.source.mapper, self.source.latest()
+        stats = mapper.stats()
+        path = [pose.refined_c2w[:3, 3].round(4).tolist() for pose in mapper.keyframe_poses()]
+        latest = None
+        if frame is not None:
+            intrinsics = frame.intrinsics
+            latest = {"sensor_ns": frame.sensor_ns, "keyframe": frame.keyframe,
+                      "c2w": np.asarray(frame.c2w if frame.refined is None else frame.refined).ravel().tolist(),
+                      "fx": intrinsics.fx, "fy": intrinsics.fy, "cx": intrinsics.cx, "cy": intrinsics.cy,
+                      "width": intrinsics.width, "height": intrinsics.height, "format": frame.color.format}
+        return {
+            "id": self.source.id, "label": self.source.label, "version": self.source.version(),
+            "stats": {"frames": stats.frames, "keyframes": stats.keyframes, "anchors": stats.anchors,
+                      "gaussians": stats.gaussians, "device": stats.device, **self.source.counters()},
+            "path": path, "latest": latest,
+        }
