@@ -1,0 +1,128 @@
+"""The web view in a real browser: a session's map drawn by Spark from a pose agrees with the server's own
+render from it, and follows the map as more frames arrive; callers see only what gRPC lets them see."""
+
+from __future__ import annotations
+
+import json
+import time
+import urllib.error
+import urllib.request
+
+import cv2
+import numpy as np
+import pytest
+from ogapi import API_KEY_METADATA_KEY
+from ogapi.v1 import mapping_pb2 as pb
+from ogclient.connection import SessionRef
+from ogclient.evaluation import render
+from ogclient.streaming import stream_frames
+from ogserver import apikeys
+
+from ogmapping.frames.camera import Intrinsics
+
+from .browser import PAGE_SECONDS, browser, fragment, needs_browser, psnr
+from .inprocess import serving, settings
+from .scene import FROZEN, TINY, create_request, messages, scene
+
+MIN_PSNR = 25.0
+
+
+def web_settings(tmp_path):
+    configured = settings(tmp_path)
+    configured.live.web_port = 0
+    configured.live.web_seconds = 0.1
+    return configured
+
+
+def pose_and_camera(frame: pb.Frame) -> tuple[np.ndarray, Intrinsics]:
+    k = frame.color_intrinsics
+    return np.array(frame.c2w).reshape(4, 4), Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+
+
+def screenshot(page) -> np.ndarray:
+    png = page.locator("#view").screenshot()
+    return cv2.cvtColor(cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB) / 255.0
+
+
+@needs_browser
+def test_page_at_a_pose_agrees_with_the_render_and_follows_the_map(tmp_path) -> None:
+    frames = messages(scene())
+    with serving(web_settings(tmp_path)) as running, browser() as chromium:
+        session = SessionRef.from_credentials(running.stub.CreateSession(create_request(TINY)))
+        stream_frames(running.stub, session, frames[:4], None, False)
+        c2w, camera = pose_and_camera(frames[3])
+        url = f"http://127.0.0.1:{running.server.web.port}/map/{session.session_id}?token={session.token}"
+        page = chromium.new_page()
+        page.goto(url + fragment(c2w, camera))
+        page.wait_for_function("window.ogmapReady === true || window.ogmapError", timeout=PAGE_SECONDS * 1000)
+        assert page.evaluate("window.ogmapError") is None
+        first_version = page.evaluate("window.ogmapVersion")
+        drawn = screenshot(page)
+        expected = render(running.stub, session, c2w, camera).color
+        assert drawn.shape == expected.shape
+        agreement = psnr(drawn, expected)
+        assert agreement >= MIN_PSNR, f"PSNR {agreement:.2f} dB"
+
+        stream_frames(running.stub, session, frames[4:], None, False)
+        page.wait_for_function(f"window.ogmapVersion > {first_version}", timeout=PAGE_SECONDS * 1000)
+        time.sleep(0.5)  # the newest version's frame drawn
+        later = screenshot(page)
+        assert psnr(later, render(running.stub, session, c2w, camera).color) >= MIN_PSNR
+        assert psnr(later, drawn) < 60  # the map changed, and so did the page
+
+        errors: list[str] = []
+        free = chromium.new_page(viewport={"width": 640, "height": 360})
+        free.on("pageerror", lambda error: errors.append(str(error)))
+        free.goto(url)
+        free.wait_for_function("document.querySelectorAll('#stats dt').length > 0 && "
+                               "document.getElementById('render').naturalWidth > 0", timeout=PAGE_SECONDS * 1000)
+        assert errors == []
+
+
+def get(url: str) -> tuple[int, bytes]:
+    try:
+        with urllib.request.urlopen(url, timeout=30) as response:
+            return response.status, response.read()
+    except urllib.error.HTTPError as error:
+        return error.code, error.read()
+
+
+def test_with_api_keys_a_caller_sees_only_its_own_sessions(tmp_path) -> None:
+    configured = web_settings(tmp_path)
+    configured.access.api_keys = {"alice": apikeys.digest("alice-key"), "bob": apikeys.digest("bob-key")}
+    with serving(configured) as running:
+        alice = SessionRef.from_credentials(running.stub.CreateSession(create_request(FROZEN, "alice-room"),
+                                                                       metadata=[(API_KEY_METADATA_KEY, "alice-key")]))
+        bob = SessionRef.from_credentials(running.stub.CreateSession(create_request(FROZEN, "bob-room"),
+                                                                     metadata=[(API_KEY_METADATA_KEY, "bob-key")]))
+        frames = messages(scene("0:2"))
+        stream_frames(running.stub, alice, frames, None, False)
+        base = f"http://127.0.0.1:{running.server.web.port}"
+        alice_id = alice.session_id
+        paths = ["/", f"/map/{alice_id}", f"/api/map/{alice_id}/state", f"/api/map/{alice_id}/splats.ply",
+                 f"/api/map/{alice_id}/frame", f"/api/map/{alice_id}/render.jpg"]
+        for query in ("", "?key=wrong-key", "?token=wrong-token", "?key=bob-key", f"?token={bob.token}"):
+            for path in paths:
+                status, body = get(base + path + query)
+                assert alice_id.encode() not in body and b"alice-room" not in body, (path, query)
+                if path != "/" or query in ("", "?key=wrong-key", "?token=wrong-token"):
+                    assert status in (401, 404), (path, query, status)
+        status, index = get(f"{base}/?key=bob-key")
+        assert status == 200 and bob.session_id.encode() in index
+        for query in ("?key=alice-key", f"?token={alice.token}"):
+            status, index = get(f"{base}/{query}")
+            assert status == 200 and alice_id.encode() in index and bob.session_id.encode() not in index
+            for path in paths[1:]:
+                assert get(base + path + query)[0] == 200, (path, query)
+        status, state = get(f"{base}/api/map/{alice_id}/state?key=alice-key")
+        assert json.loads(state)["stats"]["mapped"] == len(frames)
+        assert get(f"{base}/api/map/{alice_id}/splats.ply?key=alice-key&center=1,2")[0] == 400
+
+
+def test_a_server_on_a_loopback_address_answers_only_loopback_hosts(tmp_path) -> None:
+    with serving(web_settings(tmp_path)) as running:
+        request = urllib.request.Request(f"http://127.0.0.1:{running.server.web.port}/",
+                                         headers={"Host": "attacker.example:80"})
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            urllib.request.urlopen(request, timeout=30)
+        assert refused.value.code == 403
