@@ -26,6 +26,7 @@ typical session:
   ogclient replay recordings/<session>.mcap --close
   ogclient repair-recording recordings/<session>.mcap repaired.mcap   # after a server crash
   ogclient trajectory recordings/<session>.mcap --out refined.tum   # poses.refine; --client: the sent poses
+  ogclient view kitchen.safetensors --open      # the map as Gaussians in the browser (also a recording)
 
 Session commands read the credentials file written by create/stream/replay/restore (--session-out,
 default session.json). --server defaults to $OGMAP_SERVER or 127.0.0.1:50051. A server with API keys
@@ -141,6 +142,18 @@ def parser() -> argparse.ArgumentParser:
     trajectory.add_argument("--out", required=True, help="the TUM file to write")
     trajectory.add_argument("--client", action="store_true", help="the client's poses, not the refined ones")
     trajectory.set_defaults(handler=commands.trajectory, offline=True)
+
+    view = sub.add_parser(
+        "view", help="show a snapshot's or a recording's map as Gaussians in the browser (no server needed)",
+        description="Serve the web view of a snapshot (.safetensors), or of the map at the end of a recording "
+        "(.mcap: its final snapshot beside it, else its frames mapped here as a replay would), on 127.0.0.1 "
+        "until Ctrl-C. Prints the page's URL, a one-time token in its query; append #pose=... (docs/service.md) "
+        "for a fixed camera.")
+    view.add_argument("map", help="a snapshot (.safetensors) or a recording (.mcap)")
+    view.add_argument("--port", type=int, default=0, help="port on 127.0.0.1 (default: any free one)")
+    view.add_argument("--device", default="auto", help="where to load and decode the map: auto, cpu, cuda")
+    view.add_argument("--open", action="store_true", help="open the page in the default browser")
+    view.set_defaults(handler=commands.view, offline=True)
 
     render = sub.add_parser(
         "render", help="render a pose to PNGs",

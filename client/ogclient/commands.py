@@ -279,3 +279,27 @@ def close(ctx: Context, args: argparse.Namespace) -> int:
     print(f"closed session {session.session_id} after {response.stats.frames} frames; recording {response.recording}"
           + (f", snapshot {response.snapshot}" if response.snapshot else "") + " in the server's record dir")
     return 0
+
+
+def view(args: argparse.Namespace) -> int:
+    """Serve the web view of a snapshot or a recording's map on 127.0.0.1 until interrupted."""
+    import threading
+    import webbrowser
+
+    from ogclient import viewing  # the engine and the server's web view: loaded only for this command
+
+    path = Path(args.map)
+    if not path.is_file():
+        raise ClientError(f"{path}: no such file")
+    still = viewing.open_map(path, args.device)
+    server, url = viewing.serve(still, args.port)
+    print(f"web view of {path.name} on {url}", flush=True)
+    if args.open:
+        webbrowser.open(url)
+    try:
+        threading.Event().wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.stop()
+    return 0

@@ -4,6 +4,9 @@ render from it, and follows the map as more frames arrive; callers see only what
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 import time
 import urllib.error
 import urllib.request
@@ -13,8 +16,9 @@ import numpy as np
 import pytest
 from ogapi import API_KEY_METADATA_KEY
 from ogapi.v1 import mapping_pb2 as pb
+from ogclient import viewing
 from ogclient.connection import SessionRef
-from ogclient.evaluation import render
+from ogclient.evaluation import render, snapshot_bytes
 from ogclient.streaming import stream_frames
 from ogserver import apikeys
 
@@ -25,6 +29,7 @@ from .inprocess import serving, settings
 from .scene import FROZEN, TINY, create_request, messages, scene
 
 MIN_PSNR = 25.0
+PATH = os.pathsep.join(sys.path)  # this process's packages for the ogclient it starts
 
 
 def web_settings(tmp_path):
@@ -126,3 +131,40 @@ def test_a_server_on_a_loopback_address_answers_only_loopback_hosts(tmp_path) ->
         with pytest.raises(urllib.error.HTTPError) as refused:
             urllib.request.urlopen(request, timeout=30)
         assert refused.value.code == 403
+
+
+@needs_browser
+def test_ogclient_view_serves_a_snapshot_and_a_recordings_map(tmp_path) -> None:
+    frames = messages(scene())
+    with serving(web_settings(tmp_path)) as running:
+        session = SessionRef.from_credentials(running.stub.CreateSession(create_request(TINY)))
+        stream_frames(running.stub, session, frames[:4], None, False)
+        c2w, camera = pose_and_camera(frames[3])
+        expected = render(running.stub, session, c2w, camera).color
+        snapshot = tmp_path / "room.safetensors"
+        snapshot.write_bytes(snapshot_bytes(running.stub, session))
+        closed = running.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id),
+                                           metadata=session.metadata())
+        recorded = running.record_dir / closed.recording
+
+    replayed = viewing.open_map(recorded, "cpu", progress=lambda _: None)
+    assert replayed.mapper.stats().frames == 4
+    assert psnr(replayed.mapper.render(c2w, camera).color, expected) >= 40
+
+    command = [sys.executable, "-m", "ogclient", "view", str(snapshot), "--device", "cpu"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": PATH})
+    try:
+        line = process.stdout.readline()
+        assert line.startswith("web view of room.safetensors on http://127.0.0.1:"), line
+        url = line.split(" on ", 1)[1].strip()
+        assert get(url)[0] == 200
+        assert get(url.split("?")[0])[0] == 401
+        with browser() as chromium:
+            page = chromium.new_page()
+            page.goto(url + fragment(c2w, camera))
+            page.wait_for_function("window.ogmapReady === true || window.ogmapError", timeout=PAGE_SECONDS * 1000)
+            agreement = psnr(screenshot(page), expected)
+            assert agreement >= MIN_PSNR, f"PSNR {agreement:.2f} dB"
+    finally:
+        process.terminate()
+        process.wait(30)

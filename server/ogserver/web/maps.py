@@ -107,9 +107,27 @@ class MapView:
                       "c2w": np.asarray(frame.c2w if frame.refined is None else frame.refined).ravel().tolist(),
                       "fx": intrinsics.fx, "fy": intrinsics.fy, "cx": intrinsics.cx, "cy": intrinsics.cy,
                       "width": intrinsics.width, "height": intrinsics.height, "format": frame.color.format}
+        start = latest["c2w"] if latest else path_pose(mapper)
         return {
-            "id": self.source.id, "label": self.source.label, "version": self.source.version(),
+            "id": self.source.id, "label": self.source.label, "version": self.source.version(), "start": start,
             "stats": {"frames": stats.frames, "keyframes": stats.keyframes, "anchors": stats.anchors,
                       "gaussians": stats.gaussians, "device": stats.device, **self.source.counters()},
             "path": path, "latest": latest,
         }
+
+
+def path_pose(mapper: Mapper) -> list[float]:
+    """Where a page without a newest frame starts: the last keyframe's pose, else at the default viewpoint
+    looking at the anchors' mean (world +y down in the image, as in OpenCV-style datasets)."""
+    poses = mapper.keyframe_poses()
+    if poses:
+        return poses[-1].refined_c2w.ravel().tolist()
+    eye, target = default_viewpoint(mapper).center, mapper.anchor_centroid()
+    forward = target - eye if np.linalg.norm(target - eye) > 1e-6 else np.array([0.0, 0.0, 1.0])
+    forward = forward / np.linalg.norm(forward)
+    right = np.cross([0.0, 1.0, 0.0], forward)
+    right = right / np.linalg.norm(right) if np.linalg.norm(right) > 1e-6 else np.array([1.0, 0.0, 0.0])
+    c2w = np.eye(4)
+    c2w[:3, :3] = np.stack([right, np.cross(forward, right), forward], axis=1)
+    c2w[:3, 3] = eye
+    return c2w.ravel().tolist()

@@ -98,15 +98,16 @@ function showState(state) {
     detail.textContent = typeof value === "number" ? value.toLocaleString() : value;
     return [term, detail];
   }));
+  for (const figure of document.querySelectorAll("#panel figure")) figure.hidden = !state.latest;
   trajectory.geometry.setFromPoints(state.path.map((p) => new THREE.Vector3(...p)));
   if (state.latest) {
     const stamp = `&t=${state.latest.sensor_ns}`;
     document.getElementById("frame").src = api("frame") + (credential ? stamp : `?${stamp.slice(1)}`);
     document.getElementById("render").src = api("render.jpg") + (credential ? stamp : `?${stamp.slice(1)}`);
-    if (!placed) {
-      setPose(camera, state.latest.c2w);
-      placed = true;
-    }
+  }
+  if (!placed) {
+    setPose(camera, state.start);
+    placed = true;
   }
 }
 
