@@ -1,9 +1,9 @@
 """``python -m ogclient.demo --out out/demo`` (what ``make demo`` runs): the service end to end.
 
-Starts an ogserver subprocess on a free local port, streams the synthetic scene into a session,
-scores streamed and held-out views through the server like ``ogmap run``, and leaves side-by-side
-renders, a snapshot, results.json and the session's MCAP recording under --out. The server is
-stopped (SIGTERM) whatever happens.
+Starts an ogserver subprocess on a free local port (its web view too, the URL printed), streams the
+synthetic scene into a session, scores streamed and held-out views through the server like ``ogmap
+run``, and leaves side-by-side renders, a snapshot, results.json and the session's MCAP recording
+under --out. The server is stopped (SIGTERM) whatever happens.
 """
 
 from __future__ import annotations
@@ -47,6 +47,8 @@ def parser() -> argparse.ArgumentParser:
                    help="config override on top of the demo's "
                    + ", ".join(f"{k}={v}" for k, v in DEFAULT_OVERRIDES.items()))
     p.add_argument("--device", default="auto", help="server device: auto (GPU if any, else CPU), cpu, cuda")
+    p.add_argument("--web-port", type=int, default=0,
+                   help="the server's web view port on 127.0.0.1 (default 0: any free one, printed)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     return p
 
@@ -66,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
     sample = frames.load(selection.streamed[0]).color_intrinsics
 
     print("OG-Mapping service demo", flush=True)
-    with LocalServer(record_dir, "--device", args.device, log_path=out / "server.log") as server:
+    with LocalServer(record_dir, "--device", args.device, "--web-port", str(args.web_port),
+                     log_path=out / "server.log") as server:
         channel, stub = connect(server.address, timeout=60)
         with channel:
             print(f"{server.ready_line}; log {out / 'server.log'}")
@@ -76,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
             session.save(out / "session.json", server.address)
             print(f"session {session.session_id}: preset {args.preset}, "
                   + ", ".join(f"{k}={v}" for k, v in overrides.items()))
+            print(f"watch it map, as Gaussians in the browser: {server.web_url}map/{session.session_id}")
             print(f"streaming {len(selection.streamed)} synthetic frames at {sample.width}x{sample.height} "
                   f"({len(selection.heldout)} held out)", flush=True)
             messages = (frame_to_proto(frames.load(position)) for position in selection.streamed)
@@ -107,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"recording: {recording} ({recording.stat().st_size} bytes; opens in Foxglove, "
           f"replay with `ogclient replay {recording}`)")
     print(f"results: {out / 'results.json'}")
+    print(f"the map in the browser, afterwards: ogclient view {snapshot} --open")
     return 0
 
 

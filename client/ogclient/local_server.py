@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 READY_PREFIX = "ogserver listening on"
+WEB_PREFIX = "ogserver web view on"
 
 
 class LocalServer:
@@ -24,6 +25,7 @@ class LocalServer:
         self.start_timeout = start_timeout
         self.address = ""
         self.ready_line = ""
+        self.web_url = ""  # with --web-port: the web view's http(s)://HOST:PORT/
         self.output: list[str] = []
         self.process: subprocess.Popen | None = None
         self._ready = threading.Event()
@@ -47,6 +49,8 @@ class LocalServer:
         assert self.process is not None and self.process.stdout is not None
         for line in self.process.stdout:
             self.output.append(line.rstrip("\n"))
+            if line.startswith(WEB_PREFIX):
+                self.web_url = line[len(WEB_PREFIX):].strip()
             if line.startswith(READY_PREFIX):
                 self.address = line[len(READY_PREFIX):].split()[0]
                 self.ready_line = line.strip()

@@ -13,6 +13,7 @@ from ogserver import LOG_FORMAT
 from ogserver import settings as settings_module
 
 READY_PREFIX = "ogserver listening on"
+WEB_PREFIX = "ogserver web view on"  # printed just before READY_PREFIX, with --web-port
 
 EPILOG = """\
 settings come from defaults, then --config FILE (YAML or JSON with the same names, limits nested
@@ -155,6 +156,8 @@ def main(argv: list[str] | None = None) -> int:
     for number in (signal.SIGTERM, signal.SIGINT):
         signal.signal(number, lambda *_: stop.set())
     host = settings.address.rsplit(":", 1)[0]
+    if server.web is not None:
+        print(f"{WEB_PREFIX} {server.web.url(host)}", flush=True)
     print(f"{READY_PREFIX} {host}:{server.port} (device {server.registry.device})", flush=True)
     while not stop.wait(0.5):
         pass

@@ -3,8 +3,10 @@ render from it, and follows the map as more frames arrive; callers see only what
 
 from __future__ import annotations
 
+import http.client
 import json
 import os
+import ssl
 import subprocess
 import sys
 import time
@@ -25,6 +27,7 @@ from ogserver import apikeys
 from ogmapping.frames.camera import Intrinsics
 
 from .browser import PAGE_SECONDS, browser, fragment, needs_browser, psnr
+from .certificates import make_ca
 from .inprocess import serving, settings
 from .scene import FROZEN, TINY, create_request, messages, scene
 
@@ -168,3 +171,17 @@ def test_ogclient_view_serves_a_snapshot_and_a_recordings_map(tmp_path) -> None:
     finally:
         process.terminate()
         process.wait(30)
+
+
+def test_with_tls_the_web_port_speaks_only_https(tmp_path) -> None:
+    ca = make_ca(tmp_path / "pki")
+    configured = web_settings(tmp_path)
+    configured.access.tls_cert, configured.access.tls_key = str(ca.server.cert), str(ca.server.key)
+    with serving(configured) as running:
+        port = running.server.web.port
+        trusting = ssl.create_default_context(cafile=str(ca.ca))
+        with urllib.request.urlopen(f"https://127.0.0.1:{port}/static/style.css", context=trusting,
+                                    timeout=30) as response:
+            assert response.status == 200
+        with pytest.raises((urllib.error.URLError, ConnectionError, http.client.HTTPException)):
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=30)

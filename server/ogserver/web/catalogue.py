@@ -23,7 +23,7 @@ from ogserver.errors import ServiceError
 from ogserver.live.views import MappedFrame
 from ogserver.sessions.registry import Registry
 from ogserver.sessions.session import Session
-from ogserver.web.maps import MapView
+from ogserver.web.maps import Busy, MapView
 
 
 @dataclass(frozen=True)
@@ -40,6 +40,8 @@ class Credential:
 
 
 class Catalogue(Protocol):
+    busy: Busy  # what its maps' decodes and renders took
+
     def visible(self, credential: Credential) -> list[MapView]:
         """The maps the caller may see; ServiceError UNAUTHENTICATED for a wrong credential."""
         ...
@@ -84,6 +86,7 @@ class Sessions:
         self.callers = callers
         self.failures = failures
         self.min_seconds = min_seconds
+        self.busy = Busy()
         self._lock = threading.Lock()
         self._views: dict[str, MapView] = {}
 
@@ -98,7 +101,7 @@ class Sessions:
             if view is None:
                 open_ids = {item.id for item in self.registry.sessions()}
                 self._views = {key: value for key, value in self._views.items() if key in open_ids}
-                view = self._views[session.id] = MapView(SessionSource(session), self.min_seconds)
+                view = self._views[session.id] = MapView(SessionSource(session), self.min_seconds, self.busy)
             return view
 
     def _sessions(self, credential: Credential) -> list[Session]:
@@ -135,6 +138,7 @@ class OneMap:
     def __init__(self, view: MapView, token: str) -> None:
         self.view = view
         self.token = token
+        self.busy = view.busy
 
     def visible(self, credential: Credential) -> list[MapView]:
         if not hmac.compare_digest(credential.token.encode(), self.token.encode()):

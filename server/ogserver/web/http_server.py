@@ -66,6 +66,8 @@ class WebServer(ThreadingHTTPServer):
     def stop(self) -> None:
         self.shutdown()
         self.server_close()
+        busy = self.catalogue.busy
+        log.info("web view: %d decodes and renders, %.1f s", busy.count, busy.seconds)
 
     def url(self, host: str) -> str:
         return f"{'https' if self.tls else 'http'}://{host}:{self.port}/"
@@ -101,6 +103,9 @@ class Handler(BaseHTTPRequestHandler):
         url = urlsplit(self.path)
         if self.server.loopback and not LOOPBACK_HOSTS.fullmatch(self.headers.get("Host", "")):
             self._send(HTTPStatus.FORBIDDEN, b"this server answers only requests for a loopback host\n")
+            return
+        if url.path == "/favicon.ico":
+            self._send(HTTPStatus.NO_CONTENT, b"")
             return
         folder, _, name = url.path.lstrip("/").partition("/")
         if folder in FOLDERS:

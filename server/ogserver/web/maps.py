@@ -45,6 +45,20 @@ class Source(Protocol):
         ...
 
 
+class Busy:
+    """Decodes and renders made for the web view and their seconds (they hold the mapper's lock)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.count = 0
+        self.seconds = 0.0
+
+    def add(self, started: float) -> None:
+        with self._lock:
+            self.count += 1
+            self.seconds += time.perf_counter() - started
+
+
 @dataclass
 class Decoded:
     version: int
@@ -57,9 +71,10 @@ class Decoded:
 class MapView:
     """One source's decoded Gaussians and render, made at most once per ``min_seconds`` each."""
 
-    def __init__(self, source: Source, min_seconds: float) -> None:
+    def __init__(self, source: Source, min_seconds: float, busy: Busy | None = None) -> None:
         self.source = source
         self.min_seconds = min_seconds
+        self.busy = busy or Busy()
         self._lock = threading.Lock()
         self._decoded: Decoded | None = None
         self._render: tuple[int, bytes] | None = None  # id() of the frame rendered, the JPEG
@@ -78,9 +93,11 @@ class MapView:
                     return last
             elif last is not None:
                 time.sleep(max(0.0, last.at + self.min_seconds - time.monotonic()))
+            started = time.perf_counter()
             gaussians = self.source.mapper.decode_at(np.asarray(key))
             self._decoded = Decoded(version, key, ply_bytes(gaussians), int(gaussians.means.shape[0]),
                                     time.monotonic())
+            self.busy.add(started)
             return self._decoded
 
     def render_jpeg(self) -> bytes | None:
@@ -90,15 +107,18 @@ class MapView:
             return None
         with self._lock:
             if self._render is None or self._render[0] != id(frame):
+                started = time.perf_counter()
                 c2w = frame.c2w if frame.refined is None else frame.refined
                 color = self.source.mapper.render(c2w, frame.intrinsics).color
                 self._render = (id(frame), encode_color(color, pb.COLOR_JPEG, RENDER_JPEG_QUALITY))
+                self.busy.add(started)
             return self._render[1]
 
     def state(self) -> dict[str, Any]:
         """What the page polls: the map's version, statistics, the keyframes' path and the newest frame."""
         mapper, frame = self.source.mapper, self.source.latest()
         stats = mapper.stats()
+        decoded = self._decoded
         path = [pose.refined_c2w[:3, 3].round(4).tolist() for pose in mapper.keyframe_poses()]
         latest = None
         if frame is not None:
@@ -111,7 +131,8 @@ class MapView:
         return {
             "id": self.source.id, "label": self.source.label, "version": self.source.version(), "start": start,
             "stats": {"frames": stats.frames, "keyframes": stats.keyframes, "anchors": stats.anchors,
-                      "gaussians": stats.gaussians, "device": stats.device, **self.source.counters()},
+                      "gaussians_drawn": decoded.count if decoded else 0, "device": stats.device,
+                      **self.source.counters()},
             "path": path, "latest": latest,
         }
 

@@ -1,0 +1,109 @@
+"""What the web view costs the mapping: the same frames through fresh servers with ``--web-port 0``,
+with no browser, with a browser page at a fixed pose (it fetches the map after each keyframe and draws
+it once: the server's part), and with the free-fly page (the browser draws continuously, on this
+machine's CPU when it has no GPU).
+
+    python bench/web_view.py [--data DIR --format F] [--frames 0:40] [--scale 0.5] [--repeat 2] [--json out.json]
+
+Reported per run: the session's processing FPS (``GetStats``) and the web view's decodes and renders
+with their seconds (the server's log line at shutdown; they hold the mapper's lock).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+import tempfile
+import threading
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from ogapi.v1 import mapping_pb2 as pb
+from ogclient.connection import SessionRef, connect
+from ogclient.local_server import LocalServer
+from ogclient.messages import frame_to_proto
+from ogclient.streaming import stream_frames
+
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.quality.evaluation import open_frames
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+from tests.service.browser import browser, fragment  # noqa: E402 - the tests' headless chromium
+
+OVERRIDES = {"keyframes.first_iterations": "40", "keyframes.iterations": "8"}  # the demo's
+BUSY = re.compile(r"web view: (\d+) decodes and renders, ([\d.]+) s")
+
+
+@dataclass
+class Row:
+    page: str
+    frames: int
+    keyframes: int
+    processing_fps: float
+    decodes_and_renders: int
+    web_seconds: float
+
+
+def run(page: str, messages: list[pb.Frame], folder: Path) -> Row:
+    with LocalServer(folder / page, "--device", "cpu", "--web-port", "0", "--no-warm-up") as server:
+        channel, stub = connect(server.address, timeout=60)
+        with channel:
+            session = SessionRef.from_credentials(stub.CreateSession(pb.CreateSessionRequest(
+                preset="sparse-fast", overrides=OVERRIDES, label=page)))
+            url = f"{server.web_url}map/{session.session_id}"
+            if page == "pose":
+                k = messages[0].color_intrinsics
+                camera = Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+                url += fragment(np.array(messages[0].c2w).reshape(4, 4), camera)
+            stop = threading.Event()
+            opened = threading.Event()
+
+            def watch() -> None:
+                with browser() as chromium:
+                    tab = chromium.new_page(viewport={"width": 640, "height": 480})
+                    tab.goto(url)
+                    opened.set()
+                    stop.wait()
+
+            watcher = threading.Thread(target=watch, daemon=True)
+            if page != "none":
+                watcher.start()
+                opened.wait(60)
+            stream_frames(stub, session, messages, None, False)
+            stats = stub.GetStats(pb.GetStatsRequest(session_id=session.session_id), metadata=session.metadata())
+            stop.set()
+            if page != "none":
+                watcher.join(60)
+    busy = BUSY.findall(server.log_path.read_text())
+    count, seconds = busy[-1] if busy else ("0", "0")
+    return Row(page, stats.frames, stats.keyframes, round(stats.processing_fps, 3), int(count), float(seconds))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", default="synthetic")
+    parser.add_argument("--format", default="synthetic")
+    parser.add_argument("--frames", default="0:40")
+    parser.add_argument("--scale", type=float, default=0.5)
+    parser.add_argument("--repeat", type=int, default=2)
+    parser.add_argument("--json")
+    args = parser.parse_args()
+    frames = open_frames(args.data, args.format, args.frames, 1, args.scale)
+    messages = [frame_to_proto(frames.load(position)) for position in frames.selection.streamed]
+    rows = []
+    with tempfile.TemporaryDirectory() as folder:
+        for _ in range(args.repeat):
+            for page in ("none", "pose", "free-fly"):
+                rows.append(run(page, messages, Path(folder)))
+                print(json.dumps(asdict(rows[-1])), flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps([asdict(row) for row in rows], indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
