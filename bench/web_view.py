@@ -49,7 +49,7 @@ class Row:
 
 
 def run(page: str, messages: list[pb.Frame], folder: Path) -> Row:
-    with LocalServer(folder / page, "--device", "cpu", "--web-port", "0", "--no-warm-up") as server:
+    with LocalServer(folder / page, "--device", "cpu", "--web-port", "0") as server:
         channel, stub = connect(server.address, timeout=60)
         with channel:
             session = SessionRef.from_credentials(stub.CreateSession(pb.CreateSessionRequest(

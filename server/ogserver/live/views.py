@@ -90,7 +90,7 @@ class Pending:
 
 class LatestFrame:
     """A one-slot mailbox from the session's worker to the live view: offering costs a lock and an append.
-    ``last`` and ``keyframes`` stay when the live view takes: the web view reads them, never takes."""
+    ``keyframe`` and ``keyframes`` stay when the live view takes: the web view reads them, never takes."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
@@ -98,18 +98,18 @@ class LatestFrame:
         self._keyframe: MappedFrame | None = None
         self._poses: deque[tuple[int, np.ndarray]] = deque(maxlen=MAX_POSES)
         self._refined: deque[tuple[int, np.ndarray]] = deque(maxlen=MAX_POSES)
-        self.last: MappedFrame | None = None  # the newest frame mapped
+        self.keyframe: MappedFrame | None = None  # the newest keyframe mapped
         self.keyframes = 0  # keyframes offered so far: the web view's map version
 
     def offer(self, frame: MappedFrame) -> None:
         with self._lock:
-            self._latest = self.last = frame
-            self.keyframes += frame.keyframe
+            self._latest = frame
             self._poses.append((frame.sensor_ns, frame.c2w))
             if frame.refined is not None:
                 self._refined.append((frame.sensor_ns, frame.refined))
             if frame.keyframe:
-                self._keyframe = frame
+                self._keyframe = self.keyframe = frame
+                self.keyframes += 1
 
     def take(self) -> Pending | None:
         with self._lock:

@@ -66,7 +66,7 @@ class SessionSource:
         self.mapper = session.mapper
 
     def latest(self) -> MappedFrame | None:
-        return self.session.latest.last
+        return self.session.latest.keyframe
 
     def version(self) -> int:
         return self.session.latest.keyframes

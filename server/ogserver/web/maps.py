@@ -1,5 +1,5 @@
-"""What the web view shows of one map: its Gaussians as a .ply, the newest input frame and the render
-from its pose, the keyframes' path and the map's statistics.
+"""What the web view shows of one map: its Gaussians as a .ply, the newest keyframe's input image and the
+render from its pose, the keyframes' path and the map's statistics.
 
 The Gaussians are decoded as seen from one point (colours and opacities depend on the viewpoint), like
 ``ogmap export``: the page's camera when it asks for one, else the mapped cameras' centroid. Decoding
@@ -33,7 +33,8 @@ class Source(Protocol):
     mapper: Mapper
 
     def latest(self) -> MappedFrame | None:
-        """The newest mapped input frame, None where there is none."""
+        """The newest keyframe's input, None where there is none: the page shows it beside the render from
+        its pose (one render per keyframe, as the recording's views)."""
         ...
 
     def version(self) -> int:
@@ -101,7 +102,7 @@ class MapView:
             return self._decoded
 
     def render_jpeg(self) -> bytes | None:
-        """The map rendered from the newest frame's pose, once per frame."""
+        """The map rendered from the newest keyframe's pose, once per keyframe."""
         frame = self.source.latest()
         if frame is None:
             return None
@@ -115,7 +116,7 @@ class MapView:
             return self._render[1]
 
     def state(self) -> dict[str, Any]:
-        """What the page polls: the map's version, statistics, the keyframes' path and the newest frame."""
+        """What the page polls: the map's version, statistics, the keyframes' path and the newest keyframe."""
         mapper, frame = self.source.mapper, self.source.latest()
         stats = mapper.stats()
         decoded = self._decoded
@@ -138,7 +139,7 @@ class MapView:
 
 
 def path_pose(mapper: Mapper) -> list[float]:
-    """Where a page without a newest frame starts: the last keyframe's pose, else at the default viewpoint
+    """Where a page without a keyframe's input starts: the last keyframe's pose, else at the default viewpoint
     looking at the anchors' mean (world +y down in the image, as in OpenCV-style datasets)."""
     poses = mapper.keyframe_poses()
     if poses:

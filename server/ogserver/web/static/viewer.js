@@ -1,5 +1,5 @@
-// A map's page: its Gaussians (Spark on three.js), the keyframes' path, the newest input frame beside the
-// render from its pose, and the map's statistics, polled from /api/map/ID/. With a camera in the URL's
+// A map's page: its Gaussians (Spark on three.js), the keyframes' path, the newest keyframe's input beside
+// the render from its pose, and the map's statistics, polled from /api/map/ID/. With a camera in the URL's
 // fragment it draws only the map from that camera and sets window.ogmapReady once that frame is shown.
 import * as THREE from "three";
 import { SparkControls, SparkRenderer, SplatMesh } from "@sparkjsdev/spark";
@@ -17,18 +17,20 @@ const renderer = new THREE.WebGLRenderer({ canvas, antialias: false });
 const scene = new THREE.Scene();
 // The engine's rasteriser adds 0.3 px^2 to each splat's 2D covariance without changing its opacity: Spark's
 // preBlurAmount; its own blurAmount (which also scales opacity) stays off.
-const spark = new SparkRenderer({ renderer, preBlurAmount: 0.3, blurAmount: 0 });
+const spark = new SparkRenderer({ renderer, preBlurAmount: 0.3, blurAmount: 0, onDirty: () => { dirty = true; } });
 scene.add(spark);
 const camera = new THREE.PerspectiveCamera(60, 1, 0.01, 1000);
 let mesh = null;
 let loadedVersion = -1;
 let loading = false;
+let dirty = true; // the free-fly view draws only when the camera, the map or Spark's sort order changed
 
 function resize() {
   const width = fixed ? fixed.intrinsics.width : canvas.clientWidth;
   const height = fixed ? fixed.intrinsics.height : canvas.clientHeight;
   renderer.setPixelRatio(fixed ? 1 : window.devicePixelRatio);
   renderer.setSize(width, height, !!fixed);
+  dirty = true;
   if (!fixed) {
     camera.aspect = width / height;
     camera.updateProjectionMatrix();
@@ -51,6 +53,7 @@ async function loadSplats() {
     mesh = next;
     scene.add(mesh);
     loadedVersion = version;
+    dirty = true;
   } finally {
     loading = false;
   }
@@ -86,6 +89,7 @@ async function runFixed() {
 
 const trajectory = new THREE.Line(new THREE.BufferGeometry(), new THREE.LineBasicMaterial({ color: 0xffaa00 }));
 let placed = false;
+let shownFrame = null; // the sensor time of the keyframe whose images are shown
 
 function showState(state) {
   document.getElementById("title").textContent = state.label || state.id;
@@ -99,15 +103,19 @@ function showState(state) {
     return [term, detail];
   }));
   for (const figure of document.querySelectorAll("#panel figure")) figure.hidden = !state.latest;
-  trajectory.geometry.setFromPoints(state.path.map((p) => new THREE.Vector3(...p)));
-  if (state.latest) {
-    const stamp = `&t=${state.latest.sensor_ns}`;
-    document.getElementById("frame").src = api("frame") + (credential ? stamp : `?${stamp.slice(1)}`);
-    document.getElementById("render").src = api("render.jpg") + (credential ? stamp : `?${stamp.slice(1)}`);
+  if (state.path.length !== trajectory.geometry.getAttribute("position")?.count) {
+    trajectory.geometry.setFromPoints(state.path.map((p) => new THREE.Vector3(...p)));
+    dirty = true;
+  }
+  if (state.latest && state.latest.sensor_ns !== shownFrame) {
+    shownFrame = state.latest.sensor_ns;
+    const stamp = `${credential ? "&" : "?"}t=${shownFrame}`;
+    document.getElementById("frame").src = api("frame") + stamp;
+    document.getElementById("render").src = api("render.jpg") + stamp;
   }
   if (!placed) {
     setPose(camera, state.start);
-    placed = true;
+    placed = dirty = true;
   }
 }
 
@@ -132,8 +140,13 @@ function runFreeFly() {
   window.addEventListener("resize", resize);
   resize();
   renderer.setAnimationLoop(() => {
+    const before = camera.matrixWorld.clone();
     controls.update(camera);
-    renderer.render(scene, camera);
+    camera.updateMatrixWorld();
+    if (dirty || !before.equals(camera.matrixWorld)) {
+      dirty = false;
+      renderer.render(scene, camera);
+    }
   });
   poll();
 }
