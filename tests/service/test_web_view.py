@@ -19,7 +19,7 @@ import pytest
 from ogapi import API_KEY_METADATA_KEY
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient import viewing
-from ogclient.connection import SessionRef
+from ogclient.connection import SessionRef, Transport, connect
 from ogclient.evaluation import render, snapshot_bytes
 from ogclient.streaming import stream_frames
 from ogserver import apikeys
@@ -185,3 +185,28 @@ def test_with_tls_the_web_port_speaks_only_https(tmp_path) -> None:
             assert response.status == 200
         with pytest.raises((urllib.error.URLError, ConnectionError, http.client.HTTPException)):
             urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=30)
+
+
+def test_with_mutual_tls_a_client_certificate_names_the_caller(tmp_path) -> None:
+    ca = make_ca(tmp_path / "pki", clients=("alice", "bob"))
+    configured = web_settings(tmp_path)
+    configured.access.tls_cert, configured.access.tls_key = str(ca.server.cert), str(ca.server.key)
+    configured.access.tls_client_ca = str(ca.ca)
+    with serving(configured) as running:
+        alice = ca.clients["alice"]
+        channel, stub = connect(running.address, 10, Transport(ca=str(ca.ca), cert=str(alice.cert), key=str(alice.key)))
+        with channel:
+            mine = stub.CreateSession(create_request(FROZEN)).session_id
+        index = f"https://127.0.0.1:{running.server.web.port}/"
+
+        def context(name: str | None) -> ssl.SSLContext:
+            trusting = ssl.create_default_context(cafile=str(ca.ca))
+            if name:
+                trusting.load_cert_chain(str(ca.clients[name].cert), str(ca.clients[name].key))
+            return trusting
+
+        for name, sees in (("alice", True), ("bob", False)):
+            with urllib.request.urlopen(index, context=context(name), timeout=30) as response:
+                assert (mine.encode() in response.read()) == sees
+        with pytest.raises((urllib.error.URLError, ConnectionError, ssl.SSLError)):
+            urllib.request.urlopen(index, context=context(None), timeout=30).read()
