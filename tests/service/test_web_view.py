@@ -23,6 +23,7 @@ from ogclient.connection import SessionRef, Transport, connect
 from ogclient.evaluation import render, snapshot_bytes
 from ogclient.streaming import stream_frames
 from ogserver import apikeys
+from ogserver.web.http_server import is_loopback
 
 from ogmapping.frames.camera import Intrinsics
 
@@ -127,6 +128,11 @@ def test_with_api_keys_a_caller_sees_only_its_own_sessions(tmp_path) -> None:
         assert get(f"{base}/api/map/{alice_id}/splats.ply?key=alice-key&center=1,2")[0] == 400
 
 
+def test_loopback_addresses() -> None:
+    assert all(map(is_loopback, ("127.0.0.1", "127.3.2.1", "::1", "[::1]", "localhost")))
+    assert not any(map(is_loopback, ("0.0.0.0", "::", "10.0.0.1", "example.org")))
+
+
 def test_a_server_on_a_loopback_address_answers_only_loopback_hosts(tmp_path) -> None:
     with serving(web_settings(tmp_path)) as running:
         request = urllib.request.Request(f"http://127.0.0.1:{running.server.web.port}/",
@@ -162,6 +168,7 @@ def test_ogclient_view_serves_a_snapshot_and_a_recordings_map(tmp_path) -> None:
         url = line.split(" on ", 1)[1].strip()
         assert get(url)[0] == 200
         assert get(url.split("?")[0])[0] == 401
+        assert get(url.replace("?token=", "?key="))[0] == 200  # the login form sends its one field as key
         with browser() as chromium:
             page = chromium.new_page()
             page.goto(url + fragment(c2w, camera))

@@ -141,7 +141,8 @@ class OneMap:
         self.busy = view.busy
 
     def visible(self, credential: Credential) -> list[MapView]:
-        if not hmac.compare_digest(credential.token.encode(), self.token.encode()):
+        offered = credential.token or credential.key  # the login form's one field sends it as key
+        if not hmac.compare_digest(offered.encode(), self.token.encode()):
             raise ServiceError(grpc.StatusCode.UNAUTHENTICATED, "token: missing or wrong (it is in the URL printed)")
         return [self.view]
 

@@ -12,6 +12,7 @@ to a loopback address answers only requests that name a loopback host (no DNS re
 from __future__ import annotations
 
 import html
+import ipaddress
 import json
 import logging
 import mimetypes
@@ -40,6 +41,7 @@ REQUEST_SECONDS = 10.0  # TLS handshake, request line and headers, and each read
 LOOPBACK_HOSTS = re.compile(r"(127(\.\d{1,3}){3}|localhost|\[::1\])(:\d+)?")
 MAP_PATH = re.compile(r"/(map|api/map)/([A-Za-z0-9_-]{1,64})(/[a-z.]+)?")
 _refusals = ThrottledLog(log, 10.0)
+_failures = ThrottledLog(log, 10.0)
 
 
 class WebServer(ThreadingHTTPServer):
@@ -52,7 +54,7 @@ class WebServer(ThreadingHTTPServer):
         self.address_family = socket.AF_INET6 if ":" in host else socket.AF_INET
         self.catalogue = catalogue
         self.tls = tls
-        self.loopback = bool(LOOPBACK_HOSTS.fullmatch(host.strip("[]") if ":" not in host else "[::1]"))
+        self.loopback = is_loopback(host)
         self._slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
         super().__init__((host.strip("[]"), port), Handler)
         self.port: int = self.server_address[1]
@@ -123,6 +125,9 @@ class Handler(BaseHTTPRequestHandler):
             self._refused(refusal, url.path.startswith("/api/"))
         except ValueError as error:
             self._send(HTTPStatus.BAD_REQUEST, f"{error}\n".encode())
+        except Exception as error:  # a map that fails to decode or render: the page gets 500, the log says why
+            _failures.log(logging.ERROR, f"web view: {url.path} failed: {error!r}")
+            self._send(HTTPStatus.INTERNAL_SERVER_ERROR, b"the server failed; its log says why\n")
 
     def _credential(self, query: dict[str, list[str]]) -> Credential:
         names: list[bytes] = []
@@ -202,6 +207,15 @@ class Handler(BaseHTTPRequestHandler):
             self.send_header(name, value)
         self.end_headers()
         self.wfile.write(body)
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
 
 
 def center(text: str) -> np.ndarray | None:
