@@ -44,6 +44,9 @@ class StillMap:
     def latest(self) -> MappedFrame | None:
         return None
 
+    def render_of(self, frame: MappedFrame) -> bytes | None:
+        return None
+
     def version(self) -> int:
         return 0
 

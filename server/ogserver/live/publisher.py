@@ -190,6 +190,7 @@ class LiveView:
             (layout.TOPIC_RENDER, image(looks.render(keyframe), keyframe.sensor_ns, frames)),
             (layout.TOPIC_MAP, points_message(looks.map(), keyframe.sensor_ns, frames)),
         ]
+        session.latest.rendered = (keyframe, looks.render(keyframe))  # the web view shows it too
         try:
             session.recorder.write_views(views, keyframe.sensor_ns)
         except ServiceError:  # the recorder logged it, and the session refuses frames from now on

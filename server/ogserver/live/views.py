@@ -90,7 +90,7 @@ class Pending:
 
 class LatestFrame:
     """A one-slot mailbox from the session's worker to the live view: offering costs a lock and an append.
-    ``keyframe`` and ``keyframes`` stay when the live view takes: the web view reads them, never takes."""
+    ``keyframe``, ``keyframes`` and ``rendered`` stay when the live view takes: the web view reads them."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
@@ -100,6 +100,7 @@ class LatestFrame:
         self._refined: deque[tuple[int, np.ndarray]] = deque(maxlen=MAX_POSES)
         self.keyframe: MappedFrame | None = None  # the newest keyframe mapped
         self.keyframes = 0  # keyframes offered so far: the web view's map version
+        self.rendered: tuple[MappedFrame, bytes] | None = None  # the keyframe the live view last recorded, its JPEG
 
     def offer(self, frame: MappedFrame) -> None:
         with self._lock:

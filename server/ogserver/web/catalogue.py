@@ -66,7 +66,14 @@ class SessionSource:
         self.mapper = session.mapper
 
     def latest(self) -> MappedFrame | None:
-        return self.session.latest.keyframe
+        """The keyframe whose render the recording's views made last (no render of the web view's own), else
+        the newest keyframe (where views are not recorded)."""
+        rendered = self.session.latest.rendered
+        return rendered[0] if rendered is not None else self.session.latest.keyframe
+
+    def render_of(self, frame: MappedFrame) -> bytes | None:
+        rendered = self.session.latest.rendered
+        return rendered[1] if rendered is not None and rendered[0] is frame else None
 
     def version(self) -> int:
         return self.session.latest.keyframes

@@ -33,8 +33,11 @@ class Source(Protocol):
     mapper: Mapper
 
     def latest(self) -> MappedFrame | None:
-        """The newest keyframe's input, None where there is none: the page shows it beside the render from
-        its pose (one render per keyframe, as the recording's views)."""
+        """The keyframe whose input image the page shows beside the render from its pose; None for none."""
+        ...
+
+    def render_of(self, frame: MappedFrame) -> bytes | None:
+        """The JPEG of the map rendered from ``frame``'s pose where one was made already (the recording's views)."""
         ...
 
     def version(self) -> int:
@@ -102,10 +105,13 @@ class MapView:
             return self._decoded
 
     def render_jpeg(self) -> bytes | None:
-        """The map rendered from the newest keyframe's pose, once per keyframe."""
+        """The map rendered from the shown keyframe's pose: the recording's render of it, else one of its own."""
         frame = self.source.latest()
         if frame is None:
             return None
+        made = self.source.render_of(frame)
+        if made is not None:
+            return made
         with self._lock:
             if self._render is None or self._render[0] != id(frame):
                 started = time.perf_counter()
