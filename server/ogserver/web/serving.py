@@ -44,6 +44,10 @@ def start_web(settings: Settings, registry: Registry, callers: Callers) -> WebSe
                                                                   settings.live.web_seconds), tls_context(access))
     except OSError as error:
         raise ValueError(f"live.web_port: cannot serve on {host}:{settings.live.web_port}: {error}") from None
-    log.info("web view on %s%s", server.url(host), "" if callers.open else
-             " (an API key, or a session token for its one session, in the page's ?key= or ?token=)")
+    if callers.open:
+        log.log(logging.INFO if server.loopback else logging.WARNING, "web view on %s (an open server: anyone who "
+                "reaches it sees every session's map and images)", server.url(host))
+    else:
+        log.info("web view on %s (an API key, or a session token for its one session, in the page's ?key= or "
+                 "?token=)", server.url(host))
     return server.start()
