@@ -23,6 +23,7 @@ from ogclient.connection import SessionRef, Transport, connect
 from ogclient.evaluation import render, snapshot_bytes
 from ogclient.streaming import stream_frames
 from ogserver import apikeys
+from ogserver.settings import load
 from ogserver.web.http_server import is_loopback
 
 from ogmapping.frames.camera import Intrinsics
@@ -217,3 +218,13 @@ def test_with_mutual_tls_a_client_certificate_names_the_caller(tmp_path) -> None
                 assert (mine.encode() in response.read()) == sees
         with pytest.raises((urllib.error.URLError, ConnectionError, ssl.SSLError)):
             urllib.request.urlopen(index, context=context(None), timeout=30).read()
+
+
+@pytest.mark.parametrize(("flags", "problem"), [
+    ({"web_port": 70000}, "live.web_port must be -1"),
+    ({"web_seconds": 0.0}, "live.web_seconds must be a finite number > 0"),
+    ({"web_port": 0, "cluster": "auto"}, "live.web_port: the web view is not available in cluster mode"),
+])
+def test_web_settings_are_checked(flags, problem) -> None:
+    with pytest.raises(ValueError, match=problem):
+        load(flags=flags)
