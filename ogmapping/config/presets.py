@@ -12,7 +12,11 @@ from typing import Any
 from ogmapping.config.overrides import assign
 from ogmapping.config.sections import MapperConfig
 
+# Ten Gaussians an anchor at 1200x680, five up to about 900x510 ("Gaussians by resolution").
+_BY_RESOLUTION: dict[str, Any] = {"model.offsets_by_resolution": True}
+
 _DENSE_AND_SPARSE: dict[str, Any] = {
+    **_BY_RESOLUTION,
     "octree.max_level": 1,  # 2.5 cm anchors, no 6 mm ones, which carry little of the colour ("Octree levels")
     "optim.average_decay": 0.85,  # queries see the map averaged over about its last 7 steps ("Map averaging")
     "optim.average_growth": 0.015,  # ...and over 1.5% of its steps once it is older ("Map averaging")
@@ -28,8 +32,6 @@ PRESET_VALUES: dict[str, dict[str, Any]] = {
     "sparse": {
         **_DENSE_AND_SPARSE,
         "model.encoding": "anchor",
-        # Ten Gaussians an anchor at 1200x680, five up to about 900x510 ("Gaussians by resolution").
-        "model.offsets_by_resolution": True,
         "refine.prune_opacity": 0.05,
         "keyframes.iterations": 10,  # a step more than nine gains at little cost ("Keyframes and the window")
         "keyframes.first_iterations": 80,  # the anchor colours need more on the first keyframe ("Anchor colours")
@@ -41,6 +43,7 @@ PRESET_VALUES: dict[str, dict[str, Any]] = {
         "loss.view": 0.5,  # once the window is full, the view weighs half a window keyframe ("Loss weights")
     },
     "sparse-fast": {
+        **_BY_RESOLUTION,
         "model.encoding": "anchor",
         "model.anchor_colour": False,  # slower and not better with so few steps ("Anchor colours")
         "refine.prune_opacity": 0.05,
