@@ -57,7 +57,8 @@ $(LPIPS_WEIGHTS): | $(STAMP)
 # The CPU image built with podman and tested as a user's CI would: a server container, a test
 # container running tests/service against it, then deploy/'s manifests under `podman kube play`.
 # See docker/README.md.
-container-test:
+# The image installs the web view's libraries from the build context (server/ogserver/web/vendor/).
+container-test: $(WEB_ASSETS)
 	docker/container-test.sh
 
 proto: $(STAMP)
