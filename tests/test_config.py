@@ -147,6 +147,12 @@ def test_server_bounds_refuse_costly_configs_and_can_be_tightened():
         resolve("dense", bounds=tightened)
     with pytest.raises(ValueError, match=r"config_bounds.max_iterations must be a positive int"):
         ConfigBounds(max_iterations=0).validate()
+    # The level the first frame may add counts against the bound before any frame arrives.
+    levels = ConfigBounds(max_octree_level=1)
+    resolve("sparse", overrides={"octree.levels_by_resolution": "false"}, bounds=levels)
+    with pytest.raises(ValueError, match=r"octree.max_level \(one more with octree.levels_by_resolution\) = 2 is "
+                                         r"above this server's limit of 1"):
+        resolve("sparse", bounds=levels)
 
 
 if __name__ == "__main__":

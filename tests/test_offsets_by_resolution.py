@@ -1,4 +1,5 @@
-"""``model.offsets_by_resolution``: Gaussians per anchor times the first frame's step multiple."""
+"""``model.offsets_by_resolution`` and ``octree.levels_by_resolution``: Gaussians per anchor times the first
+frame's step multiple, and one octree level more where that multiple is 2 or more."""
 
 from __future__ import annotations
 
@@ -21,10 +22,12 @@ def test_a_multiple_of_one_maps_exactly_as_without_it():
     frames = _frames(2)
     maps = []
     for scaled in ("false", "true"):
-        mapper = Mapper(resolve("sparse-fast", overrides={**TINY, "model.offsets_by_resolution": scaled}))
+        overrides = {**TINY, "model.offsets_by_resolution": scaled, "octree.levels_by_resolution": scaled}
+        mapper = Mapper(resolve("sparse-fast", overrides=overrides))
         for frame in frames:
             mapper.process(frame)
         assert mapper.config.model.n_offsets == 5 and not mapper.config.model.offsets_by_resolution
+        assert mapper.config.octree.max_level == 2 and not mapper.config.octree.levels_by_resolution
         maps.append(mapper.state().tensors)
     assert maps[0].keys() == maps[1].keys()
     assert all(torch.equal(value, maps[1][name]) for name, value in maps[0].items())
@@ -46,3 +49,17 @@ def test_a_finer_first_frame_builds_more_gaussians_per_anchor_and_the_config_kee
     for frame in _frames(2):
         again.process(frame)
     assert torch.equal(again.anchors.offsets, mapper.anchors.offsets)  # drawn afresh from the seed: the same map
+
+
+def test_a_finer_first_frame_adds_an_octree_level_and_the_snapshot_keeps_it():
+    overrides = {**TINY, "octree.levels_by_resolution": "true", "octree.max_level": "1",
+                 "model.offsets_by_resolution": "false", "keyframes.steps_reference_pixels": "1200"}
+    config = resolve("sparse-fast", overrides=overrides)
+    mapper = Mapper(config)
+    for frame in _frames(2):
+        mapper.process(frame)
+    assert mapper.octree.max_level == 2 and mapper.config.octree.max_level == 2
+    assert mapper.decoders.n == 5  # the Gaussians per anchor are left alone
+    assert config.octree.max_level == 1 and config.octree.levels_by_resolution  # the caller's config is left alone
+    restored = Mapper.restore(mapper.snapshot())
+    assert restored.octree.max_level == 2 and not restored.config.octree.levels_by_resolution

@@ -45,7 +45,10 @@ class ConfigBounds:
             ("model.n_offsets", model.n_offsets, self.max_n_offsets, "max_n_offsets"),
             ("model.feature_dim", model.feature_dim, self.max_feature_dim, "max_feature_dim"),
             ("model.hidden_dim", model.hidden_dim, self.max_feature_dim, "max_feature_dim"),
-            ("octree.max_level", config.octree.max_level, self.max_octree_level, "max_octree_level"),
+            # octree.levels_by_resolution may add a level once the first frame arrives: counted now.
+            ("octree.max_level (one more with octree.levels_by_resolution)",
+             config.octree.max_level + int(config.octree.levels_by_resolution), self.max_octree_level,
+             "max_octree_level"),
             ("refine.max_new_anchors", config.refine.max_new_anchors, self.max_new_anchors, "max_new_anchors"),
         ]
         if model.encoding == "hash":  # the anchor encoding has no hash table

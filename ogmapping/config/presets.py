@@ -31,6 +31,8 @@ PRESET_VALUES: dict[str, dict[str, Any]] = {
     },
     "sparse": {
         **_DENSE_AND_SPARSE,
+        # Anchors a level finer at 1200x680, none of them at 600x340 ("Octree levels by resolution").
+        "octree.levels_by_resolution": True,
         "model.encoding": "anchor",
         "refine.prune_opacity": 0.05,
         "keyframes.iterations": 10,  # a step more than nine gains at little cost ("Keyframes and the window")

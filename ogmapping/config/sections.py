@@ -85,6 +85,11 @@ class OctreeConfig:
     # Back-project every n-th pixel per axis when allocating; 0: by resolution.
     allocation_stride: int = ranged(0, 0, MAX_ALLOCATION_STRIDE)
     allocation: Allocation = "octree"
+    # One level more (its anchors four times finer) where the first frame's step multiple is 2 or more
+    # (``keyframes.steps_reference_pixels``; from about 900x510, as at 1200x680): a finer image resolves
+    # finer surface detail ("Octree levels by resolution"). Resolved when the first frame arrives, as
+    # ``model.offsets_by_resolution`` is, at most MAX_OCTREE_LEVEL.
+    levels_by_resolution: bool = False
 
 
 @dataclass
