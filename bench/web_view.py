@@ -1,9 +1,11 @@
 """What the web view costs the mapping: the same frames through fresh servers with ``--web-port 0``,
 with no browser, with a browser page at a fixed pose (it fetches the map after each keyframe and draws
-it once: the server's part), and with the free-fly page (the browser draws continuously, on this
-machine's CPU when it has no GPU).
+it once: the server's part), with the free-fly page (the browser draws continuously, on this
+machine's CPU when it has no GPU), and with the free-fly page's requests alone, made from Python as
+the page makes them (``requests``: the server's part, as with a browser on another machine).
 
-    python bench/web_view.py [--data DIR --format F] [--frames 0:40] [--scale 0.5] [--repeat 2] [--json out.json]
+    python bench/web_view.py [--data DIR --format F] [--frames 0:40] [--scale 0.5] [--repeat 2]
+        [--pages none pose free-fly requests] [--json out.json]
 
 Reported per run: the session's processing FPS (``GetStats``) and the web view's decodes and renders
 with their seconds (the server's log line at shutdown; they hold the mapper's lock).
@@ -17,6 +19,7 @@ import re
 import sys
 import tempfile
 import threading
+import urllib.request
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -35,6 +38,8 @@ sys.path.insert(0, str(REPO))
 from tests.service.browser import browser, fragment  # noqa: E402 - the tests' headless chromium
 
 OVERRIDES = {"keyframes.first_iterations": "40", "keyframes.iterations": "8"}  # the demo's
+POLL_SECONDS = 0.5  # viewer.js's POLL_MS
+PAGES = ("none", "pose", "free-fly", "requests")
 BUSY = re.compile(r"web view: (\d+) decodes and renders, ([\d.]+) s")
 
 
@@ -69,7 +74,11 @@ def run(page: str, messages: list[pb.Frame], folder: Path) -> Row:
                     opened.set()
                     stop.wait()
 
-            watcher = threading.Thread(target=watch, daemon=True)
+            def request() -> None:
+                opened.set()
+                fetch_as_the_page_does(server.web_url, session.session_id, stop)
+
+            watcher = threading.Thread(target=request if page == "requests" else watch, daemon=True)
             if page != "none":
                 watcher.start()
                 opened.wait(60)
@@ -83,6 +92,26 @@ def run(page: str, messages: list[pb.Frame], folder: Path) -> Row:
     return Row(page, stats.frames, stats.keyframes, round(stats.processing_fps, 3), int(count), float(seconds))
 
 
+def fetch_as_the_page_does(web_url: str, map_id: str, stop: threading.Event) -> None:
+    """The free-fly page's requests (viewer.js): the state every POLL_SECONDS, the map's splats when its
+    version changes, the newest keyframe's input and render when it changes."""
+    api = f"{web_url}api/map/{map_id}/"
+    version, shown = None, None
+    while not stop.wait(POLL_SECONDS):
+        with urllib.request.urlopen(api + "state", timeout=30) as response:
+            state = json.load(response)
+        if state["version"] != version:
+            with urllib.request.urlopen(api + "splats.ply", timeout=30) as response:
+                response.read()
+                version = int(response.headers["X-Map-Version"])
+        latest = state.get("latest")
+        if latest and latest["sensor_ns"] != shown:
+            shown = latest["sensor_ns"]
+            for part in ("frame", "render.jpg"):
+                with urllib.request.urlopen(f"{api}{part}?t={shown}", timeout=30) as response:
+                    response.read()
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default="synthetic")
@@ -90,6 +119,7 @@ def main() -> int:
     parser.add_argument("--frames", default="0:40")
     parser.add_argument("--scale", type=float, default=0.5)
     parser.add_argument("--repeat", type=int, default=2)
+    parser.add_argument("--pages", nargs="+", choices=PAGES, default=list(PAGES), help="which to run, in turn")
     parser.add_argument("--json")
     args = parser.parse_args()
     frames = open_frames(args.data, args.format, args.frames, 1, args.scale)
@@ -97,7 +127,7 @@ def main() -> int:
     rows = []
     with tempfile.TemporaryDirectory() as folder:
         for _ in range(args.repeat):
-            for page in ("none", "pose", "free-fly"):
+            for page in args.pages:
                 rows.append(run(page, messages, Path(folder)))
                 print(json.dumps(asdict(rows[-1])), flush=True)
     if args.json:
