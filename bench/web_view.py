@@ -16,9 +16,11 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import statistics
 import sys
 import tempfile
 import threading
+import time
 import urllib.request
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -51,6 +53,10 @@ class Row:
     processing_fps: float
     decodes_and_renders: int
     web_seconds: float
+    # requests only: seconds from a poll that saw a new map version to its splats received (the page
+    # sees a keyframe within POLL_SECONDS plus this), the largest and the median
+    splats_seconds_max: float | None = None
+    splats_seconds_median: float | None = None
 
 
 def run(page: str, messages: list[pb.Frame], folder: Path) -> Row:
@@ -66,6 +72,7 @@ def run(page: str, messages: list[pb.Frame], folder: Path) -> Row:
                 url += fragment(np.array(messages[0].c2w).reshape(4, 4), camera)
             stop = threading.Event()
             opened = threading.Event()
+            waits: list[float] = []
 
             def watch() -> None:
                 with browser() as chromium:
@@ -76,7 +83,7 @@ def run(page: str, messages: list[pb.Frame], folder: Path) -> Row:
 
             def request() -> None:
                 opened.set()
-                fetch_as_the_page_does(server.web_url, session.session_id, stop)
+                fetch_as_the_page_does(server.web_url, session.session_id, stop, waits)
 
             watcher = threading.Thread(target=request if page == "requests" else watch, daemon=True)
             if page != "none":
@@ -89,21 +96,27 @@ def run(page: str, messages: list[pb.Frame], folder: Path) -> Row:
                 watcher.join(60)
     busy = BUSY.findall(server.log_path.read_text())
     count, seconds = busy[-1] if busy else ("0", "0")
-    return Row(page, stats.frames, stats.keyframes, round(stats.processing_fps, 3), int(count), float(seconds))
+    row = Row(page, stats.frames, stats.keyframes, round(stats.processing_fps, 3), int(count), float(seconds))
+    if waits:
+        row.splats_seconds_max, row.splats_seconds_median = round(max(waits), 3), round(statistics.median(waits), 3)
+    return row
 
 
-def fetch_as_the_page_does(web_url: str, map_id: str, stop: threading.Event) -> None:
+def fetch_as_the_page_does(web_url: str, map_id: str, stop: threading.Event, waits: list[float]) -> None:
     """The free-fly page's requests (viewer.js): the state every POLL_SECONDS, the map's splats when its
-    version changes, the newest keyframe's input and render when it changes."""
+    version changes, the newest keyframe's input and render when it changes; ``waits`` gets each splats
+    request's seconds."""
     api = f"{web_url}api/map/{map_id}/"
     version, shown = None, None
     while not stop.wait(POLL_SECONDS):
         with urllib.request.urlopen(api + "state", timeout=30) as response:
             state = json.load(response)
         if state["version"] != version:
+            asked = time.perf_counter()
             with urllib.request.urlopen(api + "splats.ply", timeout=30) as response:
                 response.read()
                 version = int(response.headers["X-Map-Version"])
+            waits.append(time.perf_counter() - asked)
         latest = state.get("latest")
         if latest and latest["sensor_ns"] != shown:
             shown = latest["sensor_ns"]
