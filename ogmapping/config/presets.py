@@ -18,6 +18,7 @@ _BY_RESOLUTION: dict[str, Any] = {"model.offsets_by_resolution": True}
 _DENSE_AND_SPARSE: dict[str, Any] = {
     **_BY_RESOLUTION,
     "octree.max_level": 1,  # 2.5 cm anchors, no 6 mm ones, which carry little of the colour ("Octree levels")
+    "octree.levels_by_resolution": True,  # ...but 6 mm ones too at 1200x680 ("Octree levels by resolution")
     "optim.average_decay": 0.85,  # queries see the map averaged over about its last 7 steps ("Map averaging")
     "optim.average_growth": 0.015,  # ...and over 1.5% of its steps once it is older ("Map averaging")
     "refine.grad_threshold": 1.5e-4,  # grows more anchors than Scaffold-GS's 2e-4 ("Growth and pruning")
@@ -31,8 +32,6 @@ PRESET_VALUES: dict[str, dict[str, Any]] = {
     },
     "sparse": {
         **_DENSE_AND_SPARSE,
-        # Anchors a level finer at 1200x680, none of them at 600x340 ("Octree levels by resolution").
-        "octree.levels_by_resolution": True,
         "model.encoding": "anchor",
         "refine.prune_opacity": 0.05,
         "keyframes.iterations": 10,  # a step more than nine gains at little cost ("Keyframes and the window")
