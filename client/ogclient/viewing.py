@@ -26,7 +26,6 @@ from ogserver.web.maps import MapView
 from ogclient.replay import session_request
 from ogmapping.frames.frame import Frame
 from ogmapping.mapper import Mapper
-from ogmapping.persist import snapshot
 from ogmapping.runtime.profile import resolve_device
 
 HOST = "127.0.0.1"
@@ -54,10 +53,6 @@ class StillMap:
         return {}
 
 
-def load_snapshot(path: Path, device: str) -> Mapper:
-    return Mapper.from_state(snapshot.decode(path.read_bytes()), device=device)
-
-
 def replay(path: Path, device: str, progress=print) -> Mapper:
     """The map a replay of the recording at ``path`` builds."""
     recorded = layout.load(path)
@@ -82,9 +77,9 @@ def open_map(path: Path, device: str = "auto", progress=print) -> StillMap:
     device = str(resolve_device(device))
     if path.suffix == ".mcap":
         beside = path.with_suffix(".safetensors")
-        mapper = load_snapshot(beside, device) if beside.is_file() else replay(path, device, progress)
+        mapper = Mapper.restore(beside.read_bytes(), device) if beside.is_file() else replay(path, device, progress)
     else:
-        mapper = load_snapshot(path, device)
+        mapper = Mapper.restore(path.read_bytes(), device)
     return StillMap(path.stem.split(".")[0] or "map", path.name, mapper)
 
 

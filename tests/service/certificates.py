@@ -11,6 +11,7 @@ from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+from ogserver.settings import Access
 
 
 @dataclass(frozen=True)
@@ -24,6 +25,13 @@ class CertificateAuthority:
     ca: Path
     server: Pem
     clients: dict[str, Pem]
+
+    def serve(self, access: Access, mutual: bool = False) -> None:
+        """Give a server's ``access`` settings this CA's server certificate; ``mutual``: and have its
+        clients present one this CA signed."""
+        access.tls_cert, access.tls_key = str(self.server.cert), str(self.server.key)
+        if mutual:
+            access.tls_client_ca = str(self.ca)
 
 
 def _name(common_name: str) -> x509.Name:

@@ -201,7 +201,7 @@ def test_a_foreign_origin_is_refused(tmp_path) -> None:
 def test_the_port_speaks_tls_when_grpc_does(tmp_path) -> None:
     ca = make_ca(tmp_path / "pki")
     configured = live_settings(tmp_path)
-    configured.access.tls_cert, configured.access.tls_key = str(ca.server.cert), str(ca.server.key)
+    ca.serve(configured.access)
     with serving(configured) as running:
         fox = running.server.live.foxglove
         assert fox.tls and fox.gate.token, "TLS on gRPC asks for a token on the Foxglove port"

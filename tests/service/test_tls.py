@@ -26,8 +26,7 @@ def ca(tmp_path_factory: pytest.TempPathFactory) -> CertificateAuthority:
 @pytest.fixture
 def mutual(tmp_path: Path, ca: CertificateAuthority) -> Iterator[Running]:
     configured = settings(tmp_path)
-    configured.access.tls_cert, configured.access.tls_key = str(ca.server.cert), str(ca.server.key)
-    configured.access.tls_client_ca = str(ca.ca)
+    ca.serve(configured.access, mutual=True)
     with serving(configured) as running:
         yield running
 
@@ -39,7 +38,7 @@ def client(ca: CertificateAuthority, name: str | None) -> Transport:
 
 def test_tls_without_client_certificates(tmp_path: Path, ca: CertificateAuthority) -> None:
     configured = settings(tmp_path)
-    configured.access.tls_cert, configured.access.tls_key = str(ca.server.cert), str(ca.server.key)
+    ca.serve(configured.access)
     with serving(configured) as running:
         channel, stub = connect(running.address, 10, Transport(ca=str(ca.ca)))
         with channel:

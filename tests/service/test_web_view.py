@@ -184,7 +184,7 @@ def test_ogclient_view_serves_a_snapshot_and_a_recordings_map(tmp_path) -> None:
 def test_with_tls_the_web_port_speaks_only_https(tmp_path) -> None:
     ca = make_ca(tmp_path / "pki")
     configured = web_settings(tmp_path)
-    configured.access.tls_cert, configured.access.tls_key = str(ca.server.cert), str(ca.server.key)
+    ca.serve(configured.access)
     with serving(configured) as running:
         port = running.server.web.port
         trusting = ssl.create_default_context(cafile=str(ca.ca))
@@ -198,8 +198,7 @@ def test_with_tls_the_web_port_speaks_only_https(tmp_path) -> None:
 def test_with_mutual_tls_a_client_certificate_names_the_caller(tmp_path) -> None:
     ca = make_ca(tmp_path / "pki", clients=("alice", "bob"))
     configured = web_settings(tmp_path)
-    configured.access.tls_cert, configured.access.tls_key = str(ca.server.cert), str(ca.server.key)
-    configured.access.tls_client_ca = str(ca.ca)
+    ca.serve(configured.access, mutual=True)
     with serving(configured) as running:
         alice = ca.clients["alice"]
         channel, stub = connect(running.address, 10, Transport(ca=str(ca.ca), cert=str(alice.cert), key=str(alice.key)))
