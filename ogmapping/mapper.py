@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from ogmapping.config import ConfigBounds, MapperConfig
-from ogmapping.config.sections import MAX_OCTREE_LEVEL, MAX_SCALED_OFFSETS
+from ogmapping.config.sections import MAX_LOSS_WEIGHT, MAX_OCTREE_LEVEL, MAX_SCALED_OFFSETS
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.geometry import intrinsics_matrix, world_to_camera
@@ -223,25 +223,29 @@ class Mapper:
                      for array in (frame.rgb, frame.depth, frame.c2w))
 
     def _fit_to(self, intrinsics: Intrinsics) -> None:
-        """On the first frame, with ``model.offsets_by_resolution`` or ``octree.levels_by_resolution``:
-        rebuild the (still empty) model with ``n_offsets`` times the frame's step multiple, or one octree
-        level more, drawn afresh from the seed, and keep the values in the config. A multiple of 1 keeps
-        the model as built, so such maps are exactly as without them."""
-        model, octree = self.config.model, self.config.octree
-        offsets, levels = model.offsets_by_resolution, octree.levels_by_resolution
-        if not (offsets or levels) or self.frames or len(self.anchors):
+        """On the first frame, with ``model.offsets_by_resolution``, ``octree.levels_by_resolution`` or
+        ``loss.ssim_by_resolution``: ``n_offsets`` or the SSIM weight times the frame's step multiple, or
+        one octree level more, kept in the config; a model whose shape changes is rebuilt (still empty),
+        drawn afresh from the seed. A multiple of 1 keeps everything as it was, so such maps are exactly
+        as without them."""
+        model, octree, loss = self.config.model, self.config.octree, self.config.loss
+        offsets, levels, ssim = model.offsets_by_resolution, octree.levels_by_resolution, loss.ssim_by_resolution
+        if not (offsets or levels or ssim) or self.frames or len(self.anchors):
             return
-        model.offsets_by_resolution = octree.levels_by_resolution = False
+        model.offsets_by_resolution = octree.levels_by_resolution = loss.ssim_by_resolution = False
         multiple = step_multiple(self.config.keyframes, intrinsics)
         if multiple == 1:
             return
+        if ssim:
+            loss.ssim = min(loss.ssim * multiple, MAX_LOSS_WEIGHT)
         if offsets:
             model.n_offsets = min(model.n_offsets * multiple, MAX_SCALED_OFFSETS)
         if levels:
             octree.max_level = min(octree.max_level + 1, MAX_OCTREE_LEVEL)
-        self.generator.manual_seed(self.config.seed)
-        with self.lock:
-            self._build_model(self.config)
+        if offsets or levels:
+            self.generator.manual_seed(self.config.seed)
+            with self.lock:
+                self._build_model(self.config)
 
     def _add_coarse_anchors(self, codes: torch.Tensor, rgb: torch.Tensor, depth: torch.Tensor,
                             intrinsics: Intrinsics, c2w: torch.Tensor) -> None:

@@ -1,5 +1,6 @@
-"""``model.offsets_by_resolution`` and ``octree.levels_by_resolution``: Gaussians per anchor times the first
-frame's step multiple, and one octree level more where that multiple is 2 or more."""
+"""``model.offsets_by_resolution``, ``octree.levels_by_resolution`` and ``loss.ssim_by_resolution``: Gaussians
+per anchor and the SSIM weight times the first frame's step multiple, and one octree level more where that
+multiple is 2 or more."""
 
 from __future__ import annotations
 
@@ -22,12 +23,14 @@ def test_a_multiple_of_one_maps_exactly_as_without_it():
     frames = _frames(2)
     maps = []
     for scaled in ("false", "true"):
-        overrides = {**TINY, "model.offsets_by_resolution": scaled, "octree.levels_by_resolution": scaled}
+        overrides = {**TINY, "model.offsets_by_resolution": scaled, "octree.levels_by_resolution": scaled,
+                     "loss.ssim_by_resolution": scaled}
         mapper = Mapper(resolve("sparse-fast", overrides=overrides))
         for frame in frames:
             mapper.process(frame)
         assert mapper.config.model.n_offsets == 5 and not mapper.config.model.offsets_by_resolution
         assert mapper.config.octree.max_level == 2 and not mapper.config.octree.levels_by_resolution
+        assert mapper.config.loss.ssim == 0.2 and not mapper.config.loss.ssim_by_resolution
         maps.append(mapper.state().tensors)
     assert maps[0].keys() == maps[1].keys()
     assert all(torch.equal(value, maps[1][name]) for name, value in maps[0].items())
@@ -63,3 +66,23 @@ def test_a_finer_first_frame_adds_an_octree_level_and_the_snapshot_keeps_it():
     assert config.octree.max_level == 1 and config.octree.levels_by_resolution  # the caller's config is left alone
     restored = Mapper.restore(mapper.snapshot())
     assert restored.octree.max_level == 2 and not restored.config.octree.levels_by_resolution
+
+
+def test_a_finer_first_frame_weighs_ssim_more_and_the_snapshot_keeps_the_weight():
+    overrides = {**TINY, "loss.ssim_by_resolution": "true", "loss.ssim": "0.1", "model.offsets_by_resolution": "false",
+                 "keyframes.steps_reference_pixels": "1200"}
+    config = resolve("sparse-fast", overrides=overrides)
+    mapper = Mapper(config)
+    frames = _frames(2)
+    for frame in frames:
+        mapper.process(frame)
+    assert mapper.config.loss.ssim == 0.2 and not mapper.config.loss.ssim_by_resolution
+    assert mapper.decoders.n == 5 and mapper.octree.max_level == 2  # the model's shape is left alone
+    assert config.loss.ssim == 0.1 and config.loss.ssim_by_resolution  # the caller's config is left alone
+    restored = Mapper.restore(mapper.snapshot())
+    assert restored.config.loss.ssim == 0.2 and not restored.config.loss.ssim_by_resolution
+    weighed = Mapper(resolve("sparse-fast", overrides={**overrides, "loss.ssim_by_resolution": "false",
+                                                       "loss.ssim": "0.2"}))
+    for frame in frames:
+        weighed.process(frame)
+    assert all(torch.equal(value, weighed.state().tensors[name]) for name, value in mapper.state().tensors.items())

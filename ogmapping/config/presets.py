@@ -41,6 +41,7 @@ PRESET_VALUES: dict[str, dict[str, Any]] = {
         "keyframes.global_count": 3,
         "keyframes.frame_renders": 4,
         "loss.ssim": 0.1,  # its gradients drive growth: fewer anchors pay for the window's fifth view ("Loss weights")
+        "loss.ssim_by_resolution": True,  # ...but 0.2 at 1200x680 ("SSIM by resolution")
         "loss.view": 0.5,  # once the window is full, the view weighs half a window keyframe ("Loss weights")
     },
     "sparse-fast": {

@@ -134,6 +134,11 @@ class LossConfig:
     ssim: float = _weight(0.2)
     depth: float = _weight(0.5)
     scale: float = _weight(0.01)
+    # The SSIM weight times the first frame's step multiple (``keyframes.steps_reference_pixels``; x2 at
+    # 1200x680, x1 up to about 900x510), resolved when the first frame arrives as
+    # ``model.offsets_by_resolution`` is: a finer image holds finer structure, which the L1 term, spread
+    # over four times the pixels, barely asks for ("SSIM by resolution").
+    ssim_by_resolution: bool = False
     # Weight of a step's view (the streamed frame or the new keyframe) in its loss against each window
     # keyframe's 1, once the window is full (it draws all its global keyframes); before, 1 like them.
     # It divides the step's loss, which a view alone would make 0 / 0 at 0.
