@@ -143,9 +143,31 @@ def main() -> int:
             for page in args.pages:
                 rows.append(run(page, messages, Path(folder)))
                 print(json.dumps(asdict(rows[-1])), flush=True)
+    for line in summary(rows):
+        print(line)
     if args.json:
         Path(args.json).write_text(json.dumps([asdict(row) for row in rows], indent=2))
     return 0
+
+
+def summary(rows: list[Row]) -> list[str]:
+    """Each page's mean processing FPS over its runs, and its difference from no page with a 95% interval
+    (normal approximation over the runs' spread; the pages run in turn, so slow drift hits each alike)."""
+    by_page: dict[str, list[float]] = {}
+    for row in rows:
+        by_page.setdefault(row.page, []).append(row.processing_fps)
+    lines, base = [], by_page.get("none")
+    for page, values in by_page.items():
+        mean = statistics.fmean(values)
+        spread = statistics.stdev(values) if len(values) > 1 else 0.0
+        line = f"{page}: {len(values)} runs, {mean:.3f} FPS (sd {spread:.3f})"
+        if base and page != "none" and len(base) > 1 and len(values) > 1:
+            base_mean = statistics.fmean(base)
+            half = 1.96 * (statistics.variance(base) / len(base) + spread**2 / len(values)) ** 0.5
+            low, middle, high = (100 * (value / base_mean - 1) for value in (mean - half, mean, mean + half))
+            line += f", {middle:+.1f}% against none (95%: {low:+.1f}% to {high:+.1f}%)"
+        lines.append(line)
+    return lines
 
 
 if __name__ == "__main__":
