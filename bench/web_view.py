@@ -7,14 +7,17 @@ the page makes them (``requests``: the server's part, as with a browser on anoth
     python bench/web_view.py [--data DIR --format F] [--frames 0:40] [--scale 0.5] [--repeat 2]
         [--pages none pose free-fly requests] [--json out.json]
 
-Reported per run: the session's processing FPS (``GetStats``) and the web view's decodes and renders
-with their seconds (the server's log line at shutdown; they hold the mapper's lock).
+Reported per run: the session's processing FPS (``GetStats``), the server process's CPU seconds while the
+frames are mapped (what a page adds to them is the view's work, a measure the machine's other load
+barely moves, unlike FPS), and the web view's decodes and renders with their seconds (the server's log
+line at shutdown; they hold the mapper's lock); then each page's means against no page.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import statistics
 import sys
@@ -57,6 +60,10 @@ class Row:
     # sees a keyframe within POLL_SECONDS plus this), the largest and the median
     splats_seconds_max: float | None = None
     splats_seconds_median: float | None = None
+    # the server process's CPU seconds (user + system, every thread) from the first frame sent to the last
+    # mapped: what the page adds to them is the view's work, whatever else shares the machine (Linux; None
+    # elsewhere)
+    server_cpu_seconds: float | None = None
 
 
 def run(page: str, messages: list[pb.Frame], folder: Path) -> Row:
@@ -89,17 +96,30 @@ def run(page: str, messages: list[pb.Frame], folder: Path) -> Row:
             if page != "none":
                 watcher.start()
                 opened.wait(60)
+            before = cpu_seconds(server.process.pid)
             stream_frames(stub, session, messages, None, False)
             stats = stub.GetStats(pb.GetStatsRequest(session_id=session.session_id), metadata=session.metadata())
             stop.set()
+            after = cpu_seconds(server.process.pid)
+            cpu = None if before is None or after is None else round(after - before, 2)
             if page != "none":
                 watcher.join(60)
     busy = BUSY.findall(server.log_path.read_text())
     count, seconds = busy[-1] if busy else ("0", "0")
-    row = Row(page, stats.frames, stats.keyframes, round(stats.processing_fps, 3), int(count), float(seconds))
+    row = Row(page, stats.frames, stats.keyframes, round(stats.processing_fps, 3), int(count), float(seconds),
+              server_cpu_seconds=cpu)
     if waits:
         row.splats_seconds_max, row.splats_seconds_median = round(max(waits), 3), round(statistics.median(waits), 3)
     return row
+
+
+def cpu_seconds(pid: int) -> float | None:
+    """A process's user + system CPU seconds so far, all its threads (Linux's /proc), else None."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def fetch_as_the_page_does(web_url: str, map_id: str, stop: threading.Event, waits: list[float]) -> None:
@@ -151,22 +171,27 @@ def main() -> int:
 
 
 def summary(rows: list[Row]) -> list[str]:
-    """Each page's mean processing FPS over its runs, and its difference from no page with a 95% interval
-    (normal approximation over the runs' spread; the pages run in turn, so slow drift hits each alike)."""
-    by_page: dict[str, list[float]] = {}
-    for row in rows:
-        by_page.setdefault(row.page, []).append(row.processing_fps)
-    lines, base = [], by_page.get("none")
-    for page, values in by_page.items():
-        mean = statistics.fmean(values)
-        spread = statistics.stdev(values) if len(values) > 1 else 0.0
-        line = f"{page}: {len(values)} runs, {mean:.3f} FPS (sd {spread:.3f})"
-        if base and page != "none" and len(base) > 1 and len(values) > 1:
-            base_mean = statistics.fmean(base)
-            half = 1.96 * (statistics.variance(base) / len(base) + spread**2 / len(values)) ** 0.5
-            low, middle, high = (100 * (value / base_mean - 1) for value in (mean - half, mean, mean + half))
-            line += f", {middle:+.1f}% against none (95%: {low:+.1f}% to {high:+.1f}%)"
-        lines.append(line)
+    """Each page's mean processing FPS and server CPU seconds over its runs, each with its difference from
+    no page and a 95% interval (normal approximation over the runs' spread; the pages run in turn, so slow
+    drift hits each alike)."""
+    lines = []
+    for name, unit, value in (("processing FPS", "", lambda row: row.processing_fps),
+                              ("server CPU", " s", lambda row: row.server_cpu_seconds)):
+        by_page: dict[str, list[float]] = {}
+        for row in rows:
+            if value(row) is not None:
+                by_page.setdefault(row.page, []).append(value(row))
+        base = by_page.get("none")
+        for page, values in by_page.items():
+            mean = statistics.fmean(values)
+            spread = statistics.stdev(values) if len(values) > 1 else 0.0
+            line = f"{page}: {name} {mean:.3f}{unit} over {len(values)} runs (sd {spread:.3f})"
+            if base and page != "none" and len(base) > 1 and len(values) > 1:
+                base_mean = statistics.fmean(base)
+                half = 1.96 * (statistics.variance(base) / len(base) + spread**2 / len(values)) ** 0.5
+                low, middle, high = (100 * (v / base_mean - 1) for v in (mean - half, mean, mean + half))
+                line += f", {middle:+.1f}% against none (95%: {low:+.1f}% to {high:+.1f}%)"
+            lines.append(line)
     return lines
 
 
