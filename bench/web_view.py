@@ -1,11 +1,14 @@
 """What the web view costs the mapping: the same frames through fresh servers with ``--web-port 0``,
 with no browser, with a browser page at a fixed pose (it fetches the map after each keyframe and draws
-it once: the server's part), with the free-fly page (the browser draws continuously, on this
+it once: the server's part), with the free-fly page (the browser draws whenever the map changes, on this
 machine's CPU when it has no GPU), and with the free-fly page's requests alone, made from Python as
 the page makes them (``requests``: the server's part, as with a browser on another machine).
 
     python bench/web_view.py [--data DIR --format F] [--frames 0:40] [--scale 0.5] [--repeat 2]
-        [--pages none pose free-fly requests] [--json out.json]
+        [--pages none pose free-fly requests] [--server-cpus 0] [--json out.json]
+
+With ``--server-cpus`` the server runs on those CPUs and the browser on the others, as a viewer on
+another machine would: what is left of a page's cost is the server's own work for it.
 
 Reported per run: the session's processing FPS (``GetStats``), the server process's CPU seconds while the
 frames are mapped (what a page adds to them is the view's work, a measure the machine's other load
@@ -16,6 +19,7 @@ line at shutdown; they hold the mapper's lock); then each page's means against n
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import re
@@ -66,8 +70,17 @@ class Row:
     server_cpu_seconds: float | None = None
 
 
-def run(page: str, messages: list[pb.Frame], folder: Path) -> Row:
+def pin(pid: int, cpus: set[int]) -> None:
+    """Every thread of process ``pid`` onto ``cpus`` (threads it starts later inherit their starter's)."""
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(ProcessLookupError):
+            os.sched_setaffinity(int(task.name), cpus)
+
+
+def run(page: str, messages: list[pb.Frame], folder: Path, server_cpus: set[int] | None = None) -> Row:
     with LocalServer(folder / page, "--device", "cpu", "--web-port", "0") as server:
+        if server_cpus:
+            pin(server.process.pid, server_cpus)
         channel, stub = connect(server.address, timeout=60)
         with channel:
             session = SessionRef.from_credentials(stub.CreateSession(pb.CreateSessionRequest(
@@ -153,15 +166,23 @@ def main() -> int:
     parser.add_argument("--scale", type=float, default=0.5)
     parser.add_argument("--repeat", type=int, default=2)
     parser.add_argument("--pages", nargs="+", choices=PAGES, default=list(PAGES), help="which to run, in turn")
+    parser.add_argument("--server-cpus", type=lambda text: {int(cpu) for cpu in text.split(",")},
+                        help="CPUs (e.g. 0 or 0,1) for the server's threads; this script and the browser it "
+                             "starts get the others, as a viewer on another machine would (Linux)")
     parser.add_argument("--json")
     args = parser.parse_args()
+    if args.server_cpus:
+        others = os.sched_getaffinity(0) - args.server_cpus
+        if not others or not args.server_cpus <= os.sched_getaffinity(0):
+            parser.error(f"--server-cpus must leave some of the CPUs {sorted(os.sched_getaffinity(0))} to the browser")
+        pin(os.getpid(), others)
     frames = open_frames(args.data, args.format, args.frames, 1, args.scale)
     messages = [frame_to_proto(frames.load(position)) for position in frames.selection.streamed]
     rows = []
     with tempfile.TemporaryDirectory() as folder:
         for _ in range(args.repeat):
             for page in args.pages:
-                rows.append(run(page, messages, Path(folder)))
+                rows.append(run(page, messages, Path(folder), args.server_cpus))
                 print(json.dumps(asdict(rows[-1])), flush=True)
     for line in summary(rows):
         print(line)
