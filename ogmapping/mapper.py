@@ -38,7 +38,7 @@ from ogmapping.optim.averaging import MapAverage
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
 from ogmapping.optim.lazy_adam import LazyAdam
 from ogmapping.optim.losses import mapping_loss, tracking_loss
-from ogmapping.optim.poses import PoseCorrection, PoseReport
+from ogmapping.optim.poses import TRACK_CHECK_STEPS, PoseCorrection, PoseReport, settled
 from ogmapping.optim.step_budget import step_multiple
 from ogmapping.persist import snapshot, training
 from ogmapping.persist.state import MapState
@@ -307,7 +307,8 @@ class Mapper:
     def _track(self, frame: Frame, correction: PoseCorrection, budget: Budget, started: float) -> None:
         """``poses.track_iterations`` steps on the pose of ``frame`` (prepared) alone, its images at
         ``poses.track_scale``, the map held fixed (its Gaussians decoded once, from the client's pose),
-        until ``budget`` says stop."""
+        until ``budget`` says stop. With ``poses.track_min_gain`` a pose that ``settled`` after
+        TRACK_CHECK_STEPS steps goes back to the client's and is held there, its tracking cut short."""
         settings = self.config.poses
         if not settings.track_iterations:
             return
@@ -318,17 +319,31 @@ class Mapper:
                 rows = self._rows_in_view(c2w, frame.color_intrinsics)
                 gaussians = generate(self.anchors, self._features, self.decoders, c2w[:3, 3], rows,
                                      compiled=self.profile.compiled)
-            for _ in range(settings.track_iterations):
-                if budget.stop(started) is not None:
-                    return
+
+            def loss_at_correction() -> torch.Tensor:
                 camera = self._camera(correction.refined(c2w), frame.color_intrinsics)
                 output = rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
                                    gaussians.colors, camera.viewmat, camera.K, camera.width, camera.height,
                                    backend=self.backend)
-                loss = tracking_loss(output.color, output.depth, output.alpha, rgb, depth, self.config.loss,
+                return tracking_loss(output.color, output.depth, output.alpha, rgb, depth, self.config.loss,
                                      settings.track_alpha)
+
+            losses: list[torch.Tensor] = []  # before each step, then after the check's steps
+            for _ in range(settings.track_iterations):
+                if budget.stop(started) is not None:
+                    return
+                loss = loss_at_correction()
+                losses.append(loss.detach())
+                if len(losses) == TRACK_CHECK_STEPS + 1 and settled(losses, settings.track_min_gain):
+                    correction.hold()
+                    return
                 (loss + correction.prior(settings)).backward()
                 correction.step(settings)
+            if len(losses) == TRACK_CHECK_STEPS and settings.track_min_gain:
+                with torch.no_grad():
+                    losses.append(loss_at_correction())
+                if settled(losses, settings.track_min_gain):
+                    correction.hold()
 
     def _optimise(
         self, iterations: int, view: View | None, view_is_newest: bool, budget: Budget, started: float
@@ -362,12 +377,9 @@ class Mapper:
             self.hash_optimizer.zero_grad()
         with self._timed("window"):
             window = [view, *(self._drawn(keyframe) for keyframe in keyframes)]
-            # Without ``poses.view_steps`` the view keeps the pose its tracking steps found.
-            fixed = None if self.config.poses.view_steps else view.correction
-            poses = [drawn.pose().detach() if fixed is not None and drawn.correction is fixed else drawn.pose()
-                     for drawn in window]
-            corrections = list({id(drawn.correction): drawn.correction for drawn in window
-                                if drawn.correction is not None and drawn.correction is not fixed}.values())
+            moving = [(drawn, self._moves(drawn.correction, view)) for drawn in window]
+            poses = [drawn.pose() if moves else drawn.pose().detach() for drawn, moves in moving]
+            corrections = list({id(drawn.correction): drawn.correction for drawn, moves in moving if moves}.values())
         with self._timed("decode"):
             views = list(zip(poses, window, strict=True))
             rows = [self._rows_in_view(pose.detach(), drawn.intrinsics) for pose, drawn in views]
@@ -406,6 +418,13 @@ class Mapper:
                 correction.step(self.config.poses)
         self.last_gaussians = len(renders[0][0]) if renders else 0
         return total.detach()
+
+    def _moves(self, correction: PoseCorrection | None, view: View) -> bool:
+        """Whether a step moves ``correction``: not one held at the client's pose by its tracking, and not
+        the view's without ``poses.view_steps`` (the view then keeps the pose its tracking found)."""
+        if correction is None or correction.held:
+            return False
+        return self.config.poses.view_steps or correction is not view.correction
 
     def _window_weights(self, keyframes: list[Keyframe]) -> list[float]:
         """Loss weights of a step's view and its window ``keyframes``: ``loss.view`` for the view once

@@ -10,7 +10,7 @@ import torch
 
 from ogmapping.config import PosesConfig, resolve
 from ogmapping.mapper import Mapper
-from ogmapping.optim.poses import STATE_SIZE, PoseCorrection, rotation_matrix
+from ogmapping.optim.poses import STATE_SIZE, TRACK_CHECK_STEPS, PoseCorrection, rotation_matrix, settled
 from ogmapping.persist import snapshot
 from ogmapping.quality.evaluation import open_frames
 
@@ -101,8 +101,13 @@ def test_state_round_trip_and_bad_rows():
     again = PoseCorrection.from_state(row, "cpu", torch.float32)
     assert torch.equal(again.delta.detach(), correction.delta.detach()) and again.delta.requires_grad
     assert again.steps == 1 and again.clamped == correction.clamped
+    correction.hold()
+    held = PoseCorrection.from_state(correction.state(), "cpu", torch.float32)
+    assert held.held and not held.delta.detach().any()
+    older = PoseCorrection.from_state(row[:-1], "cpu", torch.float32)  # written before ``held`` was kept
+    assert torch.equal(older.delta.detach(), again.delta.detach()) and not older.held
     with pytest.raises(ValueError, match="pose correction"):
-        PoseCorrection.from_state(row[:-1], "cpu", torch.float32)
+        PoseCorrection.from_state(row[:-2], "cpu", torch.float32)
     with pytest.raises(ValueError, match="pose correction"):
         PoseCorrection.from_state(torch.full((STATE_SIZE,), math.nan, dtype=torch.float64), "cpu", torch.float32)
 
@@ -172,3 +177,38 @@ def test_refinement_moves_a_displaced_pose_towards_the_truth():
     before = _pixel_shift(displaced, truth, displaced.c2w)
     assert before > 1.5
     assert _pixel_shift(displaced, truth, result.pose.refined_c2w) < 0.6 * before and not result.pose.clamped
+
+
+def test_a_held_correction_stays_at_the_client_pose():
+    correction = PoseCorrection("cpu")
+    correction.delta.grad = torch.ones(6)
+    correction.step(PosesConfig())
+    correction.hold()
+    correction.delta.grad = torch.ones(6)
+    correction.step(PosesConfig())
+    assert correction.held and not correction.delta.detach().any() and correction.steps == 1
+
+
+def test_a_pose_has_settled_when_the_second_step_gains_little():
+    losses = [torch.tensor(value) for value in (1.0, 0.9, 0.89)]
+    assert settled(losses, 0.02) and not settled(losses, 0.005)
+    assert not settled([torch.tensor(value) for value in (1.0, 0.9, 0.8)], 0.02)
+
+
+@pytest.mark.parametrize("track_iterations", [2, 5])
+def test_tracking_that_settles_holds_every_pose_and_maps_as_without_refinement(track_iterations):
+    frames = _frames(4)
+    overrides = {**TINY, "keyframes.overlap_threshold": "0.99"}
+    plain = Mapper(resolve("sparse-fast", overrides=overrides))
+    gated = Mapper(resolve("sparse-fast", overrides={**overrides, "poses.refine": "true", "poses.track_min_gain": "1",
+                                                     "poses.track_iterations": str(track_iterations)}))
+    for frame in frames:
+        result = gated.process(frame)
+        plain.process(frame)
+        assert np.allclose(result.pose.refined_c2w, frame.c2w, rtol=0, atol=1e-6)
+    corrections = [keyframe.correction for keyframe in gated.keyframes.keyframes[1:]]
+    assert corrections and all(correction.held for correction in corrections)
+    assert all(correction.steps == TRACK_CHECK_STEPS for correction in corrections)  # tracking stopped there
+    held = gated.state().tensors
+    for name, tensor in plain.state().tensors.items():
+        assert torch.equal(tensor, held[name]), name

@@ -181,6 +181,11 @@ class PosesConfig:
     track_iterations: int = ranged(5, 0)
     track_scale: float = ranged(0.5, 0, 1, open_low=True)  # image scale of those steps: a quarter of the pixels
     track_alpha: float = ranged(0.99, 0, 1)  # ...whose loss counts the pixels the map covers this fully
+    # A frame whose second tracking step lowers its loss by less than this share of the loss it started
+    # from keeps its client's pose, held through every later step (its tracking stops there): a right
+    # pose's loss falls on the first step, as the pose fits the young map's own error, then stops; a wrong
+    # one's keeps falling ("Pose refinement"). 0: every correction moves. Needs two tracking steps.
+    track_min_gain: float = ranged(0.02, 0, 1)
     # The streamed view's correction moves in its mapping steps too (else only its tracking steps set it;
     # keyframes' corrections move in every step that draws them).
     view_steps: bool = True

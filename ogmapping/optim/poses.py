@@ -23,7 +23,8 @@ import torch
 
 from ogmapping.config import PosesConfig
 
-STATE_SIZE = 8  # a correction's checkpoint row: delta (6), steps, clamped
+STATE_SIZE = 9  # a correction's checkpoint row: delta (6), steps, clamped, held
+STATE_SIZES = (8, STATE_SIZE)  # rows written before ``held`` lack it
 
 
 def skew(vector: torch.Tensor) -> torch.Tensor:
@@ -61,6 +62,18 @@ class PoseReport:
         return cls(np.zeros(3), np.zeros(3), False, np.asarray(c2w, dtype=np.float64))
 
 
+TRACK_CHECK_STEPS = 2  # tracking steps after which ``settled`` decides whether a pose moves at all
+
+
+def settled(losses: list[torch.Tensor], min_gain: float) -> bool:
+    """Whether tracking's second step lowered the loss by less than ``min_gain`` of the first loss
+    (``losses``: before the first step, before the second, after it). A right pose's loss falls on the
+    first step as the pose fits the young map's own error, and then stops; a wrong pose's keeps
+    falling (bench/RESULTS.md, "Pose refinement")."""
+    first, before, after = (float(loss) for loss in losses[:TRACK_CHECK_STEPS + 1])
+    return (before - after) < min_gain * max(first, 1e-12)
+
+
 class PoseCorrection:
     """One pose's correction (translation, then axis-angle rotation, as one leaf 6-vector), stepped
     on its own, so corrections come and go with keyframes without touching the map's optimiser."""
@@ -69,6 +82,7 @@ class PoseCorrection:
         self.delta = torch.zeros(6, device=device, dtype=dtype, requires_grad=True)
         self.steps = 0
         self.clamped = False  # hit the bound at some step since ``clamped`` was last cleared
+        self.held = False  # kept at the client's pose for good (``hold``)
 
     @property
     def translation(self) -> torch.Tensor:
@@ -91,6 +105,14 @@ class PoseCorrection:
         return settings.prior * (self.translation.square().sum() / settings.max_translation**2
                                  + self.rotation.square().sum() / scale**2)
 
+    def hold(self) -> None:
+        """Back to the client's pose, to stay there: its tracking ``settled`` (``poses.track_min_gain``),
+        and steps that move it anyway fit the young map's errors instead."""
+        with torch.no_grad():
+            self.delta.zero_()
+        self.delta.grad = None
+        self.held = True
+
     def step(self, settings: PosesConfig) -> None:
         """One gradient step on ``delta`` (none without a gradient), then clamp to the bounds.
 
@@ -99,7 +121,7 @@ class PoseCorrection:
         noise it was meant to remove; here a small gradient (a pose near its optimum) makes a small step.
         """
         grad = self.delta.grad
-        if grad is None:
+        if grad is None or self.held:
             return
         self.steps += 1
         with torch.no_grad():
@@ -124,19 +146,20 @@ class PoseCorrection:
                           refined.double().cpu().numpy())
 
     def state(self) -> torch.Tensor:
-        """Everything it carries as one float64 row: delta, steps, clamped (for checkpoints)."""
-        extra = torch.tensor([self.steps, float(self.clamped)], dtype=torch.float64)
+        """Everything it carries as one float64 row: delta, steps, clamped, held (for checkpoints)."""
+        extra = torch.tensor([self.steps, float(self.clamped), float(self.held)], dtype=torch.float64)
         return torch.cat([self.delta.detach().double().cpu(), extra])
 
     @classmethod
     def from_state(cls, row: torch.Tensor, device: torch.device | str, dtype: torch.dtype) -> PoseCorrection:
         """The correction a ``state`` row holds; ValueError when it is not one."""
-        if tuple(row.shape) != (STATE_SIZE,) or not bool(torch.isfinite(row).all()):
+        if row.dim() != 1 or row.shape[0] not in STATE_SIZES or not bool(torch.isfinite(row).all()):
             raise ValueError(f"a pose correction is {STATE_SIZE} finite numbers, got shape {tuple(row.shape)}")
         correction = cls(device, dtype)
         with torch.no_grad():
             correction.delta.copy_(row[:6])
         correction.steps = int(row[6])
         correction.clamped = bool(row[7])
+        correction.held = bool(row[8]) if row.shape[0] > 8 else False
         return correction
 

@@ -23,8 +23,10 @@ from ogmapping.frames.trajectory import read_tum
 from .inprocess import serving, settings
 from .scene import PRESET, TINY, create_request, messages, scene
 
-# Corrections that reach a bound of a tenth of a millimetre within a frame's few steps.
-REFINE = {**TINY, "poses.refine": "true", "poses.translation_lr": "0.01", "poses.max_translation": "0.0001"}
+# Corrections that reach a bound of a tenth of a millimetre within a frame's few steps (every pose moves:
+# held at the client's pose, none would stay at the bound).
+REFINE = {**TINY, "poses.refine": "true", "poses.translation_lr": "0.01", "poses.max_translation": "0.0001",
+          "poses.track_min_gain": "0"}
 
 
 def matrix(numbers) -> np.ndarray:
