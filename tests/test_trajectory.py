@@ -142,6 +142,15 @@ def test_axis_angle_turns_by_the_angle() -> None:
     assert angles.tolist() == [0.0]
 
 
+def test_a_rotation_stored_not_quite_orthonormal_is_not_a_turn() -> None:
+    pose = np.eye(4)
+    pose[:3, :3] = axis_angle_matrix(np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8]), 0.7) * 0.99995
+    turned = pose.copy()
+    turned[:3, :3] = axis_angle_matrix(np.array([1.0, 0.0, 0.0]), math.radians(0.2)) @ pose[:3, :3]
+    _, angles = pose_errors(np.array([pose, turned]), np.array([pose, pose]))
+    np.testing.assert_allclose(angles, [0.0, 0.2], atol=1e-6)
+
+
 def test_a_frame_set_gives_the_trajectory_poses(tmp_path: Path) -> None:
     frames = open_frames("synthetic", "synthetic", "0:3", scale=0.25, n_frames=12)
     moved = perturb(POSES, 0.01, 0.5, seed=2)
