@@ -19,6 +19,7 @@ _DENSE_AND_SPARSE: dict[str, Any] = {
     **_BY_RESOLUTION,
     "octree.max_level": 1,  # 2.5 cm anchors, no 6 mm ones, which carry little of the colour ("Octree levels")
     "octree.levels_by_resolution": True,  # ...but 6 mm ones too at 1200x680 ("Octree levels by resolution")
+    "loss.ssim_by_resolution": True,  # twice the SSIM weight at 1200x680 ("SSIM by resolution")
     "optim.average_decay": 0.85,  # queries see the map averaged over about its last 7 steps ("Map averaging")
     "optim.average_growth": 0.015,  # ...and over 1.5% of its steps once it is older ("Map averaging")
     "refine.grad_threshold": 1.5e-4,  # grows more anchors than Scaffold-GS's 2e-4 ("Growth and pruning")
@@ -41,7 +42,6 @@ PRESET_VALUES: dict[str, dict[str, Any]] = {
         "keyframes.global_count": 3,
         "keyframes.frame_renders": 4,
         "loss.ssim": 0.1,  # its gradients drive growth: fewer anchors pay for the window's fifth view ("Loss weights")
-        "loss.ssim_by_resolution": True,  # ...but 0.2 at 1200x680 ("SSIM by resolution")
         "loss.view": 0.5,  # once the window is full, the view weighs half a window keyframe ("Loss weights")
     },
     "sparse-fast": {
