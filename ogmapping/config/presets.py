@@ -12,14 +12,14 @@ from typing import Any
 from ogmapping.config.overrides import assign
 from ogmapping.config.sections import MapperConfig
 
-# Ten Gaussians an anchor at 1200x680, five up to about 900x510 ("Gaussians by resolution").
-_BY_RESOLUTION: dict[str, Any] = {"model.offsets_by_resolution": True}
+# Ten Gaussians an anchor and twice the SSIM weight at 1200x680, as up to about 900x510 below that
+# ("Gaussians by resolution", "SSIM by resolution").
+_BY_RESOLUTION: dict[str, Any] = {"model.offsets_by_resolution": True, "loss.ssim_by_resolution": True}
 
 _DENSE_AND_SPARSE: dict[str, Any] = {
     **_BY_RESOLUTION,
     "octree.max_level": 1,  # 2.5 cm anchors, no 6 mm ones, which carry little of the colour ("Octree levels")
     "octree.levels_by_resolution": True,  # ...but 6 mm ones too at 1200x680 ("Octree levels by resolution")
-    "loss.ssim_by_resolution": True,  # twice the SSIM weight at 1200x680 ("SSIM by resolution")
     "optim.average_decay": 0.85,  # queries see the map averaged over about its last 7 steps ("Map averaging")
     "optim.average_growth": 0.015,  # ...and over 1.5% of its steps once it is older ("Map averaging")
     "refine.grad_threshold": 1.5e-4,  # grows more anchors than Scaffold-GS's 2e-4 ("Growth and pruning")
