@@ -339,7 +339,7 @@ class Mapper:
                     return
                 (loss + correction.prior(settings)).backward()
                 correction.step(settings)
-            if len(losses) == TRACK_CHECK_STEPS and settings.track_min_gain:
+            if len(losses) == TRACK_CHECK_STEPS and settings.track_min_gain:  # the check's third loss
                 with torch.no_grad():
                     losses.append(loss_at_correction())
                 if settled(losses, settings.track_min_gain):

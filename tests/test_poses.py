@@ -193,6 +193,7 @@ def test_a_pose_has_settled_when_the_second_step_gains_little():
     losses = [torch.tensor(value) for value in (1.0, 0.9, 0.89)]
     assert settled(losses, 0.02) and not settled(losses, 0.005)
     assert not settled([torch.tensor(value) for value in (1.0, 0.9, 0.8)], 0.02)
+    assert not settled([torch.tensor(value) for value in (1.0, 0.9, 1.2)], 0.0)  # 0: every pose moves
 
 
 @pytest.mark.parametrize("track_iterations", [2, 5])

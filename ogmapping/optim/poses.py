@@ -69,7 +69,9 @@ def settled(losses: list[torch.Tensor], min_gain: float) -> bool:
     """Whether tracking's second step lowered the loss by less than ``min_gain`` of the first loss
     (``losses``: before the first step, before the second, after it). A right pose's loss falls on the
     first step as the pose fits the young map's own error, and then stops; a wrong pose's keeps
-    falling (bench/RESULTS.md, "Pose refinement")."""
+    falling (bench/RESULTS.md, "Pose refinement"). Never with ``min_gain`` 0, not even where the loss rose."""
+    if min_gain <= 0:
+        return False
     first, before, after = (float(loss) for loss in losses[:TRACK_CHECK_STEPS + 1])
     return (before - after) < min_gain * max(first, 1e-12)
 
