@@ -72,7 +72,7 @@ def settled(losses: list[torch.Tensor], min_gain: float) -> bool:
     falling (bench/RESULTS.md, "Pose refinement"). Never with ``min_gain`` 0, not even where the loss rose."""
     if min_gain <= 0:
         return False
-    first, before, after = (float(loss) for loss in losses[:TRACK_CHECK_STEPS + 1])
+    first, before, after = torch.stack(losses[:TRACK_CHECK_STEPS + 1]).tolist()  # one read from the device
     return (before - after) < min_gain * max(first, 1e-12)
 
 
