@@ -223,16 +223,18 @@ class Mapper:
                      for array in (frame.rgb, frame.depth, frame.c2w))
 
     def _fit_to(self, intrinsics: Intrinsics) -> None:
-        """On the first frame, with ``model.offsets_by_resolution``, ``octree.levels_by_resolution`` or
-        ``loss.ssim_by_resolution``: ``n_offsets`` or the SSIM weight times the frame's step multiple, or
-        one octree level more, kept in the config; a model whose shape changes is rebuilt (still empty),
-        drawn afresh from the seed. A multiple of 1 keeps everything as it was, so such maps are exactly
-        as without them."""
+        """On the first frame, with ``model.offsets_by_resolution``, ``model.anchor_colour_by_resolution``,
+        ``octree.levels_by_resolution`` or ``loss.ssim_by_resolution``: ``n_offsets`` or the SSIM weight
+        times the frame's step multiple, anchor colours on, or one octree level more, kept in the config;
+        a model whose shape changes is rebuilt (still empty), drawn afresh from the seed. A multiple of 1
+        keeps everything as it was, so such maps are exactly as without them."""
         model, octree, loss = self.config.model, self.config.octree, self.config.loss
-        offsets, levels, ssim = model.offsets_by_resolution, octree.levels_by_resolution, loss.ssim_by_resolution
-        if not (offsets or levels or ssim) or self.frames or len(self.anchors):
+        offsets, colours = model.offsets_by_resolution, model.anchor_colour_by_resolution
+        levels, ssim = octree.levels_by_resolution, loss.ssim_by_resolution
+        if not (offsets or colours or levels or ssim) or self.frames or len(self.anchors):
             return
-        model.offsets_by_resolution = octree.levels_by_resolution = loss.ssim_by_resolution = False
+        model.offsets_by_resolution = model.anchor_colour_by_resolution = False
+        octree.levels_by_resolution = loss.ssim_by_resolution = False
         multiple = step_multiple(self.config.keyframes, intrinsics)
         if multiple == 1:
             return
@@ -240,9 +242,12 @@ class Mapper:
             loss.ssim = min(loss.ssim * multiple, MAX_LOSS_WEIGHT)
         if offsets:
             model.n_offsets = min(model.n_offsets * multiple, MAX_SCALED_OFFSETS)
+        colours = colours and not model.anchor_colour
+        if colours:
+            model.anchor_colour = True
         if levels:
             octree.max_level = min(octree.max_level + 1, MAX_OCTREE_LEVEL)
-        if offsets or levels:
+        if offsets or colours or levels:
             self.generator.manual_seed(self.config.seed)
             with self.lock:
                 self._build_model(self.config)

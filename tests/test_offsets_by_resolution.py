@@ -1,6 +1,6 @@
-"""``model.offsets_by_resolution``, ``octree.levels_by_resolution`` and ``loss.ssim_by_resolution``: Gaussians
-per anchor and the SSIM weight times the first frame's step multiple, and one octree level more where that
-multiple is 2 or more."""
+"""``model.offsets_by_resolution``, ``model.anchor_colour_by_resolution``, ``octree.levels_by_resolution`` and
+``loss.ssim_by_resolution``: Gaussians per anchor and the SSIM weight times the first frame's step multiple,
+and anchor colours and one octree level more where that multiple is 2 or more."""
 
 from __future__ import annotations
 
@@ -24,13 +24,14 @@ def test_a_multiple_of_one_maps_exactly_as_without_it():
     maps = []
     for scaled in ("false", "true"):
         overrides = {**TINY, "model.offsets_by_resolution": scaled, "octree.levels_by_resolution": scaled,
-                     "loss.ssim_by_resolution": scaled}
+                     "loss.ssim_by_resolution": scaled, "model.anchor_colour_by_resolution": scaled}
         mapper = Mapper(resolve("sparse-fast", overrides=overrides))
         for frame in frames:
             mapper.process(frame)
         assert mapper.config.model.n_offsets == 5 and not mapper.config.model.offsets_by_resolution
         assert mapper.config.octree.max_level == 2 and not mapper.config.octree.levels_by_resolution
         assert mapper.config.loss.ssim == 0.2 and not mapper.config.loss.ssim_by_resolution
+        assert not mapper.config.model.anchor_colour and not mapper.config.model.anchor_colour_by_resolution
         maps.append(mapper.state().tensors)
     assert maps[0].keys() == maps[1].keys()
     assert all(torch.equal(value, maps[1][name]) for name, value in maps[0].items())
@@ -86,3 +87,24 @@ def test_a_finer_first_frame_weighs_ssim_more_and_the_snapshot_keeps_the_weight(
     for frame in frames:
         weighed.process(frame)
     assert all(torch.equal(value, weighed.state().tensors[name]) for name, value in mapper.state().tensors.items())
+
+
+def test_a_finer_first_frame_turns_anchor_colours_on_as_set_by_hand_and_the_snapshot_keeps_them():
+    overrides = {**TINY, "model.anchor_colour_by_resolution": "true", "keyframes.steps_reference_pixels": "1200"}
+    config = resolve("sparse-fast", overrides=overrides)
+    mapper = Mapper(config)
+    frames = _frames(2)
+    for frame in frames:
+        mapper.process(frame)
+    assert mapper.anchors.with_colours and mapper.config.model.anchor_colour
+    assert not mapper.config.model.anchor_colour_by_resolution
+    assert not config.model.anchor_colour and config.model.anchor_colour_by_resolution  # the caller's is left alone
+    restored = Mapper.restore(mapper.snapshot())
+    assert restored.anchors.with_colours and not restored.config.model.anchor_colour_by_resolution
+    by_hand = Mapper(resolve("sparse-fast", overrides={**overrides, "model.anchor_colour_by_resolution": "false",
+                                                       "model.anchor_colour": "true"}))
+    for frame in frames:
+        by_hand.process(frame)
+    tensors = by_hand.state().tensors
+    assert mapper.state().tensors.keys() == tensors.keys()
+    assert all(torch.equal(value, tensors[name]) for name, value in mapper.state().tensors.items())

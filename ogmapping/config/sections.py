@@ -66,6 +66,10 @@ class ModelConfig:
     # A learnable colour logit per anchor, added to the colour decoder's logits for its n Gaussians (not in
     # the paper): a direct, fast-learning colour next to the shared decoder ("Anchor colours").
     anchor_colour: bool = True
+    # ...on where the first frame's step multiple is 2 or more (1200x680), resolved then as
+    # ``offsets_by_resolution`` is: with twice the steps a frame, the colours that the fewest steps leave
+    # unlearnt pay for themselves ("Anchor colours by resolution").
+    anchor_colour_by_resolution: bool = False
     # Where a new anchor's colour starts: "zero" (the decoder's colour), or "cell", the mean colour of the
     # allocating frame's depth points in its cell, which gains on Replica but loses on 7-Scenes, whose colour
     # and depth cameras are not registered ("Anchor colours").
