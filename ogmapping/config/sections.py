@@ -181,8 +181,9 @@ class PosesConfig:
     translation_lr: float = _learning_rate(0.004)
     rotation_lr: float = _learning_rate(0.001)
     # Steps on the frame's pose alone, against the map as it stands, before its mapping steps: a few
-    # mapping steps move a pose little, and meanwhile pull the map towards the pose's error.
-    track_iterations: int = ranged(5, 0)
+    # mapping steps move a pose little, and meanwhile pull the map towards the pose's error. Fifteen track
+    # a pose that moves nearer the truth than five (a held one stops after two; "Pose refinement").
+    track_iterations: int = ranged(15, 0)
     track_scale: float = ranged(0.5, 0, 1, open_low=True)  # image scale of those steps: a quarter of the pixels
     track_alpha: float = ranged(0.99, 0, 1)  # ...whose loss counts the pixels the map covers this fully
     # A frame whose second tracking step lowers its loss by less than this share of the loss it started
