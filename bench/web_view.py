@@ -12,8 +12,9 @@ another machine would: what is left of a page's cost is the server's own work fo
 
 Reported per run: the session's processing FPS (``GetStats``), the server process's CPU seconds while the
 frames are mapped (what a page adds to them is the view's work, a measure the machine's other load
-barely moves, unlike FPS), and the web view's decodes and renders with their seconds (the server's log
-line at shutdown; they hold the mapper's lock); then each page's means against no page.
+barely moves, unlike FPS), the web view's decodes and renders with their seconds (they hold the mapper's
+lock) and the CPU seconds the server counted for the view's requests (its log line at shutdown); then
+each page's means against no page, and the view's own CPU seconds as a share of the server's.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ from tests.service.browser import browser, fragment  # noqa: E402 - the tests' h
 OVERRIDES = {"keyframes.first_iterations": "40", "keyframes.iterations": "8"}  # the demo's
 POLL_SECONDS = 0.5  # viewer.js's POLL_MS
 PAGES = ("none", "pose", "free-fly", "requests")
-BUSY = re.compile(r"web view: (\d+) decodes and renders, ([\d.]+) s")
+BUSY = re.compile(r"web view: (\d+) decodes and renders, ([\d.]+) s; ([\d.]+) CPU seconds")
 
 
 @dataclass
@@ -68,6 +69,9 @@ class Row:
     # mapped: what the page adds to them is the view's work, whatever else shares the machine (Linux; None
     # elsewhere)
     server_cpu_seconds: float | None = None
+    # the CPU seconds the server's log counts for the web view's requests (its decodes and renders included),
+    # over the server's whole life (so the page's own files too): the view's work, measured directly
+    web_cpu_seconds: float = 0.0
 
 
 def pin(pid: int, cpus: set[int]) -> None:
@@ -118,9 +122,9 @@ def run(page: str, messages: list[pb.Frame], folder: Path, server_cpus: set[int]
             if page != "none":
                 watcher.join(60)
     busy = BUSY.findall(server.log_path.read_text())
-    count, seconds = busy[-1] if busy else ("0", "0")
+    count, seconds, web_cpu = busy[-1] if busy else ("0", "0", "0")
     row = Row(page, stats.frames, stats.keyframes, round(stats.processing_fps, 3), int(count), float(seconds),
-              server_cpu_seconds=cpu)
+              server_cpu_seconds=cpu, web_cpu_seconds=float(web_cpu))
     if waits:
         row.splats_seconds_max, row.splats_seconds_median = round(max(waits), 3), round(statistics.median(waits), 3)
     return row
@@ -213,6 +217,13 @@ def summary(rows: list[Row]) -> list[str]:
                 low, middle, high = (100 * (v / base_mean - 1) for v in (mean - half, mean, mean + half))
                 line += f", {middle:+.1f}% against none (95%: {low:+.1f}% to {high:+.1f}%)"
             lines.append(line)
+    shares: dict[str, list[float]] = {}
+    for row in rows:
+        if row.page != "none" and row.server_cpu_seconds:
+            shares.setdefault(row.page, []).append(100 * row.web_cpu_seconds / row.server_cpu_seconds)
+    for page, values in shares.items():
+        lines.append(f"{page}: the web view's own CPU seconds, {statistics.fmean(values):.1f}% of the server's while "
+                     f"mapping ({min(values):.1f}% to {max(values):.1f}% over {len(values)} runs)")
     return lines
 
 

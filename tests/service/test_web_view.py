@@ -127,6 +127,8 @@ def test_with_api_keys_a_caller_sees_only_its_own_sessions(tmp_path) -> None:
         status, state = get(f"{base}/api/map/{alice_id}/state?key=alice-key")
         assert json.loads(state)["stats"]["mapped"] == len(frames)
         assert get(f"{base}/api/map/{alice_id}/splats.ply?key=alice-key&center=1,2")[0] == 400
+        busy = running.server.web.catalogue.busy  # the decodes and renders, and the requests' CPU, counted
+        assert busy.count >= 1 and busy.seconds > 0 and busy.cpu_seconds > 0
 
 
 def test_loopback_addresses() -> None:

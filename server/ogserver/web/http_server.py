@@ -69,7 +69,8 @@ class WebServer(ThreadingHTTPServer):
         self.shutdown()
         self.server_close()
         busy = self.catalogue.busy
-        log.info("web view: %d decodes and renders, %.1f s", busy.count, busy.seconds)
+        log.info("web view: %d decodes and renders, %.1f s; %.2f CPU seconds in all", busy.count, busy.seconds,
+                 busy.cpu_seconds)
 
     def url(self, host: str) -> str:
         return f"{'https' if self.tls else 'http'}://{host}:{self.port}/"
@@ -102,6 +103,10 @@ class Handler(BaseHTTPRequestHandler):
         log.debug("web view: %s %s", self.address_string(), format % args)
 
     def do_GET(self) -> None:
+        with self.server.catalogue.busy.request():
+            self._answer()
+
+    def _answer(self) -> None:
         url = urlsplit(self.path)
         if self.server.loopback and not LOOPBACK_HOSTS.fullmatch(self.headers.get("Host", "")):
             self._send(HTTPStatus.FORBIDDEN, b"this server answers only requests for a loopback host\n")

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -50,17 +52,40 @@ class Source(Protocol):
 
 
 class Busy:
-    """Decodes and renders made for the web view and their seconds (they hold the mapper's lock)."""
+    """What the web view's work took: its decodes and renders (they hold the mapper's lock, so mapping waits
+    for them) and the CPU seconds of every request it answered, those included."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self.count = 0
-        self.seconds = 0.0
+        self.seconds = 0.0  # the decodes' and renders' wall time, the mapper's lock held
+        self.cpu_seconds = 0.0
 
-    def add(self, started: float) -> None:
-        with self._lock:
-            self.count += 1
-            self.seconds += time.perf_counter() - started
+    @contextmanager
+    def holding(self, lock: AbstractContextManager[Any]) -> Iterator[None]:
+        """Hold ``lock`` (the mapper's) for one decode or render and count it, with the CPU that the process's
+        other threads (the compiled kernels' pool) spent meanwhile: mapping waits on the lock, so that is the
+        work's too. The calling thread's own CPU is counted with its request (``request``)."""
+        with lock:
+            wall, process, thread = time.perf_counter(), time.process_time(), time.thread_time()
+            try:
+                yield
+            finally:
+                others = (time.process_time() - process) - (time.thread_time() - thread)
+                with self._lock:
+                    self.count += 1
+                    self.seconds += time.perf_counter() - wall
+                    self.cpu_seconds += max(others, 0.0)
+
+    @contextmanager
+    def request(self) -> Iterator[None]:
+        """Count the CPU seconds of the calling thread while it answers one request."""
+        started = time.thread_time()
+        try:
+            yield
+        finally:
+            with self._lock:
+                self.cpu_seconds += time.thread_time() - started
 
 
 @dataclass
@@ -97,11 +122,10 @@ class MapView:
                     return last
             elif last is not None:
                 time.sleep(max(0.0, last.at + self.min_seconds - time.monotonic()))
-            started = time.perf_counter()
-            gaussians = self.source.mapper.decode_at(np.asarray(key))
+            with self.busy.holding(self.source.mapper.lock):
+                gaussians = self.source.mapper.decode_at(np.asarray(key))
             self._decoded = Decoded(version, key, ply_bytes(gaussians), int(gaussians.means.shape[0]),
                                     time.monotonic())
-            self.busy.add(started)
             return self._decoded
 
     def render_jpeg(self) -> bytes | None:
@@ -114,11 +138,10 @@ class MapView:
             return made
         with self._lock:
             if self._render is None or self._render[0] != id(frame):
-                started = time.perf_counter()
                 c2w = frame.c2w if frame.refined is None else frame.refined
-                color = self.source.mapper.render(c2w, frame.intrinsics).color
+                with self.busy.holding(self.source.mapper.lock):
+                    color = self.source.mapper.render(c2w, frame.intrinsics).color
                 self._render = (id(frame), encode_color(color, pb.COLOR_JPEG, RENDER_JPEG_QUALITY))
-                self.busy.add(started)
             return self._render[1]
 
     def state(self) -> dict[str, Any]:
