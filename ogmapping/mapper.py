@@ -224,22 +224,27 @@ class Mapper:
 
     def _fit_to(self, intrinsics: Intrinsics) -> None:
         """On the first frame, with ``model.offsets_by_resolution``, ``model.anchor_colour_by_resolution``,
-        ``octree.levels_by_resolution`` or ``loss.ssim_by_resolution``: ``n_offsets`` or the SSIM weight
-        times the frame's step multiple, anchor colours on, or one octree level more, kept in the config;
-        a model whose shape changes is rebuilt (still empty), drawn afresh from the seed. A multiple of 1
-        keeps everything as it was, so such maps are exactly as without them."""
-        model, octree, loss = self.config.model, self.config.octree, self.config.loss
+        ``octree.levels_by_resolution``, ``loss.ssim_by_resolution`` or ``optim.average_decay_by_resolution``:
+        ``n_offsets`` or the SSIM weight times the frame's step multiple, anchor colours on, one octree level
+        more, or the other average decay, kept in the config; a model whose shape changes is rebuilt (still
+        empty), drawn afresh from the seed. A multiple of 1 keeps everything as it was, so such maps are
+        exactly as without them."""
+        model, octree, loss, optim = self.config.model, self.config.octree, self.config.loss, self.config.optim
         offsets, colours = model.offsets_by_resolution, model.anchor_colour_by_resolution
-        levels, ssim = octree.levels_by_resolution, loss.ssim_by_resolution
-        if not (offsets or colours or levels or ssim) or self.frames or len(self.anchors):
+        levels, ssim, average = octree.levels_by_resolution, loss.ssim_by_resolution, optim.average_decay_by_resolution
+        if not (offsets or colours or levels or ssim or average) or self.frames or len(self.anchors):
             return
         model.offsets_by_resolution = model.anchor_colour_by_resolution = False
         octree.levels_by_resolution = loss.ssim_by_resolution = False
+        optim.average_decay_by_resolution = 0.0
         multiple = step_multiple(self.config.keyframes, intrinsics)
         if multiple == 1:
             return
         if ssim:
             loss.ssim = min(loss.ssim * multiple, MAX_LOSS_WEIGHT)
+        if average:
+            optim.average_decay = average
+            self.average = MapAverage(self.anchors, self.decoders, optim.average_decay, optim.average_growth)
         if offsets:
             model.n_offsets = min(model.n_offsets * multiple, MAX_SCALED_OFFSETS)
         colours = colours and not model.anchor_colour

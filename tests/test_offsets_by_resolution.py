@@ -1,6 +1,7 @@
-"""``model.offsets_by_resolution``, ``model.anchor_colour_by_resolution``, ``octree.levels_by_resolution`` and
-``loss.ssim_by_resolution``: Gaussians per anchor and the SSIM weight times the first frame's step multiple,
-and anchor colours and one octree level more where that multiple is 2 or more."""
+"""``model.offsets_by_resolution``, ``model.anchor_colour_by_resolution``, ``octree.levels_by_resolution``,
+``loss.ssim_by_resolution`` and ``optim.average_decay_by_resolution``: Gaussians per anchor and the SSIM
+weight times the first frame's step multiple, and anchor colours, one octree level more and another
+average decay where that multiple is 2 or more."""
 
 from __future__ import annotations
 
@@ -24,7 +25,8 @@ def test_a_multiple_of_one_maps_exactly_as_without_it():
     maps = []
     for scaled in ("false", "true"):
         overrides = {**TINY, "model.offsets_by_resolution": scaled, "octree.levels_by_resolution": scaled,
-                     "loss.ssim_by_resolution": scaled, "model.anchor_colour_by_resolution": scaled}
+                     "loss.ssim_by_resolution": scaled, "model.anchor_colour_by_resolution": scaled,
+                     "optim.average_decay_by_resolution": "0.85" if scaled == "true" else "0"}
         mapper = Mapper(resolve("sparse-fast", overrides=overrides))
         for frame in frames:
             mapper.process(frame)
@@ -32,6 +34,7 @@ def test_a_multiple_of_one_maps_exactly_as_without_it():
         assert mapper.config.octree.max_level == 2 and not mapper.config.octree.levels_by_resolution
         assert mapper.config.loss.ssim == 0.2 and not mapper.config.loss.ssim_by_resolution
         assert not mapper.config.model.anchor_colour and not mapper.config.model.anchor_colour_by_resolution
+        assert mapper.config.optim.average_decay == 0 and not mapper.config.optim.average_decay_by_resolution
         maps.append(mapper.state().tensors)
     assert maps[0].keys() == maps[1].keys()
     assert all(torch.equal(value, maps[1][name]) for name, value in maps[0].items())
@@ -103,6 +106,28 @@ def test_a_finer_first_frame_turns_anchor_colours_on_as_set_by_hand_and_the_snap
     assert restored.anchors.with_colours and not restored.config.model.anchor_colour_by_resolution
     by_hand = Mapper(resolve("sparse-fast", overrides={**overrides, "model.anchor_colour_by_resolution": "false",
                                                        "model.anchor_colour": "true"}))
+    for frame in frames:
+        by_hand.process(frame)
+    tensors = by_hand.state().tensors
+    assert mapper.state().tensors.keys() == tensors.keys()
+    assert all(torch.equal(value, tensors[name]) for name, value in mapper.state().tensors.items())
+
+
+def test_a_finer_first_frame_averages_with_the_other_decay_as_set_by_hand_and_the_snapshot_keeps_it():
+    overrides = {**TINY, "optim.average_decay_by_resolution": "0.85", "model.offsets_by_resolution": "false",
+                 "model.anchor_colour_by_resolution": "false", "keyframes.steps_reference_pixels": "1200"}
+    config = resolve("sparse-fast", overrides=overrides)
+    mapper = Mapper(config)
+    frames = _frames(2)
+    for frame in frames:
+        mapper.process(frame)
+    assert mapper.average.enabled and mapper.config.optim.average_decay == 0.85
+    assert not mapper.config.optim.average_decay_by_resolution
+    assert config.optim.average_decay == 0 and config.optim.average_decay_by_resolution  # the caller's is left alone
+    restored = Mapper.restore(mapper.snapshot())
+    assert restored.average.decay == 0.85 and not restored.config.optim.average_decay_by_resolution
+    by_hand = Mapper(resolve("sparse-fast", overrides={**overrides, "optim.average_decay_by_resolution": "0",
+                                                       "optim.average_decay": "0.85"}))
     for frame in frames:
         by_hand.process(frame)
     tensors = by_hand.state().tensors

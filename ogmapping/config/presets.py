@@ -49,6 +49,9 @@ PRESET_VALUES: dict[str, dict[str, Any]] = {
         "model.encoding": "anchor",
         "model.anchor_colour": False,  # slower and not better with so few steps ("Anchor colours")...
         "model.anchor_colour_by_resolution": True,  # ...but pay at 1200x680 ("Anchor colours by resolution")
+        # No average below (it lags a map of few steps: "Map averaging"); sparse's and dense's at 1200x680
+        # ("Map averaging by resolution").
+        "optim.average_decay_by_resolution": 0.85,
         "refine.prune_opacity": 0.05,
         "keyframes.window_scale": 0.5,  # the window's global keyframes at half size ("Keyframes and the window")
         "keyframes.iterations": 6,  # fewer steps than sparse, as the paper's sparse-fast

@@ -167,6 +167,10 @@ class OptimConfig:
     # The average's horizon grows with the map: it covers max(1 / (1 - average_decay), average_growth x
     # steps so far) steps, so an old map averages longer than a young one still converging; 0: fixed.
     average_growth: float = ranged(0.0, 0, 1)
+    # The decay where the first frame's step multiple is 2 or more (1200x680; 0: ``average_decay`` at every
+    # size), resolved then as ``model.offsets_by_resolution`` is: an average lags a map of few steps, which
+    # twice the steps a frame make pay ("Map averaging by resolution").
+    average_decay_by_resolution: float = ranged(0.0, 0, 1, open_high=True)
 
 
 @dataclass
