@@ -20,6 +20,16 @@ def _frames(count: int):
     return [frames.load(position) for position in range(count)]
 
 
+def assert_same_map(mapper: Mapper, overrides: dict[str, str], frames) -> None:
+    """``mapper``'s map is the one that ``frames`` make under the values ``overrides`` set by hand."""
+    by_hand = Mapper(resolve("sparse-fast", overrides=overrides))
+    for frame in frames:
+        by_hand.process(frame)
+    tensors = by_hand.state().tensors
+    assert mapper.state().tensors.keys() == tensors.keys()
+    assert all(torch.equal(value, tensors[name]) for name, value in mapper.state().tensors.items())
+
+
 def test_a_multiple_of_one_maps_exactly_as_without_it():
     frames = _frames(2)
     maps = []
@@ -85,11 +95,7 @@ def test_a_finer_first_frame_weighs_ssim_more_and_the_snapshot_keeps_the_weight(
     assert config.loss.ssim == 0.1 and config.loss.ssim_by_resolution  # the caller's config is left alone
     restored = Mapper.restore(mapper.snapshot())
     assert restored.config.loss.ssim == 0.2 and not restored.config.loss.ssim_by_resolution
-    weighed = Mapper(resolve("sparse-fast", overrides={**overrides, "loss.ssim_by_resolution": "false",
-                                                       "loss.ssim": "0.2"}))
-    for frame in frames:
-        weighed.process(frame)
-    assert all(torch.equal(value, weighed.state().tensors[name]) for name, value in mapper.state().tensors.items())
+    assert_same_map(mapper, {**overrides, "loss.ssim_by_resolution": "false", "loss.ssim": "0.2"}, frames)
 
 
 def test_a_finer_first_frame_turns_anchor_colours_on_as_set_by_hand_and_the_snapshot_keeps_them():
@@ -104,13 +110,8 @@ def test_a_finer_first_frame_turns_anchor_colours_on_as_set_by_hand_and_the_snap
     assert not config.model.anchor_colour and config.model.anchor_colour_by_resolution  # the caller's is left alone
     restored = Mapper.restore(mapper.snapshot())
     assert restored.anchors.with_colours and not restored.config.model.anchor_colour_by_resolution
-    by_hand = Mapper(resolve("sparse-fast", overrides={**overrides, "model.anchor_colour_by_resolution": "false",
-                                                       "model.anchor_colour": "true"}))
-    for frame in frames:
-        by_hand.process(frame)
-    tensors = by_hand.state().tensors
-    assert mapper.state().tensors.keys() == tensors.keys()
-    assert all(torch.equal(value, tensors[name]) for name, value in mapper.state().tensors.items())
+    assert_same_map(mapper, {**overrides, "model.anchor_colour_by_resolution": "false", "model.anchor_colour": "true"},
+                    frames)
 
 
 def test_a_finer_first_frame_averages_with_the_other_decay_as_set_by_hand_and_the_snapshot_keeps_it():
@@ -126,10 +127,5 @@ def test_a_finer_first_frame_averages_with_the_other_decay_as_set_by_hand_and_th
     assert config.optim.average_decay == 0 and config.optim.average_decay_by_resolution  # the caller's is left alone
     restored = Mapper.restore(mapper.snapshot())
     assert restored.average.decay == 0.85 and not restored.config.optim.average_decay_by_resolution
-    by_hand = Mapper(resolve("sparse-fast", overrides={**overrides, "optim.average_decay_by_resolution": "0",
-                                                       "optim.average_decay": "0.85"}))
-    for frame in frames:
-        by_hand.process(frame)
-    tensors = by_hand.state().tensors
-    assert mapper.state().tensors.keys() == tensors.keys()
-    assert all(torch.equal(value, tensors[name]) for name, value in mapper.state().tensors.items())
+    assert_same_map(mapper, {**overrides, "optim.average_decay_by_resolution": "0", "optim.average_decay": "0.85"},
+                    frames)
