@@ -323,26 +323,12 @@ class Mapper:
         if not settings.track_iterations:
             return
         with self.lock, self._timed("track"):
-            frame = resize_frame(frame, settings.track_scale)
-            rgb, depth, c2w = self._tensors(frame)
-            with torch.no_grad():
-                rows = self._rows_in_view(c2w, frame.color_intrinsics)
-                gaussians = generate(self.anchors, self._features, self.decoders, c2w[:3, 3], rows,
-                                     compiled=self.profile.compiled)
-
-            def loss_at_correction() -> torch.Tensor:
-                camera = self._camera(correction.refined(c2w), frame.color_intrinsics)
-                output = rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
-                                   gaussians.colors, camera.viewmat, camera.K, camera.width, camera.height,
-                                   backend=self.backend)
-                return tracking_loss(output.color, output.depth, output.alpha, rgb, depth, self.config.loss,
-                                     settings.track_alpha)
-
+            loss_at = self.tracking_objective(frame)
             losses: list[torch.Tensor] = []  # before each step, then after the check's steps
             for _ in range(settings.track_iterations):
                 if budget.stop(started) is not None:
                     return
-                loss = loss_at_correction()
+                loss = loss_at(correction)
                 losses.append(loss.detach())
                 if len(losses) == TRACK_CHECK_STEPS + 1 and settled(losses, settings.track_min_gain):
                     correction.hold()
@@ -351,9 +337,32 @@ class Mapper:
                 correction.step(settings)
             if len(losses) == TRACK_CHECK_STEPS and settings.track_min_gain:  # the check's third loss
                 with torch.no_grad():
-                    losses.append(loss_at_correction())
+                    losses.append(loss_at(correction))
                 if settled(losses, settings.track_min_gain):
                     correction.hold()
+
+    def tracking_objective(self, frame: Frame) -> Callable[[PoseCorrection], torch.Tensor]:
+        """The tracking loss of ``frame`` (prepared) as a function of its pose's correction: its images at
+        ``poses.track_scale`` against the map as it stands, its Gaussians decoded once, from the client's
+        pose. Call it with the mapper's lock held, before the map changes."""
+        settings = self.config.poses
+        with self.lock:
+            frame = resize_frame(frame, settings.track_scale)
+            rgb, depth, c2w = self._tensors(frame)
+            with torch.no_grad():
+                rows = self._rows_in_view(c2w, frame.color_intrinsics)
+                gaussians = generate(self.anchors, self._features, self.decoders, c2w[:3, 3], rows,
+                                     compiled=self.profile.compiled)
+
+        def loss_at(correction: PoseCorrection) -> torch.Tensor:
+            camera = self._camera(correction.refined(c2w), frame.color_intrinsics)
+            output = rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
+                               gaussians.colors, camera.viewmat, camera.K, camera.width, camera.height,
+                               backend=self.backend)
+            return tracking_loss(output.color, output.depth, output.alpha, rgb, depth, self.config.loss,
+                                 settings.track_alpha)
+
+        return loss_at
 
     def _optimise(
         self, iterations: int, view: View | None, view_is_newest: bool, budget: Budget, started: float
