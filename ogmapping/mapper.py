@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from ogmapping.config import ConfigBounds, MapperConfig
-from ogmapping.config.sections import MAX_LOSS_WEIGHT, MAX_OCTREE_LEVEL, MAX_SCALED_OFFSETS
+from ogmapping.config.sections import MAX_HASH_RESOLUTION, MAX_LOSS_WEIGHT, MAX_OCTREE_LEVEL, MAX_SCALED_OFFSETS
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.geometry import intrinsics_matrix, world_to_camera
@@ -224,17 +224,19 @@ class Mapper:
 
     def _fit_to(self, intrinsics: Intrinsics) -> None:
         """On the first frame, with ``model.offsets_by_resolution``, ``model.anchor_colour_by_resolution``,
-        ``octree.levels_by_resolution``, ``loss.ssim_by_resolution`` or ``optim.average_decay_by_resolution``:
-        ``n_offsets`` or the SSIM weight times the frame's step multiple, anchor colours on, one octree level
-        more, or the other average decay, kept in the config; a model whose shape changes is rebuilt (still
-        empty), drawn afresh from the seed. A multiple of 1 keeps everything as it was, so such maps are
-        exactly as without them."""
+        ``model.hash_by_resolution``, ``octree.levels_by_resolution``, ``loss.ssim_by_resolution`` or
+        ``optim.average_decay_by_resolution``: ``n_offsets``, the hash grid's finest resolution or the SSIM
+        weight times the frame's step multiple, anchor colours on, one octree level more, or the other
+        average decay, kept in the config; a model whose shape changes is rebuilt (still empty), drawn
+        afresh from the seed. A multiple of 1 keeps everything as it was, so such maps are exactly as
+        without them."""
         model, octree, loss, optim = self.config.model, self.config.octree, self.config.loss, self.config.optim
-        offsets, colours = model.offsets_by_resolution, model.anchor_colour_by_resolution
+        offsets, colours, hashed = (model.offsets_by_resolution, model.anchor_colour_by_resolution,
+                                    model.hash_by_resolution)
         levels, ssim, average = octree.levels_by_resolution, loss.ssim_by_resolution, optim.average_decay_by_resolution
-        if not (offsets or colours or levels or ssim or average) or self.frames or len(self.anchors):
+        if not (offsets or colours or hashed or levels or ssim or average) or self.frames or len(self.anchors):
             return
-        model.offsets_by_resolution = model.anchor_colour_by_resolution = False
+        model.offsets_by_resolution = model.anchor_colour_by_resolution = model.hash_by_resolution = False
         octree.levels_by_resolution = loss.ssim_by_resolution = False
         optim.average_decay_by_resolution = 0.0
         multiple = step_multiple(self.config.keyframes, intrinsics)
@@ -250,9 +252,12 @@ class Mapper:
         colours = colours and not model.anchor_colour
         if colours:
             model.anchor_colour = True
+        hashed = hashed and model.encoding == "hash"
+        if hashed:
+            model.hash_max_resolution = min(model.hash_max_resolution * multiple, MAX_HASH_RESOLUTION)
         if levels:
             octree.max_level = min(octree.max_level + 1, MAX_OCTREE_LEVEL)
-        if offsets or colours or levels:
+        if offsets or colours or hashed or levels:
             self.generator.manual_seed(self.config.seed)
             with self.lock:
                 self._build_model(self.config)

@@ -1,7 +1,8 @@
-"""``model.offsets_by_resolution``, ``model.anchor_colour_by_resolution``, ``octree.levels_by_resolution``,
-``loss.ssim_by_resolution`` and ``optim.average_decay_by_resolution``: Gaussians per anchor and the SSIM
-weight times the first frame's step multiple, and anchor colours, one octree level more and another
-average decay where that multiple is 2 or more."""
+"""``model.offsets_by_resolution``, ``model.anchor_colour_by_resolution``, ``model.hash_by_resolution``,
+``octree.levels_by_resolution``, ``loss.ssim_by_resolution`` and ``optim.average_decay_by_resolution``:
+Gaussians per anchor, the hash grid's finest resolution and the SSIM weight times the first frame's step
+multiple, and anchor colours, one octree level more and another average decay where that multiple is 2
+or more."""
 
 from __future__ import annotations
 
@@ -36,6 +37,7 @@ def test_a_multiple_of_one_maps_exactly_as_without_it():
     for scaled in ("false", "true"):
         overrides = {**TINY, "model.offsets_by_resolution": scaled, "octree.levels_by_resolution": scaled,
                      "loss.ssim_by_resolution": scaled, "model.anchor_colour_by_resolution": scaled,
+                     "model.hash_by_resolution": scaled,
                      "optim.average_decay_by_resolution": "0.85" if scaled == "true" else "0"}
         mapper = Mapper(resolve("sparse-fast", overrides=overrides))
         for frame in frames:
@@ -128,4 +130,21 @@ def test_a_finer_first_frame_averages_with_the_other_decay_as_set_by_hand_and_th
     restored = Mapper.restore(mapper.snapshot())
     assert restored.average.decay == 0.85 and not restored.config.optim.average_decay_by_resolution
     assert_same_map(mapper, {**overrides, "optim.average_decay_by_resolution": "0", "optim.average_decay": "0.85"},
+                    frames)
+
+
+def test_a_finer_first_frame_makes_the_hash_grid_finer_as_set_by_hand_and_the_snapshot_keeps_it():
+    overrides = {**TINY, "model.encoding": "hash", "model.hash_by_resolution": "true",
+                 "model.offsets_by_resolution": "false", "model.anchor_colour_by_resolution": "false",
+                 "keyframes.steps_reference_pixels": "1200"}
+    config = resolve("sparse-fast", overrides=overrides)
+    mapper = Mapper(config)
+    frames = _frames(2)
+    for frame in frames:
+        mapper.process(frame)
+    assert mapper.config.model.hash_max_resolution == 256 and not mapper.config.model.hash_by_resolution
+    assert config.model.hash_max_resolution == 128 and config.model.hash_by_resolution  # the caller's is left alone
+    restored = Mapper.restore(mapper.snapshot())
+    assert restored.config.model.hash_max_resolution == 256 and not restored.config.model.hash_by_resolution
+    assert_same_map(mapper, {**overrides, "model.hash_by_resolution": "false", "model.hash_max_resolution": "256"},
                     frames)

@@ -63,6 +63,10 @@ class ModelConfig:
     # Cells per metre at the coarsest and the finest hash level.
     hash_min_resolution: float = ranged(4.0, 0, MAX_HASH_RESOLUTION, open_low=True)
     hash_max_resolution: float = ranged(128.0, 0, MAX_HASH_RESOLUTION, open_low=True)
+    # The finest level's cells per metre times the first frame's step multiple (x2 at 1200x680, x1 up to
+    # about 900x510), at most MAX_HASH_RESOLUTION, resolved then as ``offsets_by_resolution`` is: a finer
+    # image resolves finer surface detail, which coarser cells blur ("Hash grid by resolution").
+    hash_by_resolution: bool = False
     # A learnable colour logit per anchor, added to the colour decoder's logits for its n Gaussians (not in
     # the paper): a direct, fast-learning colour next to the shared decoder ("Anchor colours").
     anchor_colour: bool = True
