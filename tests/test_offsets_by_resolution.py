@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from ogmapping.config import resolve
+from ogmapping.config import MapperConfig, resolve
 from ogmapping.mapper import Mapper
 from ogmapping.persist import snapshot
 from ogmapping.quality.evaluation import open_frames
@@ -19,6 +19,12 @@ TINY = {"keyframes.first_iterations": "4", "keyframes.iterations": "2"}
 def _frames(count: int):
     frames = open_frames("synthetic", "synthetic", f"0:{count}", 1, 0.25, n_frames=40)  # 80x60
     return [frames.load(position) for position in range(count)]
+
+
+def _mapped(overrides: dict[str, str]) -> tuple[MapperConfig, Mapper, list]:
+    """The caller's config, a mapper made from it, and the two frames it mapped."""
+    config, mapper, frames = _mapped(overrides)
+    return config, mapper, frames
 
 
 def assert_same_map(mapper: Mapper, overrides: dict[str, str], frames) -> None:
@@ -55,10 +61,7 @@ def test_a_multiple_of_one_maps_exactly_as_without_it():
 def test_a_finer_first_frame_builds_more_gaussians_per_anchor_and_the_config_keeps_the_count():
     # 80x60 against a reference of 1200 pixels: a linear multiple of sqrt(4) = 2.
     overrides = {**TINY, "model.offsets_by_resolution": "true", "keyframes.steps_reference_pixels": "1200"}
-    config = resolve("sparse-fast", overrides=overrides)
-    mapper = Mapper(config)
-    for frame in _frames(2):
-        mapper.process(frame)
+    config, mapper, _ = _mapped(overrides)
     assert mapper.anchors.offsets.shape[1] == 10 and mapper.decoders.n == 10
     assert config.model.n_offsets == 5 and config.model.offsets_by_resolution  # the caller's config is left alone
     restored = Mapper.restore(mapper.snapshot())
@@ -73,10 +76,7 @@ def test_a_finer_first_frame_builds_more_gaussians_per_anchor_and_the_config_kee
 def test_a_finer_first_frame_adds_an_octree_level_and_the_snapshot_keeps_it():
     overrides = {**TINY, "octree.levels_by_resolution": "true", "octree.max_level": "1",
                  "model.offsets_by_resolution": "false", "keyframes.steps_reference_pixels": "1200"}
-    config = resolve("sparse-fast", overrides=overrides)
-    mapper = Mapper(config)
-    for frame in _frames(2):
-        mapper.process(frame)
+    config, mapper, _ = _mapped(overrides)
     assert mapper.octree.max_level == 2 and mapper.config.octree.max_level == 2
     assert mapper.decoders.n == 5  # the Gaussians per anchor are left alone
     assert config.octree.max_level == 1 and config.octree.levels_by_resolution  # the caller's config is left alone
@@ -87,11 +87,7 @@ def test_a_finer_first_frame_adds_an_octree_level_and_the_snapshot_keeps_it():
 def test_a_finer_first_frame_weighs_ssim_more_and_the_snapshot_keeps_the_weight():
     overrides = {**TINY, "loss.ssim_by_resolution": "true", "loss.ssim": "0.1", "model.offsets_by_resolution": "false",
                  "keyframes.steps_reference_pixels": "1200"}
-    config = resolve("sparse-fast", overrides=overrides)
-    mapper = Mapper(config)
-    frames = _frames(2)
-    for frame in frames:
-        mapper.process(frame)
+    config, mapper, frames = _mapped(overrides)
     assert mapper.config.loss.ssim == 0.2 and not mapper.config.loss.ssim_by_resolution
     assert mapper.decoders.n == 5 and mapper.octree.max_level == 2  # the model's shape is left alone
     assert config.loss.ssim == 0.1 and config.loss.ssim_by_resolution  # the caller's config is left alone
@@ -102,11 +98,7 @@ def test_a_finer_first_frame_weighs_ssim_more_and_the_snapshot_keeps_the_weight(
 
 def test_a_finer_first_frame_turns_anchor_colours_on_as_set_by_hand_and_the_snapshot_keeps_them():
     overrides = {**TINY, "model.anchor_colour_by_resolution": "true", "keyframes.steps_reference_pixels": "1200"}
-    config = resolve("sparse-fast", overrides=overrides)
-    mapper = Mapper(config)
-    frames = _frames(2)
-    for frame in frames:
-        mapper.process(frame)
+    config, mapper, frames = _mapped(overrides)
     assert mapper.anchors.with_colours and mapper.config.model.anchor_colour
     assert not mapper.config.model.anchor_colour_by_resolution
     assert not config.model.anchor_colour and config.model.anchor_colour_by_resolution  # the caller's is left alone
@@ -119,11 +111,7 @@ def test_a_finer_first_frame_turns_anchor_colours_on_as_set_by_hand_and_the_snap
 def test_a_finer_first_frame_averages_with_the_other_decay_as_set_by_hand_and_the_snapshot_keeps_it():
     overrides = {**TINY, "optim.average_decay_by_resolution": "0.85", "model.offsets_by_resolution": "false",
                  "model.anchor_colour_by_resolution": "false", "keyframes.steps_reference_pixels": "1200"}
-    config = resolve("sparse-fast", overrides=overrides)
-    mapper = Mapper(config)
-    frames = _frames(2)
-    for frame in frames:
-        mapper.process(frame)
+    config, mapper, frames = _mapped(overrides)
     assert mapper.average.enabled and mapper.config.optim.average_decay == 0.85
     assert not mapper.config.optim.average_decay_by_resolution
     assert config.optim.average_decay == 0 and config.optim.average_decay_by_resolution  # the caller's is left alone
@@ -137,11 +125,7 @@ def test_a_finer_first_frame_makes_the_hash_grid_finer_as_set_by_hand_and_the_sn
     overrides = {**TINY, "model.encoding": "hash", "model.hash_by_resolution": "true",
                  "model.offsets_by_resolution": "false", "model.anchor_colour_by_resolution": "false",
                  "keyframes.steps_reference_pixels": "1200"}
-    config = resolve("sparse-fast", overrides=overrides)
-    mapper = Mapper(config)
-    frames = _frames(2)
-    for frame in frames:
-        mapper.process(frame)
+    config, mapper, frames = _mapped(overrides)
     assert mapper.config.model.hash_max_resolution == 256 and not mapper.config.model.hash_by_resolution
     assert config.model.hash_max_resolution == 128 and config.model.hash_by_resolution  # the caller's is left alone
     restored = Mapper.restore(mapper.snapshot())
