@@ -23,7 +23,11 @@ def _frames(count: int):
 
 def _mapped(overrides: dict[str, str]) -> tuple[MapperConfig, Mapper, list]:
     """The caller's config, a mapper made from it, and the two frames it mapped."""
-    config, mapper, frames = _mapped(overrides)
+    config = resolve("sparse-fast", overrides=overrides)
+    mapper = Mapper(config)
+    frames = _frames(2)
+    for frame in frames:
+        mapper.process(frame)
     return config, mapper, frames
 
 
