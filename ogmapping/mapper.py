@@ -349,7 +349,7 @@ class Mapper:
     def tracking_objective(self, frame: Frame) -> Callable[[PoseCorrection], torch.Tensor]:
         """The tracking loss of ``frame`` (prepared) as a function of its pose's correction: its images at
         ``poses.track_scale`` against the map as it stands, its Gaussians decoded once, from the client's
-        pose. Call it with the mapper's lock held, before the map changes."""
+        pose. Call the function it returns with the mapper's lock held, before the map changes."""
         settings = self.config.poses
         with self.lock:
             frame = resize_frame(frame, settings.track_scale)
