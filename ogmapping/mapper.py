@@ -323,7 +323,8 @@ class Mapper:
         """``poses.track_iterations`` steps on the pose of ``frame`` (prepared) alone, its images at
         ``poses.track_scale``, the map held fixed (its Gaussians decoded once, from the client's pose),
         until ``budget`` says stop. With ``poses.track_min_gain`` a pose that ``settled`` after
-        TRACK_CHECK_STEPS steps goes back to the client's and is held there, its tracking cut short."""
+        TRACK_CHECK_STEPS steps goes back to the client's and is held there, its tracking cut short; one
+        that moves then takes ``poses.track_fine_iterations`` steps at full size."""
         settings = self.config.poses
         if not settings.track_iterations:
             return
@@ -345,14 +346,23 @@ class Mapper:
                     losses.append(loss_at(correction))
                 if settled(losses, settings.track_min_gain):
                     correction.hold()
+            if correction.held or not settings.track_fine_iterations:
+                return
+            fine = self.tracking_objective(frame, 1.0)
+            for _ in range(settings.track_fine_iterations):
+                if budget.stop(started) is not None:
+                    return
+                (fine(correction) + correction.prior(settings)).backward()
+                correction.step(settings)
 
-    def tracking_objective(self, frame: Frame) -> Callable[[PoseCorrection], torch.Tensor]:
+    def tracking_objective(self, frame: Frame, scale: float | None = None) -> Callable[[PoseCorrection], torch.Tensor]:
         """The tracking loss of ``frame`` (prepared) as a function of its pose's correction: its images at
-        ``poses.track_scale`` against the map as it stands, its Gaussians decoded once, from the client's
-        pose. Call the function it returns with the mapper's lock held, before the map changes."""
+        ``scale`` (None: ``poses.track_scale``) against the map as it stands, its Gaussians decoded once,
+        from the client's pose. Call the function it returns with the mapper's lock held, before the map
+        changes."""
         settings = self.config.poses
         with self.lock:
-            frame = resize_frame(frame, settings.track_scale)
+            frame = resize_frame(frame, settings.track_scale if scale is None else scale)
             rgb, depth, c2w = self._tensors(frame)
             with torch.no_grad():
                 rows = self._rows_in_view(c2w, frame.color_intrinsics)

@@ -194,6 +194,10 @@ class PosesConfig:
     track_iterations: int = ranged(15, 0)
     track_scale: float = ranged(0.5, 0, 1, open_low=True)  # image scale of those steps: a quarter of the pixels
     track_alpha: float = ranged(0.99, 0, 1)  # ...whose loss counts the pixels the map covers this fully
+    # Then this many steps at full size on a pose that moves (none on one held): at ``track_scale`` the
+    # loss's minimum lies off the truth, at full size it does not, but steps there cost four times as
+    # much ("What bounds tracking"). 0: none.
+    track_fine_iterations: int = ranged(0, 0)
     # A frame whose second tracking step lowers its loss by less than this share of the loss it started
     # from keeps its client's pose, held through every later step (its tracking stops there): a right
     # pose's loss falls on the first step, as the pose fits the young map's own error, then stops; a wrong
