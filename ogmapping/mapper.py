@@ -329,7 +329,8 @@ class Mapper:
         if not settings.track_iterations:
             return
         with self.lock, self._timed("track"):
-            loss_at = self.tracking_objective(frame)
+            gaussians = self._tracking_gaussians(frame)
+            loss_at = self.tracking_objective(frame, gaussians=gaussians)
             losses: list[torch.Tensor] = []  # before each step, then after the check's steps
             for _ in range(settings.track_iterations):
                 if budget.stop(started) is not None:
@@ -348,26 +349,33 @@ class Mapper:
                     correction.hold()
             if correction.held or not settings.track_fine_iterations:
                 return
-            fine = self.tracking_objective(frame, 1.0)
+            fine = self.tracking_objective(frame, 1.0, gaussians)
             for _ in range(settings.track_fine_iterations):
                 if budget.stop(started) is not None:
                     return
                 (fine(correction) + correction.prior(settings)).backward()
                 correction.step(settings)
 
-    def tracking_objective(self, frame: Frame, scale: float | None = None) -> Callable[[PoseCorrection], torch.Tensor]:
+    def _tracking_gaussians(self, frame: Frame) -> GaussianSet:
+        """The Gaussians of the anchors ``frame`` (prepared) sees from its client's pose, decoded from there:
+        the fixed map its tracking steps render, at any image scale (scaling keeps the frustum)."""
+        _, _, c2w = self._tensors(frame)
+        with self.lock, torch.no_grad():
+            rows = self._rows_in_view(c2w, frame.color_intrinsics)
+            return generate(self.anchors, self._features, self.decoders, c2w[:3, 3], rows,
+                            compiled=self.profile.compiled)
+
+    def tracking_objective(self, frame: Frame, scale: float | None = None,
+                           gaussians: GaussianSet | None = None) -> Callable[[PoseCorrection], torch.Tensor]:
         """The tracking loss of ``frame`` (prepared) as a function of its pose's correction: its images at
-        ``scale`` (None: ``poses.track_scale``) against the map as it stands, its Gaussians decoded once,
-        from the client's pose. Call the function it returns with the mapper's lock held, before the map
-        changes."""
+        ``scale`` (None: ``poses.track_scale``) against the map as it stands, its ``gaussians``
+        (``_tracking_gaussians``, decoded here when not given). Call the function it returns with the
+        mapper's lock held, before the map changes."""
         settings = self.config.poses
-        with self.lock:
-            frame = resize_frame(frame, settings.track_scale if scale is None else scale)
-            rgb, depth, c2w = self._tensors(frame)
-            with torch.no_grad():
-                rows = self._rows_in_view(c2w, frame.color_intrinsics)
-                gaussians = generate(self.anchors, self._features, self.decoders, c2w[:3, 3], rows,
-                                     compiled=self.profile.compiled)
+        if gaussians is None:
+            gaussians = self._tracking_gaussians(frame)
+        frame = resize_frame(frame, settings.track_scale if scale is None else scale)
+        rgb, depth, c2w = self._tensors(frame)
 
         def loss_at(correction: PoseCorrection) -> torch.Tensor:
             camera = self._camera(correction.refined(c2w), frame.color_intrinsics)
