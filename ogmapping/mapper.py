@@ -29,7 +29,7 @@ from ogmapping.config.sections import MAX_HASH_RESOLUTION, MAX_LOSS_WEIGHT, MAX_
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.geometry import intrinsics_matrix, world_to_camera
-from ogmapping.frames.preprocess import prepare, resize_frame
+from ogmapping.frames.preprocess import prepare, stride_frame
 from ogmapping.model.decoders import Decoders
 from ogmapping.model.encoding import HashGridEncoding, feature_dim, initial_anchor_features
 from ogmapping.model.gaussians import GaussianSet, anchors_in_view, decoded_logits, generate, generate_window
@@ -44,6 +44,7 @@ from ogmapping.persist import snapshot, training
 from ogmapping.persist.state import MapState
 from ogmapping.render import Camera, rasterize, rasterize_batch
 from ogmapping.render.output import RenderOutput
+from ogmapping.render.rules import COVARIANCE_BLUR
 from ogmapping.runtime.profile import execution_profile
 from ogmapping.runtime.stage_timer import StageTimer
 from ogmapping.runtime.streams import handed_in, handed_out, on_stream, session_stream
@@ -320,11 +321,11 @@ class Mapper:
         return min(settings.frame_iterations, max(1, settings.frame_renders // renders_per_step))
 
     def _track(self, frame: Frame, correction: PoseCorrection, budget: Budget, started: float) -> None:
-        """``poses.track_iterations`` steps on the pose of ``frame`` (prepared) alone, its images at
-        ``poses.track_scale``, the map held fixed (its Gaussians decoded once, from the client's pose),
+        """``poses.track_iterations`` steps on the pose of ``frame`` (prepared) alone, on every
+        ``poses.track_stride``-th pixel, the map held fixed (its Gaussians decoded once, from the client's pose),
         until ``budget`` says stop. With ``poses.track_min_gain`` a pose that ``settled`` after
         TRACK_CHECK_STEPS steps goes back to the client's and is held there, its tracking cut short; one
-        that moves then takes ``poses.track_fine_iterations`` steps at full size."""
+        that moves then takes ``poses.track_fine_iterations`` steps on every pixel."""
         settings = self.config.poses
         if not settings.track_iterations:
             return
@@ -349,7 +350,7 @@ class Mapper:
                     correction.hold()
             if correction.held or not settings.track_fine_iterations:
                 return
-            fine = self.tracking_objective(frame, 1.0, gaussians)
+            fine = self.tracking_objective(frame, 1, gaussians)
             for _ in range(settings.track_fine_iterations):
                 if budget.stop(started) is not None:
                     return
@@ -358,30 +359,33 @@ class Mapper:
 
     def _tracking_gaussians(self, frame: Frame) -> GaussianSet:
         """The Gaussians of the anchors ``frame`` (prepared) sees from its client's pose, decoded from there:
-        the fixed map its tracking steps render, at any image scale (scaling keeps the frustum)."""
+        the fixed map its tracking steps render, on any of its pixels (a stride keeps the frustum)."""
         _, _, c2w = self._tensors(frame)
         with self.lock, torch.no_grad():
             rows = self._rows_in_view(c2w, frame.color_intrinsics)
             return generate(self.anchors, self._features, self.decoders, c2w[:3, 3], rows,
                             compiled=self.profile.compiled)
 
-    def tracking_objective(self, frame: Frame, scale: float | None = None,
+    def tracking_objective(self, frame: Frame, stride: int | None = None,
                            gaussians: GaussianSet | None = None) -> Callable[[PoseCorrection], torch.Tensor]:
-        """The tracking loss of ``frame`` (prepared) as a function of its pose's correction: its images at
-        ``scale`` (None: ``poses.track_scale``) against the map as it stands, its ``gaussians``
-        (``_tracking_gaussians``, decoded here when not given). Call the function it returns with the
-        mapper's lock held, before the map changes."""
+        """The tracking loss of ``frame`` (prepared) as a function of its pose's correction: its every
+        ``stride``-th pixel (None: ``poses.track_stride``) against the map as it stands, its ``gaussians``
+        (``_tracking_gaussians``, decoded here when not given), rendered at those pixels' own centres
+        with the full-size blur, so the loss is the full-size loss on those pixels. Call the function it
+        returns with the mapper's lock held, before the map changes."""
         settings = self.config.poses
         if gaussians is None:
             gaussians = self._tracking_gaussians(frame)
-        frame = resize_frame(frame, settings.track_scale if scale is None else scale)
+        stride = settings.track_stride if stride is None else stride
+        frame = stride_frame(frame, stride, 0)
         rgb, depth, c2w = self._tensors(frame)
+        blur = COVARIANCE_BLUR / stride**2
 
         def loss_at(correction: PoseCorrection) -> torch.Tensor:
             camera = self._camera(correction.refined(c2w), frame.color_intrinsics)
             output = rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
                                gaussians.colors, camera.viewmat, camera.K, camera.width, camera.height,
-                               backend=self.backend)
+                               backend=self.backend, blur=blur)
             return tracking_loss(output.color, output.depth, output.alpha, rgb, depth, self.config.loss,
                                  settings.track_alpha)
 

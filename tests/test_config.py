@@ -50,6 +50,17 @@ def test_overrides_are_typed_and_checked():
         preset("fastest")
 
 
+def test_a_stored_config_with_a_retired_key_loads_as_its_successor():
+    stored = resolve("sparse").to_dict()
+    del stored["poses"]["track_stride"]
+    stored["poses"]["track_scale"] = 0.5  # stored before tracking sampled pixels by stride
+    assert MapperConfig.from_dict(stored) == resolve("sparse")
+    stored["poses"]["track_scale"] = 1.0
+    assert MapperConfig.from_dict(stored).poses.track_stride == 1
+    with pytest.raises(ValueError, match="unknown"):
+        resolve("sparse", overrides={"poses.track_scale": "0.5"})  # not a key a client may set
+
+
 def test_dict_round_trip_and_files(tmp_path):
     config = resolve("dense", overrides={"refine.interval": 5})
     assert MapperConfig.from_dict(config.to_dict()) == config

@@ -20,7 +20,7 @@ import pytest
 import torch
 
 from ogmapping.render import Camera, gsplat_backend, rasterize, rasterize_batch
-from ogmapping.render.rules import ALPHA_MAX
+from ogmapping.render.rules import ALPHA_MAX, COVARIANCE_BLUR
 from ogmapping.render.views import SplatSet
 
 HAS_GSPLAT = importlib.util.find_spec("gsplat") is not None
@@ -58,10 +58,12 @@ def random_scene(seed: int, n: int = 300) -> tuple[dict[str, torch.Tensor], torc
     return scene, torch.linalg.inv(c2w)
 
 
-def render(backend: str, scene: dict[str, torch.Tensor], viewmat: torch.Tensor, background):
+def render(backend: str, scene: dict[str, torch.Tensor], viewmat: torch.Tensor, background,
+           blur: float = COVARIANCE_BLUR):
     leaves = {k: v.cuda().requires_grad_() for k, v in scene.items()}
     out = rasterize(
-        *(leaves[k] for k in PARAMS), viewmat.cuda(), K.cuda(), WIDTH, HEIGHT, background, backend=backend
+        *(leaves[k] for k in PARAMS), viewmat.cuda(), K.cuda(), WIDTH, HEIGHT, background, backend=backend,
+        blur=blur,
     )
     return out, leaves
 
@@ -82,12 +84,13 @@ def fail_unless_usable() -> None:
 @pytest.mark.skipif(not HAS_GSPLAT, reason="gsplat is not installed (see docs/cuda.md)")
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("with_background", [False, True])
-def test_gsplat_matches_torch_reference(seed: int, with_background: bool) -> None:
+@pytest.mark.parametrize("blur", [COVARIANCE_BLUR, COVARIANCE_BLUR / 4])  # the default, a stride-2 tracking render's
+def test_gsplat_matches_torch_reference(seed: int, with_background: bool, blur: float) -> None:
     fail_unless_usable()
     scene, viewmat = random_scene(seed)
     background = torch.tensor([0.1, 0.4, 0.8], device="cuda") if with_background else None
-    ref, ref_leaves = render("torch", scene, viewmat, background)
-    gs, gs_leaves = render("gsplat", scene, viewmat, background)
+    ref, ref_leaves = render("torch", scene, viewmat, background, blur)
+    gs, gs_leaves = render("gsplat", scene, viewmat, background, blur)
 
     assert torch.equal(gs.visible, ref.visible) and bool(ref.visible.all())
     close(gs.color, ref.color, 1e-4, 1e-4, "colour")

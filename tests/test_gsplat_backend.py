@@ -253,12 +253,12 @@ def test_entries_that_split_a_warp_would_mix_their_viewmat_gradients(monkeypatch
     assert not torch.allclose(batched[0], alone[0], rtol=1e-3)
 
 
-def test_views_are_grouped_by_image_size_in_order_of_appearance():
-    def camera(width: int, height: int) -> Camera:
-        return Camera(torch.eye(4), torch.eye(3), width, height)
+def test_views_are_grouped_by_image_size_and_blur_in_order_of_appearance():
+    def camera(width: int, height: int, blur: float = 0.3) -> Camera:
+        return Camera(torch.eye(4), torch.eye(3), width, height, blur)
 
-    cameras = [camera(64, 48), camera(32, 24), camera(64, 48), camera(32, 24), camera(16, 16)]
-    assert gsplat_backend.same_size_groups(cameras) == [[0, 2], [1, 3], [4]]
+    cameras = [camera(64, 48), camera(32, 24), camera(64, 48), camera(32, 24), camera(16, 16), camera(64, 48, 0.075)]
+    assert gsplat_backend.same_size_groups(cameras) == [[0, 2], [1, 3], [4], [5]]
 
 
 def test_a_group_without_gaussians_renders_the_background():

@@ -127,7 +127,8 @@ def test_without_refinement_the_frame_reports_the_client_pose_and_snapshots_hold
 
 
 def test_refinement_keeps_the_first_keyframe_and_its_poses_survive_checkpoints_and_snapshots():
-    config = resolve("sparse-fast", overrides={**TINY, "poses.refine": "true", "keyframes.overlap_threshold": "0.99"})
+    config = resolve("sparse-fast", overrides={**TINY, "poses.refine": "true", "poses.track_min_gain": "0",
+                                               "keyframes.overlap_threshold": "0.99"})
     mapper = Mapper(config)
     frames = _frames(4)
     results = [mapper.process(frame) for frame in frames]
@@ -224,7 +225,8 @@ def test_fine_tracking_steps_move_a_pose_that_tracking_moves():
     refined = {}
     for fine in ("0", "3"):
         mapper = Mapper(resolve("sparse-fast", overrides={
-            **TINY, "poses.refine": "true", "poses.track_min_gain": "0", "poses.track_iterations": "2",
+            **TINY, "keyframes.first_iterations": "40",  # a map that covers pixels fully, which tracking counts
+            "poses.refine": "true", "poses.track_min_gain": "0", "poses.track_iterations": "2",
             "poses.track_fine_iterations": fine, "poses.view_steps": "false"}))
         for frame in loaded[:2]:
             mapper.process(frame)

@@ -20,7 +20,7 @@ import pytest
 import torch
 
 from ogmapping.render import cpu_backend, cpu_kernels, torch_backend
-from ogmapping.render.rules import ALPHA_MIN
+from ogmapping.render.rules import ALPHA_MIN, COVARIANCE_BLUR
 
 TOLERANCE = 1e-4
 PARAMS = ("means", "quats", "scales", "opacities", "colors")
@@ -57,13 +57,13 @@ def mixed_scene(seed: int, n: int, width: int, height: int) -> dict[str, torch.T
     }
 
 
-def render_and_grad(backend, scene, width, height, dtype, background=None):
+def render_and_grad(backend, scene, width, height, dtype, background=None, blur=COVARIANCE_BLUR):
     """Render, backprop a random weighting of colour, depth and alpha; return outputs and grads."""
     leaves = {k: v.to(dtype).clone().requires_grad_(True) for k, v in scene.items()}
     bg = None if background is None else background.to(dtype)
     out = backend.rasterize(
         *(leaves[k] for k in PARAMS), torch.eye(4, dtype=dtype), intrinsics(width, height).to(dtype),
-        width, height, bg,
+        width, height, bg, blur,
     )
     g = torch.Generator().manual_seed(123)
     loss = (
@@ -83,9 +83,9 @@ def relative_error(a: torch.Tensor, b: torch.Tensor) -> float:
     return float(diff) if float(denom) == 0.0 else float(diff / denom)
 
 
-def assert_parity(scene, width, height, background=None) -> dict[str, float]:
-    out_cpu, cpu = render_and_grad(cpu_backend, scene, width, height, torch.float32, background)
-    out_ref, ref = render_and_grad(torch_backend, scene, width, height, torch.float64, background)
+def assert_parity(scene, width, height, background=None, blur=COVARIANCE_BLUR) -> dict[str, float]:
+    out_cpu, cpu = render_and_grad(cpu_backend, scene, width, height, torch.float32, background, blur)
+    out_ref, ref = render_and_grad(torch_backend, scene, width, height, torch.float64, background, blur)
     assert torch.equal(out_cpu.visible, out_ref.visible)
     errors = {k: relative_error(cpu[k], ref[k]) for k in ref}
     assert all(math.isfinite(e) for e in errors.values()), errors
@@ -101,6 +101,13 @@ def test_parity_mixed_scenes(seed: int, n: int, width: int, height: int) -> None
     """Several seeds and sizes, including partial edge tiles (53x37)."""
     scene = mixed_scene(seed, n, width, height)
     assert_parity(scene, width, height, torch.tensor([0.3, 0.6, 0.1]))
+
+
+@pytest.mark.parametrize("blur", [0.075, 1.2])
+def test_parity_with_another_blur(blur: float) -> None:
+    """A camera's blur other than the default (a strided tracking render's) in both backends."""
+    scene = mixed_scene(11, 800, 64, 48)
+    assert_parity(scene, 64, 48, torch.tensor([0.2, 0.5, 0.4]), blur)
 
 
 def test_parity_opaque_stack() -> None:

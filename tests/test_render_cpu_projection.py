@@ -19,7 +19,7 @@ import torch
 
 from ogmapping.render import cpu_backend, cpu_projection, rasterize
 from ogmapping.render.projection import FOV_MARGIN, project_gaussians
-from ogmapping.render.rules import ALPHA_MIN
+from ogmapping.render.rules import ALPHA_MIN, COVARIANCE_BLUR
 
 TOLERANCE = 1e-4
 WIDTH, HEIGHT = 96, 72
@@ -64,9 +64,9 @@ def scene(seed: int, n: int, viewmat: torch.Tensor, K: torch.Tensor) -> tuple[di
     return {"means": means, "quats": quats, "scales": scales, "opacities": opacities}, kind
 
 
-def fused(params: dict[str, torch.Tensor], viewmat: torch.Tensor, K: torch.Tensor):
+def fused(params: dict[str, torch.Tensor], viewmat: torch.Tensor, K: torch.Tensor, blur: float = COVARIANCE_BLUR):
     arrays = [params[k].float().numpy() for k in ("means", "quats", "scales", "opacities")]
-    return [*arrays, viewmat.float().numpy(), K.float().numpy(), WIDTH, HEIGHT]
+    return [*arrays, viewmat.float().numpy(), K.float().numpy(), WIDTH, HEIGHT, blur]
 
 
 def relative_error(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -128,7 +128,7 @@ def test_clamped_jacobian_passes_no_gradient_through_the_clamp() -> None:
               "scales": torch.tensor([[0.3, 0.2, 0.1]]), "opacities": torch.tensor([0.8])}
     conic_only = (torch.zeros(1, 2), torch.ones(1, 3), torch.zeros(1))
     arrays = [params[k].numpy() for k in ("means", "quats", "scales", "opacities")]
-    grad_means, _, _, _ = cpu_projection.project_backward(*arrays, viewmat.numpy(), K.numpy(), 64, 48,
+    grad_means, _, _, _ = cpu_projection.project_backward(*arrays, viewmat.numpy(), K.numpy(), 64, 48, COVARIANCE_BLUR,
                                                           *(u.numpy() for u in conic_only), False)
     assert grad_means[0, 0] == 0.0 and grad_means[0, 2] != 0.0
 
@@ -150,10 +150,12 @@ def test_backend_opacity_gradient_comes_from_compositing_only() -> None:
         assert len(kernel.signatures) == 1, kernel.signatures
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_viewmat_gradient_matches_autograd(seed: int) -> None:
+@pytest.mark.parametrize(("seed", "blur"), [(0, COVARIANCE_BLUR), (1, COVARIANCE_BLUR), (2, COVARIANCE_BLUR),
+                                          (3, COVARIANCE_BLUR / 4)])
+def test_viewmat_gradient_matches_autograd(seed: int, blur: float) -> None:
     """The viewmat's gradient, from all Gaussians and from each kind alone (a clamped Jacobian, a
-    centre behind the near plane), with the rest of the backward bit for bit the one without it."""
+    centre behind the near plane), with the rest of the backward bit for bit the one without it; at
+    the default blur and at a strided tracking render's."""
     viewmat, K = camera(seed)
     params, kind = scene(seed, 4000, viewmat, K)
     n = kind.shape[0]
@@ -164,12 +166,12 @@ def test_viewmat_gradient_matches_autograd(seed: int) -> None:
     for group, mask in groups.items():
         leaf = viewmat.double().clone().requires_grad_(True)
         ref = project_gaussians(*(params[k].double() for k in ("means", "quats", "scales", "opacities")), leaf,
-                                K.double(), WIDTH, HEIGHT)
+                                K.double(), WIDTH, HEIGHT, blur)
         mask = ref.radii > 0 if mask is None else mask
         masked = [u * mask.view(-1, *(1,) * (u.dim() - 1)) for u in upstream]
         sum((o * u.double()).sum() for o, u in zip((ref.means2d, ref.conics, ref.depths), masked,
                                                    strict=True)).backward()
-        arrays = [*fused(params, viewmat, K), *(u.numpy() for u in masked)]
+        arrays = [*fused(params, viewmat, K, blur), *(u.numpy() for u in masked)]
         *with_camera, grad_viewmat = cpu_projection.project_backward(*arrays, True)
         error = relative_error(torch.from_numpy(grad_viewmat), leaf.grad)
         assert error < TOLERANCE, (group, error)

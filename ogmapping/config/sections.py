@@ -8,6 +8,7 @@ Values the paper does not give follow Scaffold-GS / H2-Mapping, tuned for this e
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -28,6 +29,7 @@ MAX_SCALED_OFFSETS = 32  # model.offsets_by_resolution never makes more Gaussian
 # Pixels per axis between allocation samples: wider than any image samples at most one pixel; beyond int64
 # torch's slicing fails.
 MAX_ALLOCATION_STRIDE = 1 << 16
+MAX_TRACK_STRIDE = MAX_ALLOCATION_STRIDE  # the same bound for tracking's pixel samples
 MAX_HASH_LOG2_SIZE = 30  # 2^30 rows per level: far beyond any bound a server grants, short of int64 trouble
 MAX_HASH_RESOLUTION = 1e4  # cells per metre (0.1 mm cells); hashed corner coordinates stay far inside int64
 # Loss weights and learning rates: beyond these the float32 optimisation overflows into NaN or throws
@@ -192,11 +194,13 @@ class PosesConfig:
     # mapping steps move a pose little, and meanwhile pull the map towards the pose's error. Fifteen track
     # a pose that moves nearer the truth than five (a held one stops after two; "Pose refinement").
     track_iterations: int = ranged(15, 0)
-    track_scale: float = ranged(0.5, 0, 1, open_low=True)  # image scale of those steps: a quarter of the pixels
+    # ...on every this-many-th pixel of each row and column (2: a quarter of the pixels), rendered at their
+    # own centres with the splats blurred as at full size, so the loss is the full-size loss on those
+    # pixels, whose minimum lies on the truth; a resized image's lies off it ("What bounds tracking").
+    track_stride: int = ranged(2, 1, MAX_TRACK_STRIDE)
     track_alpha: float = ranged(0.99, 0, 1)  # ...whose loss counts the pixels the map covers this fully
-    # Then this many steps at full size on a pose that moves (none on one held): at ``track_scale`` the
-    # loss's minimum lies off the truth, at full size it does not, but steps there cost four times as
-    # much ("What bounds tracking"). 0: none.
+    # Then this many steps on every pixel on a pose that moves (none on one held), at ``track_stride``
+    # squared times the cost of a step. 0: none.
     track_fine_iterations: int = ranged(0, 0)
     # A frame whose second tracking step lowers its loss by less than this share of the loss it started
     # from keeps its client's pose, held through every later step (its tracking stops there): a right
@@ -231,9 +235,22 @@ class MapperConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> MapperConfig:
+        """A stored config (a snapshot's, a checkpoint's), retired keys turned into their successors."""
+        flat = flatten(data)
+        for old, (new, convert) in RETIRED_KEYS.items():
+            if old in flat:
+                value = flat.pop(old)
+                flat.setdefault(new, convert(value))
         config = cls()
-        apply_overrides(config, flatten(data))
+        apply_overrides(config, flat)
         return config
+
+
+# Keys that configs stored before them may hold, each with its successor and how its value maps there,
+# so that every snapshot written before still loads.
+RETIRED_KEYS: dict[str, tuple[str, Callable[[Any], Any]]] = {
+    "poses.track_scale": ("poses.track_stride", lambda scale: max(1, round(1 / float(scale)))),
+}
 
 
 def apply_overrides(config: MapperConfig, overrides: dict[str, Any]) -> MapperConfig:

@@ -21,6 +21,7 @@ import torch
 from ogmapping.backends import BACKENDS
 from ogmapping.render import gsplat_backend
 from ogmapping.render.output import RenderOutput
+from ogmapping.render.rules import COVARIANCE_BLUR
 from ogmapping.render.views import Camera, Splats
 
 __all__ = ["Camera", "RenderOutput", "Splats", "rasterize", "rasterize_batch", "resolve_backend"]
@@ -61,18 +62,21 @@ def rasterize(
     height: int,
     background: torch.Tensor | None = None,
     backend: str = "auto",
+    blur: float = COVARIANCE_BLUR,
 ) -> RenderOutput:
     """Render N Gaussians into one camera.
 
     ``means`` (N, 3) world positions, ``quats`` (N, 4) (w, x, y, z) unnormalised rotations,
     ``scales`` (N, 3) standard deviations in metres, ``opacities`` (N,) in [0, 1], ``colors``
     (N, 3), ``viewmat`` (4, 4) world-to-camera, ``K`` (3, 3) pixel intrinsics (pixel centres at
-    +0.5, see ``ogmapping.frames.camera``).
+    +0.5, see ``ogmapping.frames.camera``). ``blur`` (pixels^2) is added to every splat's 2D
+    covariance so that none is thinner than a pixel; an image sampling every s-th pixel of another
+    (``Intrinsics.strided``) reproduces that image's pixels with ``blur / s**2``.
     """
     name = resolve_backend(backend, means.device)
     module = importlib.import_module(f"ogmapping.render.{name}_backend")
     return module.rasterize(
-        means, quats, scales, opacities, colors, viewmat, K, int(width), int(height), background
+        means, quats, scales, opacities, colors, viewmat, K, int(width), int(height), background, float(blur)
     )
 
 

@@ -27,6 +27,7 @@ from ogmapping.render import cpu_kernels as kernels
 from ogmapping.render import cpu_projection
 from ogmapping.render.output import RenderOutput, finish_output
 from ogmapping.render.projection import Projection
+from ogmapping.render.rules import COVARIANCE_BLUR
 from ogmapping.render.views import Camera, Splats, SplatSet, check_batch, parameters
 
 
@@ -52,6 +53,7 @@ class Layout:
 
     counts: tuple[int, ...]
     sizes: tuple[tuple[int, int], ...]  # (width, height) per view
+    blurs: tuple[float, ...]  # Camera.blur per view
 
     @functools.cached_property
     def spans(self) -> list[slice]:
@@ -68,7 +70,8 @@ class _Project(torch.autograd.Function):
         inputs = [float32_array(t) for t in (means, quats, scales, opacities)]
         cameras = float32_array(viewmats), float32_array(Ks)
         per_view = [
-            cpu_projection.project_forward(*(a[span] for a in inputs), cameras[0][v], cameras[1][v], *layout.sizes[v])
+            cpu_projection.project_forward(*(a[span] for a in inputs), cameras[0][v], cameras[1][v], *layout.sizes[v],
+                                           layout.blurs[v])
             for v, span in enumerate(layout.spans)
         ]
         means2d, conics, depths, radii = (np.concatenate(parts) for parts in zip(*per_view, strict=True))
@@ -96,7 +99,7 @@ class _Project(torch.autograd.Function):
         camera = ctx.needs_input_grad[4]
         per_view = [
             cpu_projection.project_backward(*(a[span] for a in inputs), viewmats[v], Ks[v], *layout.sizes[v],
-                                            *(g[span] for g in upstream), camera)
+                                            layout.blurs[v], *(g[span] for g in upstream), camera)
             for v, span in enumerate(layout.spans)
         ]
         *gaussian_parts, viewmat_parts = zip(*per_view, strict=True)
@@ -187,6 +190,7 @@ def rasterize(
     width: int,
     height: int,
     background: torch.Tensor | None = None,
+    blur: float = COVARIANCE_BLUR,
 ) -> RenderOutput:
     """Render with the compiled kernels; see ``ogmapping.render.rasterize`` for the arguments.
 
@@ -194,7 +198,7 @@ def rasterize(
     backward has no gradient for ``K``, so asking for one is an error rather than a silent zero.
     """
     scene = SplatSet(means, quats, scales, opacities, colors)
-    return rasterize_batch([scene], [Camera(viewmat, K, int(width), int(height))], background)[0]
+    return rasterize_batch([scene], [Camera(viewmat, K, int(width), int(height), blur)], background)[0]
 
 
 def rasterize_batch(scenes: list[Splats], cameras: list[Camera],
@@ -209,7 +213,8 @@ def rasterize_batch(scenes: list[Splats], cameras: list[Camera],
         for tensors in zip(*(parameters(scene) for scene in scenes), strict=True)
     )
     layout = Layout(tuple(int(scene.means.shape[0]) for scene in scenes),
-                    tuple((int(camera.width), int(camera.height)) for camera in cameras))
+                    tuple((int(camera.width), int(camera.height)) for camera in cameras),
+                    tuple(float(camera.blur) for camera in cameras))
     viewmats = torch.stack([camera.viewmat for camera in cameras])
     Ks = torch.stack([camera.K for camera in cameras])
     proj = Projection(*_Project.apply(means, quats, scales, opacities, viewmats, Ks, layout))

@@ -27,14 +27,13 @@ import numpy as np
 from numba import njit, prange
 
 from ogmapping.render.projection import FOV_MARGIN, RADIUS_CAP
-from ogmapping.render.rules import ALPHA_MIN, COVARIANCE_BLUR, NEAR_PLANE
+from ogmapping.render.rules import ALPHA_MIN, NEAR_PLANE
 
 _ZERO = np.float32(0.0)
 _ONE = np.float32(1.0)
 _TWO = np.float32(2.0)
 _NEAR = np.float32(NEAR_PLANE)
 _ALPHA_MIN = np.float32(ALPHA_MIN)
-_BLUR = np.float32(COVARIANCE_BLUR)
 _MARGIN = np.float32(FOV_MARGIN)
 # torch.nn.functional.normalize's default epsilon.
 _NORM_EPS = np.float32(1e-12)
@@ -133,7 +132,7 @@ class _Terms(NamedTuple):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _forward_terms(means, quats, scales, opacities, viewmat, fx, fy, limits, i):
+def _forward_terms(means, quats, scales, opacities, viewmat, fx, fy, limits, blur, i):
     """Gaussian ``i``'s ``_Terms``. Inlined into both kernels: called, its 50-odd values went through
     memory and the backward ran about 1.5x slower."""
     lo_x, hi_x, lo_y, hi_y = limits
@@ -163,9 +162,9 @@ def _forward_terms(means, quats, scales, opacities, viewmat, fx, fy, limits, i):
     m12 = j10 * r02 + j11 * r12 + j12 * r22
     t00, t01, t02 = s0 * m00, s1 * m01, s2 * m02
     t10, t11, t12 = s0 * m10, s1 * m11, s2 * m12
-    a = t00 * t00 + t01 * t01 + t02 * t02 + _BLUR
+    a = t00 * t00 + t01 * t01 + t02 * t02 + blur
     b = t00 * t10 + t01 * t11 + t02 * t12
-    c = t10 * t10 + t11 * t11 + t12 * t12 + _BLUR
+    c = t10 * t10 + t11 * t11 + t12 * t12 + blur
     det = a * c - b * b
     valid = in_front and det > _ZERO and opacities[i] >= _ALPHA_MIN
     inv_det = _ONE / (det if valid else _ONE)
@@ -178,8 +177,9 @@ def _forward_terms(means, quats, scales, opacities, viewmat, fx, fy, limits, i):
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def project_forward(means, quats, scales, opacities, viewmat, K, width, height):
-    """Screen-space means (N, 2), conics (N, 3), depths (N,) and int32 radii (N,), 0 = culled."""
+def project_forward(means, quats, scales, opacities, viewmat, K, width, height, blur):
+    """Screen-space means (N, 2), conics (N, 3), depths (N,) and int32 radii (N,), 0 = culled; ``blur``
+    (pixels^2, any float) is added to each 2D covariance in float32."""
     n = means.shape[0]
     means2d = np.empty((n, 2), np.float32)
     conics = np.empty((n, 3), np.float32)
@@ -187,8 +187,9 @@ def project_forward(means, quats, scales, opacities, viewmat, K, width, height):
     radii = np.zeros(n, np.int32)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     limits = _clamp_limits(K, width, height)
+    blur32 = np.float32(blur)
     for i in prange(n):
-        f = _forward_terms(means, quats, scales, opacities, viewmat, fx, fy, limits, i)
+        f = _forward_terms(means, quats, scales, opacities, viewmat, fx, fy, limits, blur32, i)
         u = fx * f.x_z + cx
         v = fy * f.y_z + cy
         means2d[i, 0] = u
@@ -203,7 +204,7 @@ def project_forward(means, quats, scales, opacities, viewmat, K, width, height):
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def project_backward(means, quats, scales, opacities, viewmat, K, width, height, grad_means2d, grad_conics,
+def project_backward(means, quats, scales, opacities, viewmat, K, width, height, blur, grad_means2d, grad_conics,
                      grad_depths, camera):
     """Gradients w.r.t. means (N, 3), quats (N, 4), scales (N, 3) and, where ``camera``, the viewmat
     (4, 4, float64; zeros otherwise) of ``project_forward``'s outputs.
@@ -220,12 +221,13 @@ def project_backward(means, quats, scales, opacities, viewmat, K, width, height,
     fx, fy = K[0, 0], K[1, 1]
     limits = _clamp_limits(K, width, height)
     lo_x, hi_x, lo_y, hi_y = limits
+    blur32 = np.float32(blur)
     for i in prange(n):
         gu, gv, gd = grad_means2d[i, 0], grad_means2d[i, 1], grad_depths[i]
         gca, gcb, gcc = grad_conics[i, 0], grad_conics[i, 1], grad_conics[i, 2]
         if gu == _ZERO and gv == _ZERO and gd == _ZERO and gca == _ZERO and gcb == _ZERO and gcc == _ZERO:
             continue
-        f = _forward_terms(means, quats, scales, opacities, viewmat, fx, fy, limits, i)
+        f = _forward_terms(means, quats, scales, opacities, viewmat, fx, fy, limits, blur32, i)
         x_z, y_z, gx, gy, z_safe, a, b, c, inv_det = f.x_z, f.y_z, f.gx, f.gy, f.z_safe, f.a, f.b, f.c, f.inv_det
         e00, e01, e02, e10, e11, e12 = f.e
         j00, j01, j02, j10, j11, j12 = f.j

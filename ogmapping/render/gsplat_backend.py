@@ -14,7 +14,7 @@ code, not settable from Python), with these details:
 - ``ALPHA_MIN``: the same 1/255 skip; gsplat also culls Gaussians whose opacity is below it.
 - transmittance: a pixel stops *before* the Gaussian that would bring T to <= 1e-4
   (``TRANSMITTANCE_MIN``); that Gaussian does not contribute.
-- projection: EWA with ``eps2d`` = ``COVARIANCE_BLUR`` added to the 2D covariance ("classic",
+- projection: EWA with ``eps2d`` = the camera's ``blur`` added to the 2D covariance ("classic",
   no opacity compensation); centres with z < ``NEAR_PLANE`` are culled; the Jacobian clamps x/z,
   y/z at 0.3 tan(fov/2) beyond the image edge, as ``projection.FOV_MARGIN`` does. gsplat bounds
   each Gaussian by a tight box (our reference: a square), which changes only which tiles are
@@ -146,15 +146,16 @@ def rasterize(
     width: int,
     height: int,
     background: torch.Tensor | None = None,
+    blur: float = COVARIANCE_BLUR,
 ) -> RenderOutput:
     """Render with gsplat; see ``ogmapping.render.rasterize`` for shapes and conventions."""
     scene = SplatSet(means, quats, scales, opacities, colors)
-    return rasterize_batch([scene], [Camera(viewmat, K, int(width), int(height))], background)[0]
+    return rasterize_batch([scene], [Camera(viewmat, K, int(width), int(height), blur)], background)[0]
 
 
 def rasterize_batch(scenes: list[Splats], cameras: list[Camera],
                     background: torch.Tensor | None = None) -> list[RenderOutput]:
-    """Scene i into camera i: one gsplat call per image size; see ``ogmapping.render.rasterize_batch``."""
+    """Scene i into camera i: one gsplat call per image size (and blur); see ``ogmapping.render.rasterize_batch``."""
     require()
     check_batch(scenes, cameras)
     for scene in scenes:
@@ -171,11 +172,11 @@ def rasterize_batch(scenes: list[Splats], cameras: list[Camera],
 
 
 def same_size_groups(cameras: list[Camera]) -> list[list[int]]:
-    """Indices of the cameras, grouped by image size in order of first appearance: gsplat renders
-    a batch into images of one size."""
-    groups: dict[tuple[int, int], list[int]] = {}
+    """Indices of the cameras, grouped by image size and blur in order of first appearance: gsplat
+    renders a batch into images of one size with one ``eps2d``."""
+    groups: dict[tuple[int, int, float], list[int]] = {}
     for index, camera in enumerate(cameras):
-        groups.setdefault(camera.size, []).append(index)
+        groups.setdefault((*camera.size, camera.blur), []).append(index)
     return list(groups.values())
 
 
@@ -205,7 +206,7 @@ def render_group(
     cameras: list[Camera],
     background: torch.Tensor | None,
 ) -> list[RenderOutput]:
-    """One call of gsplat's ``rasterization`` for views of one image size, each scene its own batch
+    """One call of gsplat's ``rasterization`` for views of one image size and blur, each scene its own batch
     entry (gsplat 1.5.3's leading batch dimension), padded to ``batch_rows`` with Gaussians of
     opacity 0, which gsplat's projection culls before anything else reads them.
 
@@ -230,7 +231,7 @@ def render_group(
         width,
         height,
         near_plane=NEAR_PLANE,
-        eps2d=COVARIANCE_BLUR,
+        eps2d=cameras[0].blur,
         packed=False,
         render_mode="RGB+ED",
         rasterize_mode="classic",

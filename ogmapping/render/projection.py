@@ -63,6 +63,7 @@ def project_gaussians(
     K: torch.Tensor,
     width: int,
     height: int,
+    blur: float = COVARIANCE_BLUR,
 ) -> Projection:
     """Project Gaussians into a pinhole camera and cull those that cannot touch any pixel.
 
@@ -76,11 +77,11 @@ def project_gaussians(
     """
     n = means.shape[0]
     if n <= PROJECTION_CHUNK:
-        return _project_chunk(means, quats, scales, opacities, viewmat, K, width, height)
+        return _project_chunk(means, quats, scales, opacities, viewmat, K, width, height, blur)
     parts = [
         _project_chunk(
             means[s:s + PROJECTION_CHUNK], quats[s:s + PROJECTION_CHUNK], scales[s:s + PROJECTION_CHUNK],
-            opacities[s:s + PROJECTION_CHUNK], viewmat, K, width, height,
+            opacities[s:s + PROJECTION_CHUNK], viewmat, K, width, height, blur,
         )
         for s in range(0, n, PROJECTION_CHUNK)
     ]
@@ -101,6 +102,7 @@ def _project_chunk(
     K: torch.Tensor,
     width: int,
     height: int,
+    blur: float,
 ) -> Projection:
     """``project_gaussians`` on one chunk of Gaussians."""
     viewmat = viewmat.to(means)
@@ -132,9 +134,9 @@ def _project_chunk(
     t0 = [s[j] * (jw0[0] * rot[0][j] + jw0[1] * rot[1][j] + jw0[2] * rot[2][j]) for j in range(3)]
     t1 = [s[j] * (jw1[0] * rot[0][j] + jw1[1] * rot[1][j] + jw1[2] * rot[2][j]) for j in range(3)]
     # 2D covariance T T^T plus the blur that keeps sub-pixel Gaussians at least a pixel wide.
-    a = t0[0] * t0[0] + t0[1] * t0[1] + t0[2] * t0[2] + COVARIANCE_BLUR
+    a = t0[0] * t0[0] + t0[1] * t0[1] + t0[2] * t0[2] + blur
     b = t0[0] * t1[0] + t0[1] * t1[1] + t0[2] * t1[2]
-    c = t1[0] * t1[0] + t1[1] * t1[1] + t1[2] * t1[2] + COVARIANCE_BLUR
+    c = t1[0] * t1[0] + t1[1] * t1[1] + t1[2] * t1[2] + blur
     det = a * c - b * b
     valid = in_front & (det > 0) & (opacities >= ALPHA_MIN)
     det_safe = torch.where(valid, det, torch.ones_like(det))

@@ -12,6 +12,8 @@ from typing import Protocol
 
 import torch
 
+from ogmapping.render.rules import COVARIANCE_BLUR
+
 
 class Splats(Protocol):
     """The Gaussians of one view, as ``rasterize`` takes them (see its docstring for shapes)."""
@@ -36,12 +38,14 @@ class SplatSet:
 
 @dataclass(frozen=True)
 class Camera:
-    """``viewmat`` (4, 4) world-to-camera and ``K`` (3, 3) pixel intrinsics of a ``width`` x ``height`` image."""
+    """``viewmat`` (4, 4) world-to-camera and ``K`` (3, 3) pixel intrinsics of a ``width`` x ``height`` image;
+    ``blur``, the variance in pixels^2 added to every splat's screen-space covariance (see ``rasterize``)."""
 
     viewmat: torch.Tensor
     K: torch.Tensor
     width: int
     height: int
+    blur: float = COVARIANCE_BLUR
 
     @property
     def size(self) -> tuple[int, int]:
