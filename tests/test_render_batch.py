@@ -4,7 +4,7 @@
 per view; the cpu backend projects and composites the whole batch in one autograd node each. Its
 images and gradients must be those of the reference (relative norm error below 1e-4, the cpu
 rasterizer's tolerance, tests/test_render_cpu.py) and exactly those of the cpu backend rendering
-each view alone. Views differ in size, pose and Gaussian count (one has none). With poses to
+each view alone. Views differ in size, pose, blur and Gaussian count (one has none). With poses to
 refine, each view's viewmat gets its own gradient, the reference's, and every other output and
 gradient stays what it is with fixed poses.
 """
@@ -22,7 +22,8 @@ from ogmapping.render import Camera, rasterize, rasterize_batch
 from ogmapping.render.views import SplatSet
 
 PARAMS = ("means", "quats", "scales", "opacities", "colors")
-VIEWS = ((0, 300, 64, 48), (1, 500, 64, 48), (2, 0, 64, 48), (3, 400, 53, 37))  # seed, Gaussians, size
+# seed, Gaussians, size, blur (the default, and a stride-2 tracking render's)
+VIEWS = ((0, 300, 64, 48, 0.3), (1, 500, 64, 48, 0.075), (2, 0, 64, 48, 0.3), (3, 400, 53, 37, 0.3))
 
 
 def pose(seed: int) -> torch.Tensor:
@@ -39,14 +40,14 @@ def pose(seed: int) -> torch.Tensor:
 def views(dtype: torch.dtype, posed: bool = False) -> tuple[list[SplatSet], list[Camera]]:
     """The scenes and cameras of VIEWS; with ``posed`` every viewmat is a leaf that requires grad."""
     scenes, cameras = [], []
-    for seed, n, width, height in VIEWS:
+    for seed, n, width, height, blur in VIEWS:
         scene = {k: v.to(dtype).clone().requires_grad_(True) for k, v in mixed_scene(seed, max(n, 1), width,
                                                                                        height).items()}
         scenes.append(SplatSet(*(scene[k][:n] if n else scene[k][:0] for k in PARAMS)))
         for k in PARAMS:
             getattr(scenes[-1], k).retain_grad()
         viewmat = pose(seed).to(dtype).requires_grad_(posed)
-        cameras.append(Camera(viewmat, intrinsics(width, height).to(dtype), width, height))
+        cameras.append(Camera(viewmat, intrinsics(width, height).to(dtype), width, height, blur))
     return scenes, cameras
 
 
@@ -66,7 +67,7 @@ def render_and_grad(batched: bool, backend: str, dtype: torch.dtype, posed: bool
         outputs = rasterize_batch(scenes, cameras, background, backend=backend)
     else:
         outputs = [rasterize(*(getattr(s, k) for k in PARAMS), c.viewmat, c.K, c.width, c.height, background,
-                             backend=backend) for s, c in zip(scenes, cameras, strict=True)]
+                             backend=backend, blur=c.blur) for s, c in zip(scenes, cameras, strict=True)]
     weighted_loss(outputs).backward()
     results = {"background.grad": background.grad}
     for v, (out, scene, camera) in enumerate(zip(outputs, scenes, cameras, strict=True)):
