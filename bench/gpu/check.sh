@@ -11,7 +11,7 @@
 #   A data folder given as - or absent skips the steps that need it, as does one with too few frames.
 # Steps: install (carried wheels, gsplat's kernels; the suite runs on CUDA through the pure-torch fallback
 # meanwhile), pytest -m gpu, ogmap run of sparse-fast / sparse / dense on 7-Scenes 0-299 at 640x480 and on
-# Replica room0 0-19 at 1200x680, bench/load.py with 1 / 4 / 8 sparse-fast sessions on one server, the
+# Replica room0 0-19 at 1200x680, sparse with pose refinement from noisy poses on room0 (replica-refine), bench/load.py with 1 / 4 / 8 sparse-fast sessions on one server, the
 # service's sparse run of 0-299 (ogserver + ogclient stream/eval), the CPU thread table (sparse at 320x240,
 # 1 / 2 / 4 / 8 / 16 threads), sparse at 320x240 on the GPU, the suite with gsplat. A step that succeeded
 # leaves a marker in .gpu/done, so a second call on the same machine goes on where the first stopped.
@@ -180,11 +180,34 @@ service() {
     return $status
 }
 
-export -f pytest_interruptible suite install_with_fallback_suite gpu_tests service_load cpu_threads service
+# Pose refinement on the GPU: sparse on Replica room0 0-19 from the exact trajectory moved by seeded noise
+# (seed 0: 1 cm per axis, 0.5 degrees), poses.refine on, judged at the exact poses (at_eval_poses in its
+# results.json), at 600x340 and 1200x680, into replica-refine/noisy0-WIDTH/.
+replica_refine() {
+    local scale width scratch status=0
+    scratch=$(mktemp -d)
+    for scale in 0.5 1; do
+        width=$("$PY" -c "print(round(1200 * $scale))")
+        "$PY" -m ogmapping.cli trajectory --data "$REPLICA" --format replica --frames 0:20 --scale "$scale" --quiet \
+            --out "$scratch/exact.tum" &&
+            "$PY" -m ogmapping.cli trajectory --data "$REPLICA" --format replica --frames 0:20 --scale "$scale" \
+                --quiet --noise-translation 0.01 --noise-rotation 0.5 --noise-seed 0 --out "$scratch/noisy.tum" &&
+            "$PY" -m ogmapping.cli run --data "$REPLICA" --format replica --frames 0:20 --scale "$scale" \
+                --device "${DEVICE:-cuda}" --preset sparse --poses "$scratch/noisy.tum" --eval-poses "$scratch/exact.tum" \
+                --set poses.refine=true --out "$scratch/run-$width" --quiet || { status=1; continue; }
+        mkdir -p "$RESULTS/replica-refine/noisy0-$width"
+        cp "$scratch/run-$width/results.json" "$RESULTS/replica-refine/noisy0-$width/"
+        "$PY" bench/gpu/table.py "$RESULTS/replica-refine/noisy0-$width"
+    done
+    rm -rf "$scratch"
+    return $status
+}
+
+export -f pytest_interruptible suite install_with_fallback_suite gpu_tests service_load cpu_threads service replica_refine
 log "check: budget ${BUDGET} s, results $STAMP, 7-Scenes '$DATA' ($SEVEN_SCENES_FRAMES frames), Replica '$REPLICA' ($REPLICA_FRAMES frames), only '${ONLY:-all}'"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>&1 | tee -a "$LOGS/check.log"
 
-GPU_STEPS=(gpu-tests 640-sparse-fast 640-sparse 640-dense replica-sparse-fast replica-sparse replica-dense load
+GPU_STEPS=(gpu-tests 640-sparse-fast 640-sparse 640-dense replica-sparse-fast replica-sparse replica-dense replica-refine load
            service-sparse-640 320-sparse suite-gsplat)
 for name in "${GPU_STEPS[@]}"; do
     if wanted "$name" && [ ! -e "$(marker "$name")" ]; then
@@ -203,6 +226,7 @@ ogmap_run 640 dense 120 7scenes:300 7scenes 0:300 1 "$DATA"
 ogmap_run replica sparse-fast 45 replica:20 replica 0:20 1 "$REPLICA"
 ogmap_run replica sparse 45 replica:20 replica 0:20 1 "$REPLICA"
 ogmap_run replica dense 60 replica:20 replica 0:20 1 "$REPLICA"
+step replica-refine 90 replica:20,gpu replica_refine
 step load 180 "7scenes:${LOAD_FRAMES#*:},gpu" service_load
 step service-sparse-640 120 7scenes:300,gpu service
 # about 1.6 s a frame over the five thread counts, and 40 s of start-up
