@@ -134,7 +134,9 @@ install_with_fallback_suite() {
 gpu_tests() {
     set -o pipefail
     mkdir -p "$RESULTS/gpu-tests"
-    OGMAP_GPU_REPORT=$RESULTS/gpu-tests OGMAP_GPU_DATA=$DATA bench/gpu/run.sh tests 2>&1 | tee "$RESULTS/gpu-tests/pytest.txt"
+    local data=$DATA
+    [ "$data" = - ] && data=
+    OGMAP_GPU_REPORT=$RESULTS/gpu-tests OGMAP_GPU_DATA=$data bench/gpu/run.sh tests 2>&1 | tee "$RESULTS/gpu-tests/pytest.txt"
 }
 
 # bench/load.py: 1 / 4 / 8 sessions of sparse-fast at 640x480 on one ogserver --device cuda.
