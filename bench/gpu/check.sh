@@ -11,17 +11,18 @@
 #   A data folder given as - or absent skips the steps that need it, as does one with too few frames.
 # Steps: install (carried wheels, gsplat's kernels; the suite runs on CUDA through the pure-torch fallback
 # meanwhile), pytest -m gpu, ogmap run of sparse-fast / sparse / dense on 7-Scenes 0-299 at 640x480 and on
-# Replica room0 0-19 at 1200x680, sparse with pose refinement from noisy poses on room0 (replica-refine), bench/load.py with 1 / 4 / 8 sparse-fast sessions on one server, the
-# service's sparse run of 0-299 (ogserver + ogclient stream/eval), the CPU thread table (sparse at 320x240,
-# 1 / 2 / 4 / 8 / 16 threads), sparse at 320x240 on the GPU, the suite with gsplat. A step that succeeded
-# leaves a marker in .gpu/done, so a second call on the same machine goes on where the first stopped.
+# Replica room0 0-19 at 1200x680, sparse with pose refinement from noisy poses on room0 (replica-refine),
+# bench/load.py with 1 / 4 / 8 sparse-fast sessions on one server, the service's sparse run of 0-299
+# (ogserver + ogclient stream/eval), the CPU thread table (sparse at 320x240, 1 / 2 / 4 / 8 / 16 threads),
+# sparse at 320x240 on the GPU, the suite with gsplat. A step that succeeded leaves a marker in .gpu/done,
+# so a second call on the same machine goes on where the first stopped.
 # environment: PYTHON (python3), OGMAP_LPIPS_WEIGHTS (LPIPS weights file, optional), COMMIT (default: git's
 #   HEAD), STAMP (default: DATE-COMMIT, the results folder's name), ONLY (step names or patterns to run, e.g.
 #   "replica-* load"; install runs first where a GPU step needs it), LOAD_FRAMES (0:100), THREAD_FRAMES (0:100),
 #   THREADS ("1 2 4 8 16").
 set -uo pipefail
 cd "$(dirname "$0")/../.."
-[ $# -eq 3 ] || [ $# -eq 4 ] || { sed -n '2,21p' "$0" >&2; exit 2; }
+[ $# -eq 3 ] || [ $# -eq 4 ] || { sed -n '2,22p' "$0" >&2; exit 2; }
 OUT=$1 BUDGET=$2 DATA=$3 REPLICA=${4:--}
 export PY=${PYTHON:-python3}
 export LOAD_FRAMES=${LOAD_FRAMES:-0:100} THREAD_FRAMES=${THREAD_FRAMES:-0:100} THREADS=${THREADS:-1 2 4 8 16}
