@@ -37,7 +37,8 @@ from ogmapping.optim import refine
 from ogmapping.optim.averaging import MapAverage
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
 from ogmapping.optim.lazy_adam import LazyAdam
-from ogmapping.optim.losses import mapping_loss, tracking_loss
+from ogmapping.optim.losses import TrackingMask, mapping_loss, tracking_loss, tracking_mask, tracking_residuals
+from ogmapping.optim.pose_newton import Residuals, newton_track
 from ogmapping.optim.poses import TRACK_CHECK_STEPS, PoseCorrection, PoseReport, settled
 from ogmapping.optim.step_budget import step_multiple
 from ogmapping.persist import snapshot, training
@@ -325,7 +326,8 @@ class Mapper:
         ``poses.track_stride``-th pixel, the map held fixed (its Gaussians decoded once, from the client's pose),
         until ``budget`` says stop. With ``poses.track_min_gain`` a pose that ``settled`` after
         TRACK_CHECK_STEPS steps goes back to the client's and is held there, its tracking cut short; one
-        that moves then takes ``poses.track_fine_iterations`` steps on every pixel."""
+        that moves then takes ``poses.track_newton_iterations`` Gauss-Newton steps and
+        ``poses.track_fine_iterations`` gradient steps on every pixel."""
         settings = self.config.poses
         if not settings.track_iterations:
             return
@@ -348,7 +350,12 @@ class Mapper:
                     losses.append(loss_at(correction))
                 if settled(losses, settings.track_min_gain):
                     correction.hold()
-            if correction.held or not settings.track_fine_iterations:
+            if correction.held:
+                return
+            if settings.track_newton_iterations:
+                newton_track(self.tracking_residuals(frame, gaussians=gaussians), correction, settings,
+                             settings.track_newton_iterations, lambda: budget.stop(started) is not None)
+            if not settings.track_fine_iterations:
                 return
             fine = self.tracking_objective(frame, 1, gaussians)
             for _ in range(settings.track_fine_iterations):
@@ -373,23 +380,51 @@ class Mapper:
         (``_tracking_gaussians``, decoded here when not given), rendered at those pixels' own centres
         with the full-size blur, so the loss is the full-size loss on those pixels. Call the function it
         returns with the mapper's lock held, before the map changes."""
+        render_at, rgb, depth = self._tracking_renderer(frame, stride, gaussians)
         settings = self.config.poses
-        if gaussians is None:
-            gaussians = self._tracking_gaussians(frame)
-        stride = settings.track_stride if stride is None else stride
-        frame = stride_frame(frame, stride, 0)
-        rgb, depth, c2w = self._tensors(frame)
-        blur = COVARIANCE_BLUR / stride**2
 
         def loss_at(correction: PoseCorrection) -> torch.Tensor:
-            camera = self._camera(correction.refined(c2w), frame.color_intrinsics)
-            output = rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
-                               gaussians.colors, camera.viewmat, camera.K, camera.width, camera.height,
-                               backend=self.backend, blur=blur)
+            output = render_at(correction)
             return tracking_loss(output.color, output.depth, output.alpha, rgb, depth, self.config.loss,
                                  settings.track_alpha)
 
         return loss_at
+
+    def tracking_residuals(self, frame: Frame, stride: int | None = None,
+                           gaussians: GaussianSet | None = None) -> Residuals:
+        """``tracking_objective`` as per-pixel residuals of a correction's ``delta`` (no gradient), over a
+        given mask or, given None, the pixels this render covers: what Gauss-Newton tracking steps on."""
+        render_at, rgb, depth = self._tracking_renderer(frame, stride, gaussians)
+        probe = PoseCorrection(self.device)
+
+        def residuals_at(delta: torch.Tensor, mask: TrackingMask | None) -> tuple[torch.Tensor, TrackingMask]:
+            with torch.no_grad():
+                probe.delta.copy_(delta)
+                output = render_at(probe)
+                if mask is None:
+                    mask = tracking_mask(output.alpha, depth, self.config.poses.track_alpha)
+                return tracking_residuals(output.color, output.depth, rgb, depth, self.config.loss, mask), mask
+
+        return residuals_at
+
+    def _tracking_renderer(self, frame: Frame, stride: int | None, gaussians: GaussianSet | None
+                           ) -> tuple[Callable[[PoseCorrection], RenderOutput], torch.Tensor, torch.Tensor]:
+        """A render of ``frame``'s every ``stride``-th pixel at a correction of its pose (see
+        ``tracking_objective``), and those pixels' colour and depth."""
+        if gaussians is None:
+            gaussians = self._tracking_gaussians(frame)
+        stride = self.config.poses.track_stride if stride is None else stride
+        frame = stride_frame(frame, stride, 0)
+        rgb, depth, c2w = self._tensors(frame)
+        blur = COVARIANCE_BLUR / stride**2
+
+        def render_at(correction: PoseCorrection) -> RenderOutput:
+            camera = self._camera(correction.refined(c2w), frame.color_intrinsics)
+            return rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
+                             gaussians.colors, camera.viewmat, camera.K, camera.width, camera.height,
+                             backend=self.backend, blur=blur)
+
+        return render_at, rgb, depth
 
     def _optimise(
         self, iterations: int, view: View | None, view_is_newest: bool, budget: Budget, started: float

@@ -197,14 +197,17 @@ def test_a_pose_has_settled_when_the_second_step_gains_little():
     assert not settled([torch.tensor(value) for value in (1.0, 0.9, 1.2)], 0.0)  # 0: every pose moves
 
 
-@pytest.mark.parametrize(("track_iterations", "fine_iterations"), [(2, 0), (5, 0), (5, 3)])
-def test_tracking_that_settles_holds_every_pose_and_maps_as_without_refinement(track_iterations, fine_iterations):
+@pytest.mark.parametrize(("track_iterations", "fine_iterations", "newton_iterations"),
+                         [(2, 0, 0), (5, 0, 0), (5, 3, 0), (2, 0, 3)])
+def test_tracking_that_settles_holds_every_pose_and_maps_as_without_refinement(track_iterations, fine_iterations,
+                                                                               newton_iterations):
     frames = _frames(4)
     overrides = {**TINY, "keyframes.overlap_threshold": "0.99"}
     plain = Mapper(resolve("sparse-fast", overrides=overrides))
     gated = Mapper(resolve("sparse-fast", overrides={**overrides, "poses.refine": "true", "poses.track_min_gain": "1",
                                                      "poses.track_iterations": str(track_iterations),
-                                                     "poses.track_fine_iterations": str(fine_iterations)}))
+                                                     "poses.track_fine_iterations": str(fine_iterations),
+                                                     "poses.track_newton_iterations": str(newton_iterations)}))
     for frame in frames:
         result = gated.process(frame)
         plain.process(frame)
@@ -217,19 +220,20 @@ def test_tracking_that_settles_holds_every_pose_and_maps_as_without_refinement(t
         assert torch.equal(tensor, held[name]), name
 
 
-def test_fine_tracking_steps_move_a_pose_that_tracking_moves():
+@pytest.mark.parametrize("key", ["poses.track_fine_iterations", "poses.track_newton_iterations"])
+def test_further_tracking_steps_move_a_pose_that_tracking_moves(key):
     loaded = _frames(3)
     displaced = loaded[2]
     displaced.c2w = displaced.c2w.copy()
     displaced.c2w[:3, 3] += np.array([0.01, -0.01, 0.0])
     refined = {}
-    for fine in ("0", "3"):
+    for further in ("0", "3"):
         mapper = Mapper(resolve("sparse-fast", overrides={
             **TINY, "keyframes.first_iterations": "40",  # a map that covers pixels fully, which tracking counts
             "poses.refine": "true", "poses.track_min_gain": "0", "poses.track_iterations": "2",
-            "poses.track_fine_iterations": fine, "poses.view_steps": "false"}))
+            key: further, "poses.view_steps": "false"}))
         for frame in loaded[:2]:
             mapper.process(frame)
-        refined[fine] = mapper.process(displaced).pose.refined_c2w
+        refined[further] = mapper.process(displaced).pose.refined_c2w
     assert not np.allclose(refined["0"], refined["3"], rtol=0, atol=1e-7)
     assert not np.allclose(refined["0"], displaced.c2w, rtol=0, atol=1e-7)  # tracking itself moved it

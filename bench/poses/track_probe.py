@@ -5,7 +5,7 @@ than where tracking ended means tracking has not converged; a higher one, that t
 off the truth (the young map's own error), which no step rule reaches.
 
     python bench/poses/track_probe.py --data ../shared/data/replica-room0/data --format replica \\
-        --frames 0:20 --scale 0.5 --noisy noisy.tum --frame 1 [--steps 60] [--set KEY=VALUE ...]
+        --frames 0:20 --scale 0.5 --noisy noisy.tum --frame 1 [--steps 60] [--newton 4] [--set KEY=VALUE ...]
 
 ``--noisy`` is a TUM trajectory covering the frames (``ogmap trajectory --noise-translation ...``, as
 ``bench/poses/noisy_poses.sh`` writes it); ``--frame`` counts streamed frames from 0 (0 is the first
@@ -25,6 +25,7 @@ from ogmapping.config import parse_override_args, resolve
 from ogmapping.frames.preprocess import prepare
 from ogmapping.frames.trajectory import pose_errors, read_tum
 from ogmapping.mapper import Mapper
+from ogmapping.optim.pose_newton import newton_track
 from ogmapping.optim.poses import PoseCorrection
 from ogmapping.quality.evaluation import open_frames
 
@@ -49,6 +50,8 @@ def main() -> int:
     parser.add_argument("--frame", type=int, default=1, help="streamed frame to track (1 or later)")
     parser.add_argument("--steps", type=int, default=60)
     parser.add_argument("--every", type=int, default=5, help="print every this many steps")
+    parser.add_argument("--newton", type=int, default=0,
+                        help="then this many Gauss-Newton steps (poses.track_newton_iterations), each printed")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     args = parser.parse_args()
     frames = open_frames(args.data, args.format, args.frames, 1, args.scale)
@@ -80,8 +83,15 @@ def main() -> int:
         loss = loss_at(correction)
         if step % args.every == 0 or step == args.steps:
             print(f"step {step:3d}: {error(correction)}, loss {float(loss.detach()):.5f}", flush=True)
-        (loss + correction.prior(settings)).backward()
-        correction.step(settings)
+        if step < args.steps:
+            (loss + correction.prior(settings)).backward()
+            correction.step(settings)
+    residuals_at = mapper.tracking_residuals(noisy)
+    for step in range(args.newton):
+        done = newton_track(residuals_at, correction, settings, 1, lambda: False)
+        with torch.no_grad():
+            loss = float(loss_at(correction))
+        print(f"Gauss-Newton step {step + 1}: {error(correction)}, loss {loss:.5f}, {done.renders} renders", flush=True)
     return 0
 
 

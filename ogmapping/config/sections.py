@@ -190,15 +190,20 @@ class PosesConfig:
     # about its depth, some 2 m here, times as far: hence the smaller rate).
     translation_lr: float = _learning_rate(0.004)
     rotation_lr: float = _learning_rate(0.001)
-    # Steps on the frame's pose alone, against the map as it stands, before its mapping steps: a few
-    # mapping steps move a pose little, and meanwhile pull the map towards the pose's error. Fifteen track
-    # a pose that moves nearer the truth than five (a held one stops after two; "Pose refinement").
-    track_iterations: int = ranged(15, 0)
+    # Gradient steps on the frame's pose alone, against the map as it stands, before its mapping steps: a
+    # few mapping steps move a pose little, and meanwhile pull the map towards the pose's error. Two are
+    # what ``track_min_gain`` needs to tell a pose that moves from one held; the Gauss-Newton steps below
+    # take a pose that moves further than more gradient steps would ("Pose refinement").
+    track_iterations: int = ranged(2, 0)
     # ...on every this-many-th pixel of each row and column (2: a quarter of the pixels), rendered at their
     # own centres with the splats blurred as at full size, so the loss is the full-size loss on those
     # pixels, whose minimum lies on the truth; a resized image's lies off it ("What bounds tracking").
     track_stride: int = ranged(2, 1, MAX_TRACK_STRIDE)
     track_alpha: float = ranged(0.99, 0, 1)  # ...whose loss counts the pixels the map covers this fully
+    # Then this many Gauss-Newton steps on a pose that moves (none on one held), on the same pixels: each
+    # solves for the correction that explains every pixel's residual, where gradient steps crawl along the
+    # loss's flat directions; seven renders a step, no backward pass (ogmapping.optim.pose_newton). 0: none.
+    track_newton_iterations: int = ranged(4, 0)
     # Then this many steps on every pixel on a pose that moves (none on one held), at ``track_stride``
     # squared times the cost of a step. 0: none.
     track_fine_iterations: int = ranged(0, 0)
@@ -211,8 +216,9 @@ class PosesConfig:
     # keyframes' corrections move in every step that draws them).
     view_steps: bool = True
     # Weight of the prior that holds a correction near the client's pose: prior x ((|t| / max_translation)^2
-    # + (|r| / max_rotation)^2) joins each view's loss.
-    prior: float = _weight(0.1)
+    # + (|r| / max_rotation)^2) joins each view's loss. Weak: a pose the gate lets move is wrong, and at 0.1
+    # the prior held noisy poses half a centimetre short of where their loss is lowest ("Pose refinement").
+    prior: float = _weight(0.01)
     # A correction beyond these is clamped back to them and reported, never silently applied.
     max_translation: float = ranged(0.1, 0, open_low=True)  # metres
     max_rotation: float = ranged(5.0, 0, 180, open_low=True)  # degrees

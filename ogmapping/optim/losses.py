@@ -8,6 +8,8 @@ backend, ``ogmapping.runtime.profile``) the three image terms come from one comp
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 from ogmapping.config import LossConfig
@@ -83,3 +85,37 @@ def tracking_loss(
     color = torch.where(covered.unsqueeze(-1), (render_color - gt_color).abs(), 0.0).sum()
     color = color / (3 * covered.sum()).clamp_min(1)
     return weights.color * color + weights.depth * depth_l1(render_depth, gt_depth, covered)
+
+
+@dataclass(frozen=True)
+class TrackingMask:
+    """The pixels a tracking residual counts: those the map covers (colour), and of them those with a
+    valid depth (depth). Gauss-Newton tracking holds one fixed across the renders of a step."""
+
+    covered: torch.Tensor  # (H, W) bool
+    depth_valid: torch.Tensor  # (H, W) bool
+
+
+def tracking_mask(render_alpha: torch.Tensor, gt_depth: torch.Tensor, min_alpha: float) -> TrackingMask:
+    """``tracking_loss``'s pixels for a render whose alpha is ``render_alpha``."""
+    covered = render_alpha.detach().reshape(gt_depth.shape) >= min_alpha
+    measured = torch.nan_to_num(gt_depth, nan=0.0, posinf=0.0, neginf=0.0)
+    return TrackingMask(covered, covered & (measured > 0))
+
+
+def tracking_residuals(
+    render_color: torch.Tensor,
+    render_depth: torch.Tensor,
+    gt_color: torch.Tensor,
+    gt_depth: torch.Tensor,
+    weights: LossConfig,
+    mask: TrackingMask,
+) -> torch.Tensor:
+    """``tracking_loss`` as a vector whose absolute values sum to it (over ``mask``'s pixels): the
+    weighted colour residuals of every pixel, then the depth residuals; 0 outside the mask."""
+    colour = torch.where(mask.covered.unsqueeze(-1), render_color - gt_color, 0.0)
+    colour = colour.reshape(-1) * (weights.color / (3 * mask.covered.sum()).clamp_min(1))
+    measured = torch.nan_to_num(gt_depth, nan=0.0, posinf=0.0, neginf=0.0)
+    depth = torch.where(mask.depth_valid, render_depth.reshape(gt_depth.shape) - measured, 0.0)
+    depth = depth.reshape(-1) * (weights.depth / mask.depth_valid.sum().clamp_min(1))
+    return torch.cat([colour, depth])

@@ -107,6 +107,12 @@ class PoseCorrection:
         return settings.prior * (self.translation.square().sum() / settings.max_translation**2
                                  + self.rotation.square().sum() / scale**2)
 
+    def prior_weights(self, settings: PosesConfig) -> torch.Tensor:
+        """The prior as ``sum(weights * delta**2)``: its six weights."""
+        translation = settings.prior / settings.max_translation**2
+        rotation = settings.prior / math.radians(settings.max_rotation) ** 2
+        return self.delta.new_tensor([translation] * 3 + [rotation] * 3)
+
     def hold(self) -> None:
         """Back to the client's pose, to stay there: its tracking ``settled`` (``poses.track_min_gain``),
         and steps that move it anyway fit the young map's errors instead."""
@@ -129,9 +135,22 @@ class PoseCorrection:
         with torch.no_grad():
             rates = self.delta.new_tensor([settings.translation_lr] * 3 + [settings.rotation_lr] * 3)
             self.delta.sub_(rates * grad)
-            self._clamp(self.delta[:3], settings.max_translation)
-            self._clamp(self.delta[3:], math.radians(settings.max_rotation))
+            self._clamp_to_bounds(settings)
         self.delta.grad = None
+
+    def move_to(self, delta: torch.Tensor, settings: PosesConfig) -> None:
+        """Set the correction to ``delta`` (a step found some other way), clamped to the bounds."""
+        if self.held:
+            return
+        self.steps += 1
+        with torch.no_grad():
+            self.delta.copy_(delta)
+            self._clamp_to_bounds(settings)
+        self.delta.grad = None
+
+    def _clamp_to_bounds(self, settings: PosesConfig) -> None:
+        self._clamp(self.delta[:3], settings.max_translation)
+        self._clamp(self.delta[3:], math.radians(settings.max_rotation))
 
     def _clamp(self, part: torch.Tensor, bound: float) -> None:
         norm = float(part.norm())
