@@ -57,6 +57,9 @@ from ogmapping.structure.anchor_colour import cell_colour_logits, colour_sample_
 from ogmapping.structure.anchors import AnchorMap
 from ogmapping.structure.octree import SparseVoxelOctree
 
+# A render of a frame's tracked pixels at a correction of its pose, and those pixels' colour and depth.
+TrackingRenderer = tuple[Callable[[PoseCorrection], RenderOutput], torch.Tensor, torch.Tensor]
+
 
 @dataclass
 class FrameResult:
@@ -333,7 +336,8 @@ class Mapper:
             return
         with self.lock, self._timed("track"):
             gaussians = self._tracking_gaussians(frame)
-            loss_at = self.tracking_objective(frame, gaussians=gaussians)
+            renderer = self._tracking_renderer(frame, None, gaussians)
+            loss_at = self._tracking_loss_of(renderer)
             losses: list[torch.Tensor] = []  # before each step, then after the check's steps
             for _ in range(settings.track_iterations):
                 if budget.stop(started) is not None:
@@ -353,7 +357,7 @@ class Mapper:
             if correction.held:
                 return
             if settings.track_newton_iterations:
-                newton_track(self.tracking_residuals(frame, gaussians=gaussians), correction, settings,
+                newton_track(self._tracking_residuals_of(renderer), correction, settings,
                              settings.track_newton_iterations, lambda: budget.stop(started) is not None)
             if not settings.track_fine_iterations:
                 return
@@ -380,7 +384,16 @@ class Mapper:
         (``_tracking_gaussians``, decoded here when not given), rendered at those pixels' own centres
         with the full-size blur, so the loss is the full-size loss on those pixels. Call the function it
         returns with the mapper's lock held, before the map changes."""
-        render_at, rgb, depth = self._tracking_renderer(frame, stride, gaussians)
+        return self._tracking_loss_of(self._tracking_renderer(frame, stride, gaussians))
+
+    def tracking_residuals(self, frame: Frame, stride: int | None = None,
+                           gaussians: GaussianSet | None = None) -> Residuals:
+        """``tracking_objective`` as per-pixel residuals of a correction's ``delta`` (no gradient), over a
+        given mask or, given None, the pixels this render covers: what Gauss-Newton tracking steps on."""
+        return self._tracking_residuals_of(self._tracking_renderer(frame, stride, gaussians))
+
+    def _tracking_loss_of(self, renderer: TrackingRenderer) -> Callable[[PoseCorrection], torch.Tensor]:
+        render_at, rgb, depth = renderer
         settings = self.config.poses
 
         def loss_at(correction: PoseCorrection) -> torch.Tensor:
@@ -390,11 +403,8 @@ class Mapper:
 
         return loss_at
 
-    def tracking_residuals(self, frame: Frame, stride: int | None = None,
-                           gaussians: GaussianSet | None = None) -> Residuals:
-        """``tracking_objective`` as per-pixel residuals of a correction's ``delta`` (no gradient), over a
-        given mask or, given None, the pixels this render covers: what Gauss-Newton tracking steps on."""
-        render_at, rgb, depth = self._tracking_renderer(frame, stride, gaussians)
+    def _tracking_residuals_of(self, renderer: TrackingRenderer) -> Residuals:
+        render_at, rgb, depth = renderer
         probe = PoseCorrection(self.device)
 
         def residuals_at(delta: torch.Tensor, mask: TrackingMask | None) -> tuple[torch.Tensor, TrackingMask]:
@@ -407,8 +417,7 @@ class Mapper:
 
         return residuals_at
 
-    def _tracking_renderer(self, frame: Frame, stride: int | None, gaussians: GaussianSet | None
-                           ) -> tuple[Callable[[PoseCorrection], RenderOutput], torch.Tensor, torch.Tensor]:
+    def _tracking_renderer(self, frame: Frame, stride: int | None, gaussians: GaussianSet | None) -> TrackingRenderer:
         """A render of ``frame``'s every ``stride``-th pixel at a correction of its pose (see
         ``tracking_objective``), and those pixels' colour and depth."""
         if gaussians is None:
