@@ -51,6 +51,48 @@ def test_ssim_identical_is_one_and_matches_direct_computation():
     )
 
 
+def _direct_ms_ssim(a: np.ndarray, b: np.ndarray) -> float:
+    """MS-SSIM from its definition (Wang et al. 2003): per channel, the contrast-structure term of each of
+    five scales (2x2 means between them) and the luminance of the last, weighted; then the channels' mean.
+    Sides that halve evenly down to the last scale, so no padding rule enters."""
+    offsets = np.arange(-5, 6)
+    g = np.exp(-(offsets**2) / (2 * 1.5**2))
+    g /= g.sum()
+
+    def blur(x: np.ndarray) -> np.ndarray:  # separable valid convolution
+        rows = np.lib.stride_tricks.sliding_window_view(x, 11, axis=0) @ g
+        return np.lib.stride_tricks.sliding_window_view(rows, 11, axis=1) @ g
+
+    weights = (0.0448, 0.2856, 0.3001, 0.2363, 0.1333)
+    c1, c2 = 0.01**2, 0.03**2
+    per_channel = []
+    for ch in range(a.shape[2]):
+        x, y, value = a[:, :, ch], b[:, :, ch], 1.0
+        for level, weight in enumerate(weights):
+            mx, my = blur(x), blur(y)
+            vx, vy, cov = blur(x * x) - mx**2, blur(y * y) - my**2, blur(x * y) - mx * my
+            cs = ((2 * cov + c2) / (vx + vy + c2)).mean()
+            if level < len(weights) - 1:
+                value *= max(cs, 0.0) ** weight
+                x = x.reshape(x.shape[0] // 2, 2, x.shape[1] // 2, 2).mean((1, 3))
+                y = y.reshape(y.shape[0] // 2, 2, y.shape[1] // 2, 2).mean((1, 3))
+            else:
+                full = ((2 * mx * my + c1) / (mx**2 + my**2 + c1)) * (2 * cov + c2) / (vx + vy + c2)
+                value *= max(full.mean(), 0.0) ** weight
+        per_channel.append(value)
+    return float(np.mean(per_channel))
+
+
+def test_ms_ssim_matches_its_definition_and_needs_a_large_enough_image():
+    rng = np.random.default_rng(1)
+    a = rng.random((176, 192, 3)) * np.array([1.0, 0.6, 0.3])  # channels differ, sides differ: a transposed
+    b = np.clip(a + rng.normal(0, 0.05, a.shape), 0, 1)       # or channel-mixed layout would not match
+    assert metrics.ms_ssim(a, a) == pytest.approx(1.0, abs=1e-6)
+    assert metrics.ms_ssim(a, b) == pytest.approx(_direct_ms_ssim(a, b), abs=1e-5)
+    assert metrics.ms_ssim(torch.from_numpy(a), torch.from_numpy(b)) == pytest.approx(metrics.ms_ssim(a, b))
+    assert metrics.ms_ssim(a[:160], b[:160]) is None  # four halvings leave less than a window
+
+
 def test_depth_l1_masks_invalid_measurements():
     gt = np.array([[1.0, 0.0], [np.nan, 2.0]])
     pred = np.array([[1.01, 5.0], [5.0, 1.98]])
@@ -69,10 +111,10 @@ def test_lpips_reports_why_it_is_unavailable(monkeypatch, tmp_path):
 
 def test_summarise_skips_missing_values():
     frames = [
-        {"psnr": 20.0, "ssim": 0.5, "depth_l1_cm": 2.0, "lpips": None},
-        {"psnr": 30.0, "ssim": 0.7, "depth_l1_cm": math.nan, "lpips": None},
+        {"psnr": 20.0, "ssim": 0.5, "ms_ssim": None, "depth_l1_cm": 2.0, "lpips": None},
+        {"psnr": 30.0, "ssim": 0.7, "ms_ssim": 0.9, "depth_l1_cm": math.nan, "lpips": None},
     ]
     summary = metrics.summarise(frames)
-    assert summary == {"psnr": 25.0, "ssim": pytest.approx(0.6), "depth_l1_cm": 2.0, "lpips": None, "frames": 2,
-                       "psnr_spread": {"min": 20.0, "max": 30.0, "std": 5.0}}
+    assert summary == {"psnr": 25.0, "ssim": pytest.approx(0.6), "ms_ssim": 0.9, "depth_l1_cm": 2.0, "lpips": None,
+                       "frames": 2, "psnr_spread": {"min": 20.0, "max": 30.0, "std": 5.0}}
     assert metrics.summarise([{"psnr": None}])["psnr_spread"] is None

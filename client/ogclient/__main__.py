@@ -192,7 +192,7 @@ def parser() -> argparse.ArgumentParser:
     evaluate = sub.add_parser(
         "eval", help="score a session on streamed and held-out frames",
         description="Render every streamed and held-out pose of the selection through the server and score "
-        "it like `ogmap run` (PSNR, SSIM, depth L1 in cm); pass the same dataset flags used to stream.",
+        "it like `ogmap run` (PSNR, SSIM, MS-SSIM, LPIPS, depth L1 in cm); pass the same dataset flags used to stream.",
     )
     add_session(evaluate)
     add_dataset_arguments(evaluate)

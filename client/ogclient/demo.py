@@ -99,11 +99,11 @@ def run(args: argparse.Namespace) -> int:
     (out / "results.json").write_text(json.dumps(results, indent=2))
     print(f"speed: processing {results['processing_fps']:.2f} frames/s on {results['device']}, "
           f"render {fmt(results['render_fps'], 1)} frames/s through the server")
-    print("quality          PSNR dB   SSIM   LPIPS   depth L1 cm")
+    print("quality          PSNR dB   SSIM  MS-SSIM  LPIPS   depth L1 cm")
     for split, name in (("streamed", "streamed"), ("heldout", "held-out")):
         scores = results[split]
         print(f"  {name:9s} ({scores['frames']:2d})  {fmt(scores['psnr'], 2):>6s}  {fmt(scores['ssim'], 3):>6s}  "
-              f"{fmt(scores['lpips'], 3):>6s}  {fmt(scores['depth_l1_cm'], 2):>8s}")
+              f"{fmt(scores['ms_ssim'], 3):>7s}  {fmt(scores['lpips'], 3):>6s}  {fmt(scores['depth_l1_cm'], 2):>8s}")
     print(f"map: {results['anchors']} anchors, {results['gaussians']} Gaussians, "
           f"snapshot {snapshot} ({results['snapshot_bytes']} bytes)")
     renders = sorted(out.glob("*_0*.png"))

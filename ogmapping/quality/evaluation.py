@@ -88,12 +88,13 @@ def ground_truth(frame: Frame, config: MapperConfig) -> Frame:
 
 
 def score(rendered: Rendering, truth: Frame, lpips: Lpips | None = None) -> dict:
-    """PSNR, SSIM, depth L1 and, with an available ``lpips``, LPIPS (None otherwise)."""
-    from ogmapping.quality.metrics import depth_l1_cm, psnr, ssim
+    """PSNR, SSIM, MS-SSIM, depth L1 and, with an available ``lpips``, LPIPS (None otherwise)."""
+    from ogmapping.quality.metrics import depth_l1_cm, ms_ssim, psnr, ssim
 
     return {
         "psnr": psnr(rendered.color, truth.rgb),
         "ssim": ssim(rendered.color, truth.rgb),
+        "ms_ssim": ms_ssim(rendered.color, truth.rgb),
         "depth_l1_cm": depth_l1_cm(rendered.depth, truth.depth),
         "lpips": lpips(rendered.color, truth.rgb) if lpips is not None else None,
     }

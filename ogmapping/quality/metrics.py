@@ -1,8 +1,10 @@
-"""Image and depth quality metrics: PSNR, SSIM, depth L1 (cm) and, where its weights are on disk, LPIPS.
+"""Image and depth quality metrics: PSNR, SSIM, MS-SSIM, depth L1 (cm) and, where its weights are on disk, LPIPS.
 
 SSIM follows the protocol of the reference numbers in ``shared/data/7scenes-redkitchen/SOURCE.md``
 (11x11 Gaussian window, sigma 1.5, 5-pixel border dropped) and reuses the loss's implementation,
-so the figure reported is the figure optimised. LPIPS is the AlexNet v0.1 metric of the
+so the figure reported is the figure optimised. MS-SSIM is what the OG-Mapping paper's "SSIM" column
+holds: it follows SplaTAM's evaluation, which scores ``pytorch_msssim.ms_ssim`` (five scales, the
+same window); it needs images over 160 pixels a side and is None below. LPIPS is the AlexNet v0.1 metric of the
 OG-Mapping paper, computed by a small torch network here (no ``lpips`` or torchvision package)
 from one safetensors file that ``python -m ogmapping.quality.lpips_weights`` (``make lpips-weights``)
 makes offline; it never downloads anything, and is reported as unavailable while the file is absent.
@@ -18,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytorch_msssim
 import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file
@@ -25,7 +28,9 @@ from safetensors.torch import load_file
 from ogmapping.optim.ssim import WINDOW_SIZE, ssim_map
 
 SSIM_BORDER = WINDOW_SIZE // 2
-METRIC_KEYS = ("psnr", "ssim", "depth_l1_cm", "lpips")
+METRIC_KEYS = ("psnr", "ssim", "ms_ssim", "depth_l1_cm", "lpips")
+# MS-SSIM halves the image four times and then still needs a whole window: a side of more than this.
+MS_SSIM_MIN_SIDE = (WINDOW_SIZE - 1) * 2**4
 # Where the LPIPS weights file is looked for: this variable, else DEFAULT_LPIPS_WEIGHTS.
 LPIPS_WEIGHTS_ENV = "OGMAP_LPIPS_WEIGHTS"
 DEFAULT_LPIPS_WEIGHTS = Path("~/.cache/ogmapping/lpips_alex.safetensors")
@@ -56,6 +61,15 @@ def ssim(pred: ArrayLike, gt: ArrayLike) -> float:
         raise ValueError(f"ssim needs images larger than {2 * SSIM_BORDER} pixels a side, got {a.shape}")
     full = ssim_map(a, b, compiled=a.device.type == b.device.type == "cpu")  # nothing needs a gradient
     return float(full[SSIM_BORDER:-SSIM_BORDER, SSIM_BORDER:-SSIM_BORDER].mean())
+
+
+def ms_ssim(pred: ArrayLike, gt: ArrayLike) -> float | None:
+    """MS-SSIM of two (H, W, 3) images in [0, 1] (``pytorch_msssim``'s defaults, float32 as SplaTAM
+    scores it), or None for an image whose shorter side is at most ``MS_SSIM_MIN_SIDE`` pixels."""
+    a, b = (_tensor(x).float().permute(2, 0, 1)[None] for x in (pred, gt))
+    if min(a.shape[-2:]) <= MS_SSIM_MIN_SIDE:
+        return None
+    return float(pytorch_msssim.ms_ssim(a, b, data_range=1.0, size_average=True))
 
 
 def depth_l1_cm(pred_depth: ArrayLike, gt_depth: ArrayLike) -> float:
