@@ -40,7 +40,7 @@ from ogmapping.optim.lazy_adam import LazyAdam
 from ogmapping.optim.losses import TrackingMask, mapping_loss, tracking_loss, tracking_mask, tracking_residuals
 from ogmapping.optim.pose_newton import Residuals, newton_track
 from ogmapping.optim.poses import TRACK_CHECK_STEPS, PoseCorrection, PoseReport, settled
-from ogmapping.optim.step_budget import step_multiple
+from ogmapping.optim.step_budget import step_count_multiple, step_multiple
 from ogmapping.persist import snapshot, training
 from ogmapping.persist.state import MapState
 from ogmapping.render import Camera, rasterize, rasterize_batch
@@ -195,7 +195,7 @@ class Mapper:
         with self._timed("keyframes"):
             codes = self.octree.seen_from(depth, frame.color_intrinsics, placed)
             is_keyframe = self.keyframes.should_insert(codes)
-            multiple = step_multiple(self.config.keyframes, frame.color_intrinsics)
+            multiple = step_count_multiple(self.config.keyframes, frame.color_intrinsics)
             iterations = multiple * self._iterations_for(is_keyframe)
             if is_keyframe:
                 self.keyframes.insert(Keyframe.capture(frame.index, rgb, depth, frame.color_intrinsics, c2w, codes,
@@ -309,7 +309,7 @@ class Mapper:
     def _iterations_for(self, is_keyframe: bool) -> int:
         """k for a keyframe (more for the very first), ``frame_iterations`` for any other frame, but
         no more than ``frame_renders`` renders of the view and its window (at least one step); the
-        frame then gets ``step_multiple`` times this (by the image's resolution).
+        frame then gets ``step_count_multiple`` times this (by the image's resolution).
 
         The cap bounds a streamed frame's cost as the window fills: with ``frame_renders`` 4 a frame
         with a full window (the view, a local and two global keyframes) takes one step, a frame whose

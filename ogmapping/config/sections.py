@@ -23,6 +23,7 @@ Backend = Literal["auto", RasterizerBackend]
 Allocation = Literal["octree", "unique", "projection"]  # map densification: the paper's, naive, SplaTAM's
 Window = Literal["dynamic", "random", "overlap", "coverage"]  # the paper's, or a fixed window (random: ESLAM's)
 Growth = Literal["anchor", "error", "none"]  # the paper's progressive growth, Scaffold-GS's error-based, none
+StepsGrowth = Literal["linear", "area"]  # step counts times the step multiple, or times its square
 
 MAX_OCTREE_LEVEL = 4
 MAX_SCALED_OFFSETS = 32  # model.offsets_by_resolution never makes more Gaussians per anchor than this
@@ -123,6 +124,10 @@ class KeyframeConfig:
     # least 1): x1 up to about 1.5 times 600x340's width, x2 at 1200x680; 0: never scaled. A finer
     # image holds more detail for the same map to learn ("Steps by resolution").
     steps_reference_pixels: int = ranged(204000, 0)
+    # How those four step counts grow: "linear", times that multiple (x2 at 1200x680); "area", times its
+    # square (x4 at 1200x680), as the pixels grow. The by-resolution switches of the other sections take
+    # the multiple itself either way; x1 up to about 900x510 either way ("Steps by resolution").
+    steps_growth: StepsGrowth = "linear"
 
 
 @dataclass
