@@ -1,8 +1,8 @@
 """Score a stored map again with today's metrics, without mapping again.
 
-``ogmap run`` scores a map once, with the metrics of its day. A map at the paper's resolution takes the
-CPU the better part of an hour, so when a metric joins (MS-SSIM, the paper's "SSIM") the maps already
-made are scored from their ``map.safetensors``: the snapshot holds what the run rendered (the map's
+``ogmap run`` scores a map once, with the metrics of its day; mapping again at the paper's resolution
+costs the CPU minutes a map, rendering seconds. So when a metric joins (MS-SSIM, the paper's "SSIM") the
+maps already made are scored from their ``map.safetensors``: the snapshot holds what the run rendered (the map's
 average where it keeps one), and this renders every streamed and held-out view of the same frames at
 the same poses. The figures this prints for PSNR, SSIM and LPIPS match the run's own results.json (a
 check it prints), so a new metric stands beside figures of the same map.

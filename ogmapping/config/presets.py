@@ -31,8 +31,8 @@ PRESET_VALUES: dict[str, dict[str, Any]] = {
         "model.initial_visible": 0.95,  # no seed lottery of the first Gaussians' opacity ("Visible start")
         "keyframes.global_count": 2,  # worth the tenth of the speed it costs ("Keyframes and the window")
         "model.hash_by_resolution": True,  # cells half the size at 1200x680 ("Hash grid by resolution")
-        # Four times the steps at 1200x680, not two: 21 a frame, within the paper's 5.6 FPS at 8 ms a step
-        # ("Steps by resolution").
+        # Four times the steps at 1200x680, not two: 21 a frame on Replica room0, within the paper's 5.6 FPS
+        # at 8 ms a step ("Four times the steps in `dense`").
         "keyframes.steps_growth": "area",
     },
     "sparse": {
