@@ -231,7 +231,8 @@ class Mapper:
         """On the first frame, with ``model.offsets_by_resolution``, ``model.anchor_colour_by_resolution``,
         ``model.hash_by_resolution``, ``octree.levels_by_resolution``, ``loss.ssim_by_resolution`` or
         ``optim.average_decay_by_resolution``: ``n_offsets``, the hash grid's finest resolution or the SSIM
-        weight times the frame's step multiple, anchor colours on, one octree level more, or the other
+        weight times the frame's step multiple (the SSIM weight times its square with ``loss.ssim_growth``
+        "area"), anchor colours on, one octree level more, or the other
         average decay, kept in the config; a model whose shape changes is rebuilt (still empty), drawn
         afresh from the seed. A multiple of 1 keeps everything as it was, so such maps are exactly as
         without them."""
@@ -248,7 +249,8 @@ class Mapper:
         if multiple == 1:
             return
         if ssim:
-            loss.ssim = min(loss.ssim * multiple, MAX_LOSS_WEIGHT)
+            grown = multiple * multiple if loss.ssim_growth == "area" else multiple
+            loss.ssim = min(loss.ssim * grown, MAX_LOSS_WEIGHT)
         if average:
             optim.average_decay = average
             self.average = MapAverage(self.anchors, self.decoders, optim.average_decay, optim.average_growth)

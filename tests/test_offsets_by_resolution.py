@@ -100,6 +100,14 @@ def test_a_finer_first_frame_weighs_ssim_more_and_the_snapshot_keeps_the_weight(
     assert_same_map(mapper, {**overrides, "loss.ssim_by_resolution": "false", "loss.ssim": "0.2"}, frames)
 
 
+def test_area_growth_weighs_ssim_by_the_square_of_the_multiple():
+    overrides = {**TINY, "loss.ssim_by_resolution": "true", "loss.ssim_growth": "area", "loss.ssim": "0.1",
+                 "model.offsets_by_resolution": "false", "keyframes.steps_reference_pixels": "1200"}
+    _, mapper, frames = _mapped(overrides)
+    assert mapper.config.loss.ssim == 0.4 and not mapper.config.loss.ssim_by_resolution
+    assert_same_map(mapper, {**overrides, "loss.ssim_by_resolution": "false", "loss.ssim": "0.4"}, frames)
+
+
 def test_a_finer_first_frame_turns_anchor_colours_on_as_set_by_hand_and_the_snapshot_keeps_them():
     overrides = {**TINY, "model.anchor_colour_by_resolution": "true", "keyframes.steps_reference_pixels": "1200"}
     config, mapper, frames = _mapped(overrides)

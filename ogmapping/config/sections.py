@@ -23,7 +23,7 @@ Backend = Literal["auto", RasterizerBackend]
 Allocation = Literal["octree", "unique", "projection"]  # map densification: the paper's, naive, SplaTAM's
 Window = Literal["dynamic", "random", "overlap", "coverage"]  # the paper's, or a fixed window (random: ESLAM's)
 Growth = Literal["anchor", "error", "none"]  # the paper's progressive growth, Scaffold-GS's error-based, none
-StepsGrowth = Literal["linear", "area"]  # step counts times the step multiple, or times its square
+ResolutionGrowth = Literal["linear", "area"]  # a value times the step multiple, or times its square
 
 MAX_OCTREE_LEVEL = 4
 MAX_SCALED_OFFSETS = 32  # model.offsets_by_resolution never makes more Gaussians per anchor than this
@@ -127,7 +127,7 @@ class KeyframeConfig:
     # How those four step counts grow: "linear", times that multiple (x2 at 1200x680); "area", times its
     # square (x4 at 1200x680), as the pixels grow. The by-resolution switches of the other sections take
     # the multiple itself either way; x1 up to about 900x510 either way ("Steps by resolution").
-    steps_growth: StepsGrowth = "linear"
+    steps_growth: ResolutionGrowth = "linear"
 
 
 @dataclass
@@ -154,6 +154,9 @@ class LossConfig:
     # ``model.offsets_by_resolution`` is: a finer image holds finer structure, which the L1 term, spread
     # over four times the pixels, barely asks for ("SSIM by resolution").
     ssim_by_resolution: bool = False
+    # ...times the multiple ("linear", x2 at 1200x680) or its square ("area", x4), as ``keyframes.steps_growth``
+    # grows the steps ("SSIM by resolution").
+    ssim_growth: ResolutionGrowth = "linear"
     # Weight of a step's view (the streamed frame or the new keyframe) in its loss against each window
     # keyframe's 1, once the window is full (it draws all its global keyframes); before, 1 like them.
     # It divides the step's loss, which a view alone would make 0 / 0 at 0.
