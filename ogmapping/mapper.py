@@ -232,10 +232,9 @@ class Mapper:
         ``model.hash_by_resolution``, ``octree.levels_by_resolution``, ``loss.ssim_by_resolution`` or
         ``optim.average_decay_by_resolution``: ``n_offsets``, the hash grid's finest resolution or the SSIM
         weight times the frame's step multiple (the SSIM weight times its square with ``loss.ssim_growth``
-        "area"), anchor colours on, one octree level more, or the other
-        average decay, kept in the config; a model whose shape changes is rebuilt (still empty), drawn
-        afresh from the seed. A multiple of 1 keeps everything as it was, so such maps are exactly as
-        without them."""
+        "area"), anchor colours on, one octree level more, or the other average decay, kept in the config;
+        a model whose shape changes is rebuilt (still empty), drawn afresh from the seed. A multiple of 1
+        keeps everything as it was, so such maps are exactly as without them."""
         model, octree, loss, optim = self.config.model, self.config.octree, self.config.loss, self.config.optim
         offsets, colours, hashed = (model.offsets_by_resolution, model.anchor_colour_by_resolution,
                                     model.hash_by_resolution)

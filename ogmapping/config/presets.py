@@ -34,7 +34,7 @@ PRESET_VALUES: dict[str, dict[str, Any]] = {
         # Four times the steps at 1200x680, not two: 21 a frame on Replica room0, within the paper's 5.6 FPS
         # at 8 ms a step ("Four times the steps in `dense`").
         "keyframes.steps_growth": "area",
-        # ...and an SSIM weight four times its 0.2 there, not two: LPIPS 0.054 to 0.040 ("SSIM by resolution").
+        # ...and an SSIM weight four times its 0.2 there, not two: LPIPS 0.054 to 0.040 ("SSIM by area in `dense`").
         "loss.ssim_growth": "area",
     },
     "sparse": {
