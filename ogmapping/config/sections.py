@@ -155,7 +155,7 @@ class LossConfig:
     # over four times the pixels, barely asks for ("SSIM by resolution").
     ssim_by_resolution: bool = False
     # ...times the multiple ("linear", x2 at 1200x680) or its square ("area", x4), as ``keyframes.steps_growth``
-    # grows the steps ("SSIM by resolution").
+    # grows the steps ("SSIM by area").
     ssim_growth: ResolutionGrowth = "linear"
     # Weight of a step's view (the streamed frame or the new keyframe) in its loss against each window
     # keyframe's 1, once the window is full (it draws all its global keyframes); before, 1 like them.
