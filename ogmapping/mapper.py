@@ -40,7 +40,7 @@ from ogmapping.optim.lazy_adam import LazyAdam
 from ogmapping.optim.losses import TrackingMask, mapping_loss, tracking_loss, tracking_mask, tracking_residuals
 from ogmapping.optim.pose_newton import Residuals, newton_track
 from ogmapping.optim.poses import TRACK_CHECK_STEPS, PoseCorrection, PoseReport, settled
-from ogmapping.optim.step_budget import step_count_multiple, step_multiple
+from ogmapping.optim.step_budget import grown, step_count_multiple, step_multiple
 from ogmapping.persist import snapshot, training
 from ogmapping.persist.state import MapState
 from ogmapping.render import Camera, rasterize, rasterize_batch
@@ -248,8 +248,7 @@ class Mapper:
         if multiple == 1:
             return
         if ssim:
-            grown = multiple * multiple if loss.ssim_growth == "area" else multiple
-            loss.ssim = min(loss.ssim * grown, MAX_LOSS_WEIGHT)
+            loss.ssim = min(loss.ssim * grown(multiple, loss.ssim_growth), MAX_LOSS_WEIGHT)
         if average:
             optim.average_decay = average
             self.average = MapAverage(self.anchors, self.decoders, optim.average_decay, optim.average_growth)

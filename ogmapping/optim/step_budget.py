@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 
 from ogmapping.config import KeyframeConfig
+from ogmapping.config.sections import ResolutionGrowth
 from ogmapping.frames.camera import Intrinsics
 
 
@@ -23,8 +24,12 @@ def step_multiple(settings: KeyframeConfig, intrinsics: Intrinsics) -> int:
     return max(1, math.floor(linear + 0.5))
 
 
+def grown(multiple: int, growth: ResolutionGrowth) -> int:
+    """What a value that grows with the image is multiplied by: ``multiple`` ("linear"), or its square
+    ("area"), as the pixels grow."""
+    return multiple * multiple if growth == "area" else multiple
+
+
 def step_count_multiple(settings: KeyframeConfig, intrinsics: Intrinsics) -> int:
-    """What a frame's configured step counts are multiplied by: ``step_multiple``, squared with
-    ``steps_growth`` "area"."""
-    multiple = step_multiple(settings, intrinsics)
-    return multiple * multiple if settings.steps_growth == "area" else multiple
+    """What a frame's configured step counts are multiplied by: ``step_multiple`` grown by ``steps_growth``."""
+    return grown(step_multiple(settings, intrinsics), settings.steps_growth)
