@@ -89,7 +89,7 @@ def test_newton_steps_lower_the_loss_and_take_the_pose_towards_the_truth(tracked
     refined = correction.refined(torch.as_tensor(frame.c2w, dtype=torch.float32)).detach().double().numpy()
     before_shift = _pixel_shift(frame, truth, frame.c2w)
     assert before_shift > 0.5, before_shift
-    assert _pixel_shift(frame, truth, refined) < 0.9 * before_shift
+    assert _pixel_shift(frame, truth, refined) < 0.75 * before_shift
     assert correction.steps == done.steps and not correction.clamped
 
 
