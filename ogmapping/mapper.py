@@ -228,32 +228,42 @@ class Mapper:
                      for array in (frame.rgb, frame.depth, frame.c2w))
 
     def _fit_to(self, intrinsics: Intrinsics) -> None:
-        """On the first frame, with ``model.offsets_by_resolution``, ``model.anchor_colour_by_resolution``,
-        ``model.hash_by_resolution``, ``octree.levels_by_resolution``, ``loss.ssim_by_resolution`` or
-        ``optim.average_decay_by_resolution``: ``n_offsets``, the hash grid's finest resolution or the SSIM
-        weight times the frame's step multiple (the SSIM weight times its square with ``loss.ssim_growth``
-        "area"), anchor colours on, one octree level more, or the other average decay, kept in the config;
-        a model whose shape changes is rebuilt (still empty), drawn afresh from the seed. A multiple of 1
-        keeps everything as it was, so such maps are exactly as without them."""
+        """On the first frame, the by-resolution switches resolved against the frame's step multiple and kept
+        in the config (each switch then cleared): ``n_offsets`` (``model.offsets_by_resolution``), the hash
+        grid's finest resolution (``model.hash_by_resolution``) and the SSIM weight (``loss.ssim_by_resolution``)
+        times the multiple, or ``n_offsets`` and the SSIM weight times its square with ``model.offsets_growth``
+        or ``loss.ssim_growth`` "area"; the SSIM weight ``loss.ssim_at_fine_resolution`` in place of either;
+        the growth threshold divided by the multiple (``refine.threshold_by_resolution``); anchor colours on
+        (``model.anchor_colour_by_resolution``); one octree level more (``octree.levels_by_resolution``); the
+        other average decay (``optim.average_decay_by_resolution``). A model whose shape changes is rebuilt
+        (still empty), drawn afresh from the seed. A multiple of 1 keeps everything as it was, so such maps
+        are exactly as without them."""
         model, octree, loss, optim = self.config.model, self.config.octree, self.config.loss, self.config.optim
+        growth = self.config.refine
         offsets, colours, hashed = (model.offsets_by_resolution, model.anchor_colour_by_resolution,
                                     model.hash_by_resolution)
         levels, ssim, average = octree.levels_by_resolution, loss.ssim_by_resolution, optim.average_decay_by_resolution
-        if not (offsets or colours or hashed or levels or ssim or average) or self.frames or len(self.anchors):
+        threshold, fine_ssim = growth.threshold_by_resolution, loss.ssim_at_fine_resolution
+        switches = (offsets, colours, hashed, levels, ssim, fine_ssim, threshold, average)
+        if not any(switches) or self.frames or len(self.anchors):
             return
         model.offsets_by_resolution = model.anchor_colour_by_resolution = model.hash_by_resolution = False
-        octree.levels_by_resolution = loss.ssim_by_resolution = False
-        optim.average_decay_by_resolution = 0.0
+        octree.levels_by_resolution = loss.ssim_by_resolution = growth.threshold_by_resolution = False
+        optim.average_decay_by_resolution = loss.ssim_at_fine_resolution = 0.0
         multiple = step_multiple(self.config.keyframes, intrinsics)
         if multiple == 1:
             return
         if ssim:
             loss.ssim = min(loss.ssim * grown(multiple, loss.ssim_growth), MAX_LOSS_WEIGHT)
+        if fine_ssim:
+            loss.ssim = fine_ssim
+        if threshold:
+            growth.grad_threshold = growth.grad_threshold / multiple
         if average:
             optim.average_decay = average
             self.average = MapAverage(self.anchors, self.decoders, optim.average_decay, optim.average_growth)
         if offsets:
-            model.n_offsets = min(model.n_offsets * multiple, MAX_SCALED_OFFSETS)
+            model.n_offsets = min(model.n_offsets * grown(multiple, model.offsets_growth), MAX_SCALED_OFFSETS)
         colours = colours and not model.anchor_colour
         if colours:
             model.anchor_colour = True

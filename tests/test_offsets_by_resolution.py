@@ -1,8 +1,9 @@
 """``model.offsets_by_resolution``, ``model.anchor_colour_by_resolution``, ``model.hash_by_resolution``,
-``octree.levels_by_resolution``, ``loss.ssim_by_resolution`` and ``optim.average_decay_by_resolution``:
-Gaussians per anchor, the hash grid's finest resolution and the SSIM weight times the first frame's step
-multiple, and anchor colours, one octree level more and another average decay where that multiple is 2
-or more."""
+``octree.levels_by_resolution``, ``loss.ssim_by_resolution``, ``loss.ssim_at_fine_resolution``,
+``refine.threshold_by_resolution`` and ``optim.average_decay_by_resolution``: Gaussians per anchor, the hash
+grid's finest resolution and the SSIM weight times the first frame's step multiple, the growth threshold
+divided by it, and anchor colours, one octree level more, another SSIM weight and another average decay
+where that multiple is 2 or more."""
 
 from __future__ import annotations
 
@@ -47,7 +48,8 @@ def test_a_multiple_of_one_maps_exactly_as_without_it():
     for scaled in ("false", "true"):
         overrides = {**TINY, "model.offsets_by_resolution": scaled, "octree.levels_by_resolution": scaled,
                      "loss.ssim_by_resolution": scaled, "model.anchor_colour_by_resolution": scaled,
-                     "model.hash_by_resolution": scaled,
+                     "model.hash_by_resolution": scaled, "refine.threshold_by_resolution": scaled,
+                     "loss.ssim_at_fine_resolution": "0.8" if scaled == "true" else "0",
                      "optim.average_decay_by_resolution": "0.85" if scaled == "true" else "0"}
         mapper = Mapper(resolve("sparse-fast", overrides=overrides))
         for frame in frames:
@@ -55,6 +57,8 @@ def test_a_multiple_of_one_maps_exactly_as_without_it():
         assert mapper.config.model.n_offsets == 5 and not mapper.config.model.offsets_by_resolution
         assert mapper.config.octree.max_level == 2 and not mapper.config.octree.levels_by_resolution
         assert mapper.config.loss.ssim == 0.2 and not mapper.config.loss.ssim_by_resolution
+        assert mapper.config.loss.ssim_at_fine_resolution == 0
+        assert mapper.config.refine.grad_threshold == 2e-4 and not mapper.config.refine.threshold_by_resolution
         assert not mapper.config.model.anchor_colour and not mapper.config.model.anchor_colour_by_resolution
         assert mapper.config.optim.average_decay == 0 and not mapper.config.optim.average_decay_by_resolution
         maps.append(mapper.state().tensors)
@@ -75,6 +79,15 @@ def test_a_finer_first_frame_builds_more_gaussians_per_anchor_and_the_config_kee
     for frame in _frames(2):
         again.process(frame)
     assert torch.equal(again.anchors.offsets, mapper.anchors.offsets)  # drawn afresh from the seed: the same map
+
+
+def test_area_growth_builds_gaussians_per_anchor_by_the_square_of_the_multiple():
+    overrides = {**TINY, "model.offsets_by_resolution": "true", "model.offsets_growth": "area",
+                 "keyframes.steps_reference_pixels": "1200"}
+    config, mapper, frames = _mapped(overrides)
+    assert mapper.anchors.offsets.shape[1] == 20 and mapper.config.model.n_offsets == 20
+    assert config.model.n_offsets == 5  # the caller's config is left alone
+    assert_same_map(mapper, {**overrides, "model.offsets_by_resolution": "false", "model.n_offsets": "20"}, frames)
 
 
 def test_a_finer_first_frame_adds_an_octree_level_and_the_snapshot_keeps_it():
@@ -106,6 +119,32 @@ def test_area_growth_weighs_ssim_by_the_square_of_the_multiple():
     _, mapper, frames = _mapped(overrides)
     assert mapper.config.loss.ssim == 0.4 and not mapper.config.loss.ssim_by_resolution
     assert_same_map(mapper, {**overrides, "loss.ssim_by_resolution": "false", "loss.ssim": "0.4"}, frames)
+
+
+def test_a_fine_first_frame_takes_the_other_ssim_weight_in_place_of_the_grown_one():
+    overrides = {**TINY, "loss.ssim_by_resolution": "true", "loss.ssim_growth": "area", "loss.ssim": "0.1",
+                 "loss.ssim_at_fine_resolution": "0.8", "model.offsets_by_resolution": "false",
+                 "keyframes.steps_reference_pixels": "1200"}
+    config, mapper, frames = _mapped(overrides)
+    assert mapper.config.loss.ssim == 0.8 and mapper.config.loss.ssim_at_fine_resolution == 0
+    assert config.loss.ssim == 0.1 and config.loss.ssim_at_fine_resolution == 0.8  # the caller's is left alone
+    restored = Mapper.restore(mapper.snapshot())
+    assert restored.config.loss.ssim == 0.8 and restored.config.loss.ssim_at_fine_resolution == 0
+    assert_same_map(mapper, {**overrides, "loss.ssim_by_resolution": "false", "loss.ssim_at_fine_resolution": "0",
+                             "loss.ssim": "0.8"}, frames)
+
+
+def test_a_finer_first_frame_lowers_the_growth_threshold_as_set_by_hand_and_the_snapshot_keeps_it():
+    overrides = {**TINY, "refine.threshold_by_resolution": "true", "refine.grad_threshold": "1.5e-4",
+                 "model.offsets_by_resolution": "false", "keyframes.steps_reference_pixels": "1200"}
+    config, mapper, frames = _mapped(overrides)
+    assert mapper.config.refine.grad_threshold == 0.75e-4 and not mapper.config.refine.threshold_by_resolution
+    assert mapper.decoders.n == 5 and mapper.octree.max_level == 2  # the model's shape is left alone
+    assert config.refine.grad_threshold == 1.5e-4 and config.refine.threshold_by_resolution  # the caller's is left
+    restored = Mapper.restore(mapper.snapshot())
+    assert restored.config.refine.grad_threshold == 0.75e-4 and not restored.config.refine.threshold_by_resolution
+    assert_same_map(mapper, {**overrides, "refine.threshold_by_resolution": "false",
+                             "refine.grad_threshold": "0.75e-4"}, frames)
 
 
 def test_a_finer_first_frame_turns_anchor_colours_on_as_set_by_hand_and_the_snapshot_keeps_them():

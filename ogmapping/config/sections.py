@@ -58,6 +58,9 @@ class ModelConfig:
     # sees as more pixels ("Gaussians by resolution"). Resolved when the first frame arrives: the map
     # is then built with the count, and the config keeps it (with this cleared).
     offsets_by_resolution: bool = False
+    # ...times the multiple ("linear", x2 at 1200x680) or its square ("area", x4), as ``keyframes.steps_growth``
+    # grows the steps: the pixels an anchor's patch covers grow with the area ("Gaussians by area").
+    offsets_growth: ResolutionGrowth = "linear"
     feature_dim: int = ranged(32, 1)
     hidden_dim: int = ranged(32, 1)
     hash_levels: int = ranged(8, 1)
@@ -141,6 +144,11 @@ class RefineConfig:
     prune_min_observations: int = ranged(10, 0)  # anchors seen fewer times are never pruned
     max_new_anchors: int = ranged(20000, 0)  # cap per growth step, keeps one step bounded
     growth: Growth = "anchor"
+    # ``grad_threshold`` divided by the first frame's step multiple (``keyframes.steps_reference_pixels``; half
+    # at 1200x680, as it is up to about 900x510), resolved as ``model.offsets_by_resolution`` is: a finer
+    # image resolves edges that a coarser one blurs, and the anchors that draw them grow only where the
+    # threshold lets them ("Growth by resolution").
+    threshold_by_resolution: bool = False
 
 
 @dataclass
@@ -157,6 +165,11 @@ class LossConfig:
     # ...times the multiple ("linear", x2 at 1200x680) or its square ("area", x4), as ``keyframes.steps_growth``
     # grows the steps ("SSIM by area").
     ssim_growth: ResolutionGrowth = "linear"
+    # The SSIM weight where the first frame's step multiple is 2 or more (1200x680), in place of the one
+    # grown above (0: the grown one), resolved then as ``model.offsets_by_resolution`` is: `sparse` keeps a
+    # small weight for speed on small images ("Loss weights"), which at 1200x680 leaves its SSIM and LPIPS
+    # short of what the same map reaches with `dense`'s weight there ("Growth by resolution").
+    ssim_at_fine_resolution: float = _weight(0.0)
     # Weight of a step's view (the streamed frame or the new keyframe) in its loss against each window
     # keyframe's 1, once the window is full (it draws all its global keyframes); before, 1 like them.
     # It divides the step's loss, which a view alone would make 0 / 0 at 0.
