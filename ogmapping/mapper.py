@@ -239,16 +239,16 @@ class Mapper:
         (still empty), drawn afresh from the seed. A multiple of 1 keeps everything as it was, so such maps
         are exactly as without them."""
         model, octree, loss, optim = self.config.model, self.config.octree, self.config.loss, self.config.optim
-        growth = self.config.refine
+        refining = self.config.refine
         offsets, colours, hashed = (model.offsets_by_resolution, model.anchor_colour_by_resolution,
                                     model.hash_by_resolution)
         levels, ssim, average = octree.levels_by_resolution, loss.ssim_by_resolution, optim.average_decay_by_resolution
-        threshold, fine_ssim = growth.threshold_by_resolution, loss.ssim_at_fine_resolution
+        threshold, fine_ssim = refining.threshold_by_resolution, loss.ssim_at_fine_resolution
         switches = (offsets, colours, hashed, levels, ssim, fine_ssim, threshold, average)
         if not any(switches) or self.frames or len(self.anchors):
             return
         model.offsets_by_resolution = model.anchor_colour_by_resolution = model.hash_by_resolution = False
-        octree.levels_by_resolution = loss.ssim_by_resolution = growth.threshold_by_resolution = False
+        octree.levels_by_resolution = loss.ssim_by_resolution = refining.threshold_by_resolution = False
         optim.average_decay_by_resolution = loss.ssim_at_fine_resolution = 0.0
         multiple = step_multiple(self.config.keyframes, intrinsics)
         if multiple == 1:
@@ -258,7 +258,7 @@ class Mapper:
         if fine_ssim:
             loss.ssim = fine_ssim
         if threshold:
-            growth.grad_threshold = growth.grad_threshold / multiple
+            refining.grad_threshold = refining.grad_threshold / multiple
         if average:
             optim.average_decay = average
             self.average = MapAverage(self.anchors, self.decoders, optim.average_decay, optim.average_growth)

@@ -59,7 +59,7 @@ class ModelConfig:
     # is then built with the count, and the config keeps it (with this cleared).
     offsets_by_resolution: bool = False
     # ...times the multiple ("linear", x2 at 1200x680) or its square ("area", x4), as ``keyframes.steps_growth``
-    # grows the steps: the pixels an anchor's patch covers grow with the area ("Gaussians by area").
+    # grows the steps: the pixels an anchor's patch covers grow with the area ("Growth by resolution").
     offsets_growth: ResolutionGrowth = "linear"
     feature_dim: int = ranged(32, 1)
     hidden_dim: int = ranged(32, 1)
@@ -145,7 +145,7 @@ class RefineConfig:
     max_new_anchors: int = ranged(20000, 0)  # cap per growth step, keeps one step bounded
     growth: Growth = "anchor"
     # ``grad_threshold`` divided by the first frame's step multiple (``keyframes.steps_reference_pixels``; half
-    # at 1200x680, as it is up to about 900x510), resolved as ``model.offsets_by_resolution`` is: a finer
+    # at 1200x680, unchanged up to about 900x510), resolved as ``model.offsets_by_resolution`` is: a finer
     # image resolves edges that a coarser one blurs, and the anchors that draw them grow only where the
     # threshold lets them ("Growth by resolution").
     threshold_by_resolution: bool = False
