@@ -24,8 +24,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 
-from ogmapping.config import ConfigBounds, MapperConfig
-from ogmapping.config.sections import MAX_HASH_RESOLUTION, MAX_LOSS_WEIGHT, MAX_OCTREE_LEVEL, MAX_SCALED_OFFSETS
+from ogmapping.config import ConfigBounds, MapperConfig, by_resolution
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.geometry import intrinsics_matrix, world_to_camera
@@ -40,7 +39,7 @@ from ogmapping.optim.lazy_adam import LazyAdam
 from ogmapping.optim.losses import TrackingMask, mapping_loss, tracking_loss, tracking_mask, tracking_residuals
 from ogmapping.optim.pose_newton import Residuals, newton_track
 from ogmapping.optim.poses import TRACK_CHECK_STEPS, PoseCorrection, PoseReport, settled
-from ogmapping.optim.step_budget import grown, step_count_multiple, step_multiple
+from ogmapping.optim.step_budget import step_count_multiple, step_multiple
 from ogmapping.persist import snapshot, training
 from ogmapping.persist.state import MapState
 from ogmapping.render import Camera, rasterize, rasterize_batch
@@ -228,51 +227,17 @@ class Mapper:
                      for array in (frame.rgb, frame.depth, frame.c2w))
 
     def _fit_to(self, intrinsics: Intrinsics) -> None:
-        """On the first frame, the by-resolution switches resolved against the frame's step multiple and kept
-        in the config (each switch then cleared): ``n_offsets`` (``model.offsets_by_resolution``), the hash
-        grid's finest resolution (``model.hash_by_resolution``) and the SSIM weight (``loss.ssim_by_resolution``)
-        times the multiple, or ``n_offsets`` and the SSIM weight times its square with ``model.offsets_growth``
-        or ``loss.ssim_growth`` "area"; the SSIM weight ``loss.ssim_at_fine_resolution`` in place of either;
-        the growth threshold divided by the multiple (``refine.threshold_by_resolution``); anchor colours on
-        (``model.anchor_colour_by_resolution``); one octree level more (``octree.levels_by_resolution``); the
-        other average decay (``optim.average_decay_by_resolution``). A model whose shape changes is rebuilt
-        (still empty), drawn afresh from the seed. A multiple of 1 keeps everything as it was, so such maps
-        are exactly as without them."""
-        model, octree, loss, optim = self.config.model, self.config.octree, self.config.loss, self.config.optim
-        refining = self.config.refine
-        offsets, colours, hashed = (model.offsets_by_resolution, model.anchor_colour_by_resolution,
-                                    model.hash_by_resolution)
-        levels, ssim, average = octree.levels_by_resolution, loss.ssim_by_resolution, optim.average_decay_by_resolution
-        threshold, fine_ssim = refining.threshold_by_resolution, loss.ssim_at_fine_resolution
-        switches = (offsets, colours, hashed, levels, ssim, fine_ssim, threshold, average)
-        if not any(switches) or self.frames or len(self.anchors):
+        """On the first frame, the config's by-resolution switches resolved against the frame's step multiple
+        (``ogmapping.config.by_resolution``); a model whose shape changes is rebuilt (still empty), drawn
+        afresh from the seed. A multiple of 1 keeps everything as it was, so such maps are exactly as
+        without the switches."""
+        if self.frames or len(self.anchors) or not by_resolution.pending(self.config):
             return
-        model.offsets_by_resolution = model.anchor_colour_by_resolution = model.hash_by_resolution = False
-        octree.levels_by_resolution = loss.ssim_by_resolution = refining.threshold_by_resolution = False
-        optim.average_decay_by_resolution = loss.ssim_at_fine_resolution = 0.0
-        multiple = step_multiple(self.config.keyframes, intrinsics)
-        if multiple == 1:
-            return
-        if ssim:
-            loss.ssim = min(loss.ssim * grown(multiple, loss.ssim_growth), MAX_LOSS_WEIGHT)
-        if fine_ssim:
-            loss.ssim = fine_ssim
-        if threshold:
-            refining.grad_threshold = refining.grad_threshold / multiple
-        if average:
-            optim.average_decay = average
+        resolved = by_resolution.resolve_switches(self.config, step_multiple(self.config.keyframes, intrinsics))
+        optim = self.config.optim
+        if resolved.averaged:
             self.average = MapAverage(self.anchors, self.decoders, optim.average_decay, optim.average_growth)
-        if offsets:
-            model.n_offsets = min(model.n_offsets * grown(multiple, model.offsets_growth), MAX_SCALED_OFFSETS)
-        colours = colours and not model.anchor_colour
-        if colours:
-            model.anchor_colour = True
-        hashed = hashed and model.encoding == "hash"
-        if hashed:
-            model.hash_max_resolution = min(model.hash_max_resolution * multiple, MAX_HASH_RESOLUTION)
-        if levels:
-            octree.max_level = min(octree.max_level + 1, MAX_OCTREE_LEVEL)
-        if offsets or colours or hashed or levels:
+        if resolved.reshaped:
             self.generator.manual_seed(self.config.seed)
             with self.lock:
                 self._build_model(self.config)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 
 from ogmapping.config import KeyframeConfig
-from ogmapping.config.sections import ResolutionGrowth
+from ogmapping.config.by_resolution import grown
 from ogmapping.frames.camera import Intrinsics
 
 
@@ -22,12 +22,6 @@ def step_multiple(settings: KeyframeConfig, intrinsics: Intrinsics) -> int:
         return 1
     linear = math.sqrt(intrinsics.width * intrinsics.height / settings.steps_reference_pixels)
     return max(1, math.floor(linear + 0.5))
-
-
-def grown(multiple: int, growth: ResolutionGrowth) -> int:
-    """What a value that grows with the image is multiplied by: ``multiple`` ("linear"), or its square
-    ("area"), as the pixels grow."""
-    return multiple * multiple if growth == "area" else multiple
 
 
 def step_count_multiple(settings: KeyframeConfig, intrinsics: Intrinsics) -> int:
