@@ -128,7 +128,7 @@ def map_and_score(config, device, streamed, heldout, lpips: Lpips) -> dict[str, 
             per_frame.append({**score(rendered, truth), "lpips": lpips(rendered.color, truth.rgb)})
         record[split] = summarise(per_frame)
     stats = mapper.stats()
-    cells = torch.stack([mapper.anchors.codes, mapper.anchors.levels])
+    cells = torch.stack([mapper.model.anchors.codes, mapper.model.anchors.levels])
     return {
         **record,
         "processing_fps": len(streamed) / seconds,

@@ -27,7 +27,7 @@ import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts
 import numba
 import torch
 
-from ogmapping.render import cpu_backend, torch_backend
+from ogmapping.render import Camera, SplatSet, cpu_backend, torch_backend
 
 PARAMS = ("means", "quats", "scales", "opacities", "colors")
 
@@ -52,7 +52,7 @@ def forward_backward(backend, params, viewmat, K, width, height, weights):
     """One render plus backward of a loss touching colour, depth and alpha; returns time and results."""
     leaves = [p.clone().requires_grad_(True) for p in params]
     start = time.perf_counter()
-    out = backend.rasterize(*leaves, viewmat, K, width, height, None)
+    out = backend.rasterize(SplatSet(*leaves), Camera(viewmat, K, width, height))
     loss = (out.color * weights[0]).sum() + (out.depth * weights[1]).sum() + (out.alpha * weights[2]).sum()
     loss.backward()
     elapsed = time.perf_counter() - start

@@ -67,7 +67,8 @@ def main() -> None:
             data = checkpoint.encode(identity, Position(sequence, frame.index), state)
             encoded = time.perf_counter() - start
             checkpoint.write_atomically(checkpoints.path, data)
-            taken.append({"sequence": sequence, "keyframes": len(mapper.keyframes), "anchors": len(mapper.anchors),
+            taken.append({"sequence": sequence, "keyframes": len(mapper.keyframes),
+                          "anchors": len(mapper.model.anchors),
                           "bytes": len(data), "capture_s": captured, "encode_s": encoded - captured,
                           "write_fsync_s": time.perf_counter() - start - encoded,
                           "total_s": time.perf_counter() - start})

@@ -39,8 +39,9 @@ def main() -> None:
         for index, value in zip(selection.heldout, psnr, strict=True):
             stretches.setdefault((index - first) // args.stretch, []).append(value)
         summary = " ".join(f"{np.mean(values):.2f}" for _, values in sorted(stretches.items()))
-        print(f"{args.preset} [{setting}]: {run.fps(len(sequence.streamed)):.2f} FPS, {mapper.iterations} iterations, "
-              f"{len(mapper.anchors)} anchors; held-out PSNR {psnr.mean():.2f} dB; "
+        print(f"{args.preset} [{setting}]: {run.fps(len(sequence.streamed)):.2f} FPS, "
+              f"{mapper.model.iterations} iterations, "
+              f"{len(mapper.model.anchors)} anchors; held-out PSNR {psnr.mean():.2f} dB; "
               f"per {args.stretch} frames: {summary}", flush=True)
 
 

@@ -41,7 +41,8 @@ def main() -> None:
             scores.append(f"{name} PSNR {quality['psnr']:.2f} dB, SSIM {quality['ssim']:.3f}, "
                           f"depth L1 {quality['depth_l1_cm']:.2f} cm")
         print(f"{args.preset} [{setting}]: {len(streamed) / seconds:.2f} FPS ({seconds:.0f} s), {'; '.join(scores)}, "
-              f"{keyframes} keyframes, {mapper.iterations} iterations, {len(mapper.anchors)} anchors", flush=True)
+              f"{keyframes} keyframes, {mapper.model.iterations} iterations, {len(mapper.model.anchors)} anchors",
+              flush=True)
 
 
 if __name__ == "__main__":

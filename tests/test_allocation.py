@@ -45,8 +45,8 @@ def test_unique_and_octree_mappers_build_the_same_map():
     for mapper in maps:
         for position in range(len(source)):
             mapper.process(source[position])
-    assert torch.equal(maps[0].anchors.codes, maps[1].anchors.codes)
-    assert torch.equal(maps[0].anchors.offsets, maps[1].anchors.offsets)
+    assert torch.equal(maps[0].model.anchors.codes, maps[1].model.anchors.codes)
+    assert torch.equal(maps[0].model.anchors.offsets, maps[1].model.anchors.offsets)
 
 
 def test_projection_on_an_empty_map_allocates_every_observed_cell():
@@ -96,5 +96,5 @@ def test_mapper_runs_every_switch_off_the_defaults():
     mapper = Mapper(resolve("sparse", overrides=overrides))
     results = [mapper.process(source[position]) for position in range(len(source))]
     assert all(result.keyframe for result in results)
-    assert len(mapper.anchors) >= mapper.octree.count(0) > 0
-    assert max(mapper.anchors.level_counts(2)[1:]) > 0, "error-based growth added finer anchors"
+    assert len(mapper.model.anchors) >= mapper.model.octree.count(0) > 0
+    assert max(mapper.model.anchors.level_counts(2)[1:]) > 0, "error-based growth added finer anchors"

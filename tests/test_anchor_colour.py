@@ -60,15 +60,15 @@ def test_new_anchors_start_at_their_cells_mean_colour_before_any_step():
     on average over its n slots and seen from the allocating frame, the logit of its cell's mean colour."""
     for preset in ("sparse", "dense"):
         mapper, frame = _first_frame_only(preset, **{"model.anchor_colour_start": "cell"})
-        anchors = mapper.anchors
+        anchors = mapper.model.anchors
         rows = torch.arange(len(anchors))
         c2w = torch.as_tensor(frame.c2w, dtype=torch.float32)
         to_camera = c2w[:3, 3] - anchors.positions
         distances = to_camera.norm(dim=-1, keepdim=True)
         with torch.no_grad():
-            _, decoder, _ = mapper.decoders.logits(mapper._features(rows), to_camera / distances, distances)
+            _, decoder, _ = mapper.model.decoders.logits(mapper.model.features(rows), to_camera / distances, distances)
             colour = with_anchor_colours(decoder, anchors.colours, rows).view(len(anchors), -1, 3).mean(1)
-        target, seen = cell_colour_logits(mapper.octree, anchors.codes, torch.as_tensor(frame.rgb),
+        target, seen = cell_colour_logits(mapper.model.octree, anchors.codes, torch.as_tensor(frame.rgb),
                                           torch.as_tensor(frame.depth), frame.color_intrinsics, c2w)
         assert int(seen.sum()) == len(anchors), "every new anchor's cell holds points of the frame"
         assert torch.allclose(colour, target, atol=1e-4), preset
@@ -80,16 +80,16 @@ def test_dense_and_sparse_start_new_anchors_at_the_decoders_colour_and_sparse_fa
         config = resolve(preset)
         assert config.model.anchor_colour and config.model.anchor_colour_start == "zero", preset
         mapper, _ = _first_frame_only(preset)
-        assert torch.equal(mapper.anchors.colours.detach(), torch.zeros(len(mapper.anchors), 3)), preset
+        assert torch.equal(mapper.model.anchors.colours.detach(), torch.zeros(len(mapper.model.anchors), 3)), preset
 
 
 def test_switched_off_the_map_has_no_anchor_colours():
     source = SyntheticSource(n_frames=1, width=64, height=48)
     mapper = Mapper(resolve("sparse", overrides={"keyframes.first_iterations": 0, "model.anchor_colour": False}))
     mapper.process(source[0])
-    assert mapper.anchors.colours.shape == (len(mapper.anchors), 0)
+    assert mapper.model.anchors.colours.shape == (len(mapper.model.anchors), 0)
     assert "anchors.colours" not in mapper.state().tensors
-    assert "colours" not in {group["name"] for group in mapper.optimizer.param_groups}
+    assert "colours" not in {group["name"] for group in mapper.model.optimizer.param_groups}
 
 
 def test_an_unknown_start_is_refused_by_name():
@@ -101,16 +101,16 @@ def test_colours_learn_and_survive_a_snapshot_and_old_snapshots_still_load():
     source = SyntheticSource(n_frames=2, width=64, height=48)
     mapper = Mapper(resolve("sparse", overrides={"keyframes.first_iterations": 6, "model.anchor_colour": True}))
     mapper.process(source[0])
-    started = mapper.anchors.colours.detach().clone()
+    started = mapper.model.anchors.colours.detach().clone()
     mapper.process(source[1])
-    assert not torch.equal(mapper.anchors.colours.detach()[: len(started)], started), "colours are optimised"
+    assert not torch.equal(mapper.model.anchors.colours.detach()[: len(started)], started), "colours are optimised"
     restored = Mapper.restore(mapper.snapshot())
-    with mapper.lock, mapper.average.applied():  # a snapshot holds the map that renders: the average
-        assert torch.allclose(restored.anchors.colours, mapper.anchors.colours, atol=1e-2)
+    with mapper.lock, mapper.model.average.applied():  # a snapshot holds the map that renders: the average
+        assert torch.allclose(restored.model.anchors.colours, mapper.model.anchors.colours, atol=1e-2)
     state = decode(mapper.snapshot())
     del state.tensors["anchors.colours"]
     older = Mapper.restore(encode(state))
-    assert torch.equal(older.anchors.colours, torch.zeros(len(mapper.anchors), 3))
+    assert torch.equal(older.model.anchors.colours, torch.zeros(len(mapper.model.anchors), 3))
     frame = source[1]
     assert np.isfinite(older.render(frame.c2w, frame.color_intrinsics).color).all()
 

@@ -82,12 +82,12 @@ def _mapped(overrides: dict[str, str], frames: int = 3) -> tuple[Mapper, list]:
 
 def test_queries_and_snapshots_see_the_average_and_training_the_live_map():
     mapper, loaded = _mapped({"optim.average_decay": "0.9"})
-    live = mapper.anchors.offsets.detach().clone()
+    live = mapper.model.anchors.offsets.detach().clone()
     pose, camera = loaded[1].c2w, loaded[1].color_intrinsics
     rendered = mapper.render(pose, camera)
-    assert torch.equal(mapper.anchors.offsets, live)
-    with mapper.lock, torch.no_grad(), mapper.average.applied():
-        assert not torch.equal(mapper.anchors.offsets, live)
+    assert torch.equal(mapper.model.anchors.offsets, live)
+    with mapper.lock, torch.no_grad(), mapper.model.average.applied():
+        assert not torch.equal(mapper.model.anchors.offsets, live)
     restored = Mapper.from_state(mapper.state())  # what a snapshot holds, at full precision
     assert np.array_equal(restored.render(pose, camera).color, rendered.color)
     off, _ = _mapped({})
@@ -98,7 +98,7 @@ def test_a_checkpoint_carries_the_average_and_resumes_it_exactly():
     original, loaded = _mapped({"optim.average_decay": "0.8"})
     data = snapshot.encode(original.state(training_state=True), half=False)
     resumed = Mapper.from_state(snapshot.decode(data), training_state=True)
-    assert torch.equal(resumed.anchors.average_steps, original.anchors.average_steps)
+    assert torch.equal(resumed.model.anchors.average_steps, original.model.anchors.average_steps)
     for frame in loaded[3:]:
         original.process(frame)
         resumed.process(frame)
@@ -111,6 +111,6 @@ def test_a_checkpoint_written_before_the_average_was_kept_starts_it_afresh():
     state = original.state(training_state=True)
     state.tensors = {name: value for name, value in state.tensors.items() if "average" not in name}
     resumed = Mapper.from_state(state, training_state=True)
-    assert int(resumed.anchors.average_steps.sum()) == 0 and resumed.average.decoder_steps == 0
+    assert int(resumed.model.anchors.average_steps.sum()) == 0 and resumed.model.average.decoder_steps == 0
     steps = resumed.process(loaded[3]).iterations
-    assert resumed.average.decoder_steps == steps and int(resumed.anchors.average_steps.max()) == steps
+    assert resumed.model.average.decoder_steps == steps and int(resumed.model.anchors.average_steps.max()) == steps

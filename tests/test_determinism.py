@@ -36,4 +36,4 @@ def test_the_seed_picks_the_initialisation():
     same = [Mapper(resolve("sparse", overrides={"seed": 3})) for _ in range(2)]
     _assert_same(*same)
     other = Mapper(resolve("sparse", overrides={"seed": 4}))
-    assert not torch.equal(same[0].decoders.color[0].weight, other.decoders.color[0].weight)
+    assert not torch.equal(same[0].model.decoders.color[0].weight, other.model.decoders.color[0].weight)

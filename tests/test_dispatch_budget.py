@@ -56,8 +56,8 @@ class DispatchCount(TorchDispatchMode):
 
 
 def staged(mapper: Mapper, count: DispatchCount):
-    """``mapper._timed`` that also tells ``count`` which stage is running."""
-    timed = mapper._timed
+    """``mapper.model.timed`` that also tells ``count`` which stage is running."""
+    timed = mapper.model.timed
 
     @contextmanager
     def stage(name: str) -> Iterator[None]:
@@ -79,7 +79,7 @@ def steady_step_count(case: str, monkeypatch: pytest.MonkeyPatch) -> DispatchCou
     config = resolve("sparse", overrides={"backend": backend, "keyframes.first_iterations": "2",
                                           "keyframes.iterations": "1"})
     mapper = Mapper(config, "cpu")
-    mapper.profile = dataclasses.replace(mapper.profile, shared_decode=bool(shared))
+    mapper.model.profile = dataclasses.replace(mapper.profile, shared_decode=bool(shared))
     for position in frames.selection.streamed[:MAPPED]:
         mapper.process(frames.load(position))
     frame = prepare(frames.load(frames.selection.streamed[MAPPED]), config.octree.depth_min, config.octree.depth_max)
@@ -89,11 +89,11 @@ def steady_step_count(case: str, monkeypatch: pytest.MonkeyPatch) -> DispatchCou
     window = mapper.keyframes.keyframes[-2:]
     assert len(window) == 2, "the counted step renders three views"
     count = DispatchCount()
-    monkeypatch.setattr(mapper, "_timed", staged(mapper, count))
+    monkeypatch.setattr(mapper.model, "timed", staged(mapper, count))
     with torch_threads(mapper.profile.threads):
-        mapper._iteration(view, window)
+        mapper.steps.step(view, window)
         with count:
-            mapper._iteration(view, window)
+            mapper.steps.step(view, window)
     return count
 
 

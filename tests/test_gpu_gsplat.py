@@ -61,10 +61,8 @@ def random_scene(seed: int, n: int = 300) -> tuple[dict[str, torch.Tensor], torc
 def render(backend: str, scene: dict[str, torch.Tensor], viewmat: torch.Tensor, background,
            blur: float = COVARIANCE_BLUR):
     leaves = {k: v.cuda().requires_grad_() for k, v in scene.items()}
-    out = rasterize(
-        *(leaves[k] for k in PARAMS), viewmat.cuda(), K.cuda(), WIDTH, HEIGHT, background, backend=backend,
-        blur=blur,
-    )
+    splats = SplatSet(*(leaves[k] for k in PARAMS))
+    out = rasterize(splats, Camera(viewmat.cuda(), K.cuda(), WIDTH, HEIGHT, blur), background, backend=backend)
     return out, leaves
 
 
@@ -137,7 +135,7 @@ def test_missing_gsplat_names_the_install_command() -> None:
         pytest.skip("gsplat is installed")
     scene, viewmat = random_scene(0, n=4)
     with pytest.raises(ImportError, match=r"gsplat is not installed.*pip install"):
-        rasterize(*(scene[k] for k in PARAMS), viewmat, K, WIDTH, HEIGHT, backend="gsplat")
+        rasterize(SplatSet(*(scene[k] for k in PARAMS)), Camera(viewmat, K, WIDTH, HEIGHT), backend="gsplat")
 
 
 @pytest.mark.gpu

@@ -94,7 +94,7 @@ def step(mapper: Mapper, view: View) -> torch.Tensor:
     """One optimisation iteration on ``view`` (the newest keyframe) and a drawn window, as a keyframe's
     are, on the mapper's stream as ``process`` runs them."""
     with on_stream(mapper.stream):
-        return mapper._iteration(view, mapper.keyframes.draw_window(view_is_newest=True))
+        return mapper.steps.step(view, mapper.keyframes.draw_window(view_is_newest=True))
 
 
 def test_step_time_and_launches_are_reported(steady: tuple[Mapper, View, str], capsys) -> None:
@@ -116,8 +116,8 @@ def test_step_time_and_launches_are_reported(steady: tuple[Mapper, View, str], c
         "gpu": torch.cuda.get_device_name(mapper.device),
         "torch": torch.__version__,
         "window views": 1 + len(mapper.keyframes.draw_window(view_is_newest=True)),
-        "anchors": len(mapper.anchors),
-        "gaussians": mapper.last_gaussians,
+        "anchors": len(mapper.model.anchors),
+        "gaussians": mapper.model.last_gaussians,
         "steps timed": TIMED_STEPS,
         "step ms, CUDA events, median / min": [round(statistics.median(device_ms), 2), round(min(device_ms), 2)],
         "step ms, host, median / min": [round(statistics.median(host_ms), 2), round(min(host_ms), 2)],

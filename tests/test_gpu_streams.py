@@ -10,8 +10,9 @@ import pytest
 import torch
 
 from ogmapping.config import resolve
-from ogmapping.mapper import Mapper, Rendered
+from ogmapping.mapper import Mapper
 from ogmapping.quality.evaluation import open_frames
+from ogmapping.queries import Rendered
 
 pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")]
 FRAMES = 8

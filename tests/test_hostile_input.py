@@ -66,7 +66,7 @@ def test_a_frame_stops_at_its_deadline_and_when_cancelled(source: SyntheticSourc
     mapper = Mapper(resolve("sparse-fast", overrides={**SMALL, "keyframes.first_iterations": 500}))
     result = mapper.process(source[0], Budget(seconds=1.0))
     assert result.stopped is Stop.DEADLINE and 0 < result.iterations < 500 and result.seconds < 10
-    assert mapper.iterations == result.iterations, "what the frame learnt stays in the map"
+    assert mapper.model.iterations == result.iterations, "what the frame learnt stays in the map"
     cancelled = Budget(cancelled=threading.Event())
     cancelled.cancelled.set()
     result = mapper.process(source[1], cancelled)
@@ -94,11 +94,11 @@ def test_gaussians_carried_out_of_range_grow_nothing(source: SyntheticSource) ->
     mapper = Mapper(resolve("sparse-fast", overrides={**SMALL, **growing}))
     mapper.process(source[0])
     with torch.no_grad():
-        mapper.anchors.offsets.fill_(1e9)
-    mapper.anchors.spawned.fill_(False)  # every thrown Gaussian a growth candidate again
+        mapper.model.anchors.offsets.fill_(1e9)
+    mapper.model.anchors.spawned.fill_(False)  # every thrown Gaussian a growth candidate again
     mapper.process(source[1])
-    thrown = mapper.anchors.offsets.abs().amax(dim=-1) > 1e8
-    assert thrown.any() and not mapper.anchors.spawned[thrown].any(), "a Gaussian out of range proposed an anchor"
+    thrown = mapper.model.anchors.offsets.abs().amax(dim=-1) > 1e8
+    assert thrown.any() and not mapper.model.anchors.spawned[thrown].any(), "a Gaussian out of range proposed an anchor"
 
 
 def test_the_map_reaches_as_far_as_its_finest_cells_allow() -> None:

@@ -100,11 +100,11 @@ def test_window_scale_stops_at_the_minimum_width():
     from ogmapping.mapper import Mapper
 
     mapper = Mapper(resolve("sparse", overrides={"keyframes.window_scale": 0.5, "keyframes.window_min_width": 160}))
-    assert mapper._window_scale(640) == 0.5
-    assert mapper._window_scale(320) == 0.5
-    assert mapper._window_scale(240) == 160 / 240
-    assert mapper._window_scale(160) == 1.0
-    assert mapper._window_scale(80) == 1.0
+    assert mapper.steps.window_scale(640) == 0.5
+    assert mapper.steps.window_scale(320) == 0.5
+    assert mapper.steps.window_scale(240) == 160 / 240
+    assert mapper.steps.window_scale(160) == 1.0
+    assert mapper.steps.window_scale(80) == 1.0
 
 
 def test_a_frame_between_keyframes_draws_the_newest_keyframe_as_local():
@@ -205,16 +205,16 @@ def test_frame_renders_caps_a_streamed_frames_steps_as_the_window_fills():
     overrides = {"keyframes.frame_iterations": 3, "keyframes.frame_renders": 4, "keyframes.global_count": 2,
                  "keyframes.local_threshold": 0.5}
     mapper = Mapper(resolve("sparse", overrides=overrides))
-    assert mapper._iterations_for(is_keyframe=False) == 0, "nothing to train before the first keyframe"
+    assert mapper.iterations_for(is_keyframe=False) == 0, "nothing to train before the first keyframe"
     mapper.keyframes.insert(keyframe(0, [1, 2]))
-    assert mapper._iterations_for(is_keyframe=False) == 2, "view + newest keyframe: 2 renders a step"
+    assert mapper.iterations_for(is_keyframe=False) == 2, "view + newest keyframe: 2 renders a step"
     mapper.keyframes.insert(keyframe(1, [100, 101]))
     mapper.keyframes.insert(keyframe(2, [200, 201]))
-    assert mapper._iterations_for(is_keyframe=False) == 1, "view + newest + two global: 4 renders a step"
+    assert mapper.iterations_for(is_keyframe=False) == 1, "view + newest + two global: 4 renders a step"
     mapper.config.keyframes.frame_renders = 1
-    assert mapper._iterations_for(is_keyframe=False) == 1, "never below one step"
+    assert mapper.iterations_for(is_keyframe=False) == 1, "never below one step"
     mapper.config.keyframes.frame_renders = 0
-    assert mapper._iterations_for(is_keyframe=False) == 3, "0: frame_iterations as it is"
+    assert mapper.iterations_for(is_keyframe=False) == 3, "0: frame_iterations as it is"
 
 
 def test_loss_view_weighs_the_view_once_the_window_is_full():
@@ -227,8 +227,8 @@ def test_loss_view_weighs_the_view_once_the_window_is_full():
     mapper.keyframes.insert(keyframe(0, [1, 2]))
     mapper.keyframes.insert(keyframe(1, [100, 101]))
     assert not mapper.keyframes.is_full(), "one global keyframe of two"
-    assert mapper._window_weights(mapper.keyframes.draw_window(True)) == [1.0, 1.0]
+    assert mapper.steps.window_weights(mapper.keyframes.draw_window(True)) == [1.0, 1.0]
     mapper.keyframes.insert(keyframe(2, [200, 201]))
     assert mapper.keyframes.is_full()
-    assert mapper._window_weights(mapper.keyframes.draw_window(False)) == [0.5, 1.0, 1.0, 1.0]
-    assert mapper._window_weights([]) == [0.5], "the view alone (a window that draws nothing)"
+    assert mapper.steps.window_weights(mapper.keyframes.draw_window(False)) == [0.5, 1.0, 1.0, 1.0]
+    assert mapper.steps.window_weights([]) == [0.5], "the view alone (a window that draws nothing)"

@@ -70,7 +70,7 @@ def test_a_finer_first_frame_builds_more_gaussians_per_anchor_and_the_config_kee
     # 80x60 against a reference of 1200 pixels: a linear multiple of sqrt(4) = 2.
     overrides = {**TINY, "model.offsets_by_resolution": "true", "keyframes.steps_reference_pixels": "1200"}
     config, mapper, _ = _mapped(overrides)
-    assert mapper.anchors.offsets.shape[1] == 10 and mapper.decoders.n == 10
+    assert mapper.model.anchors.offsets.shape[1] == 10 and mapper.model.decoders.n == 10
     assert config.model.n_offsets == 5 and config.model.offsets_by_resolution  # the caller's config is left alone
     restored = Mapper.restore(mapper.snapshot())
     assert restored.config.model.n_offsets == 10 and not restored.config.model.offsets_by_resolution
@@ -78,14 +78,15 @@ def test_a_finer_first_frame_builds_more_gaussians_per_anchor_and_the_config_kee
     again = Mapper(config)
     for frame in _frames(2):
         again.process(frame)
-    assert torch.equal(again.anchors.offsets, mapper.anchors.offsets)  # drawn afresh from the seed: the same map
+    # drawn afresh from the seed: the same map
+    assert torch.equal(again.model.anchors.offsets, mapper.model.anchors.offsets)
 
 
 def test_area_growth_builds_gaussians_per_anchor_by_the_square_of_the_multiple():
     overrides = {**TINY, "model.offsets_by_resolution": "true", "model.offsets_growth": "area",
                  "keyframes.steps_reference_pixels": "1200"}
     config, mapper, frames = _mapped(overrides)
-    assert mapper.anchors.offsets.shape[1] == 20 and mapper.config.model.n_offsets == 20
+    assert mapper.model.anchors.offsets.shape[1] == 20 and mapper.config.model.n_offsets == 20
     assert config.model.n_offsets == 5  # the caller's config is left alone
     assert_same_map(mapper, {**overrides, "model.offsets_by_resolution": "false", "model.n_offsets": "20"}, frames)
 
@@ -94,11 +95,11 @@ def test_a_finer_first_frame_adds_an_octree_level_and_the_snapshot_keeps_it():
     overrides = {**TINY, "octree.levels_by_resolution": "true", "octree.max_level": "1",
                  "model.offsets_by_resolution": "false", "keyframes.steps_reference_pixels": "1200"}
     config, mapper, _ = _mapped(overrides)
-    assert mapper.octree.max_level == 2 and mapper.config.octree.max_level == 2
-    assert mapper.decoders.n == 5  # the Gaussians per anchor are left alone
+    assert mapper.model.octree.max_level == 2 and mapper.config.octree.max_level == 2
+    assert mapper.model.decoders.n == 5  # the Gaussians per anchor are left alone
     assert config.octree.max_level == 1 and config.octree.levels_by_resolution  # the caller's config is left alone
     restored = Mapper.restore(mapper.snapshot())
-    assert restored.octree.max_level == 2 and not restored.config.octree.levels_by_resolution
+    assert restored.model.octree.max_level == 2 and not restored.config.octree.levels_by_resolution
 
 
 def test_a_finer_first_frame_weighs_ssim_more_and_the_snapshot_keeps_the_weight():
@@ -106,7 +107,7 @@ def test_a_finer_first_frame_weighs_ssim_more_and_the_snapshot_keeps_the_weight(
                  "keyframes.steps_reference_pixels": "1200"}
     config, mapper, frames = _mapped(overrides)
     assert mapper.config.loss.ssim == 0.2 and not mapper.config.loss.ssim_by_resolution
-    assert mapper.decoders.n == 5 and mapper.octree.max_level == 2  # the model's shape is left alone
+    assert mapper.model.decoders.n == 5 and mapper.model.octree.max_level == 2  # the model's shape is left alone
     assert config.loss.ssim == 0.1 and config.loss.ssim_by_resolution  # the caller's config is left alone
     restored = Mapper.restore(mapper.snapshot())
     assert restored.config.loss.ssim == 0.2 and not restored.config.loss.ssim_by_resolution
@@ -139,7 +140,7 @@ def test_a_finer_first_frame_lowers_the_growth_threshold_as_set_by_hand_and_the_
                  "model.offsets_by_resolution": "false", "keyframes.steps_reference_pixels": "1200"}
     config, mapper, frames = _mapped(overrides)
     assert mapper.config.refine.grad_threshold == 0.75e-4 and not mapper.config.refine.threshold_by_resolution
-    assert mapper.decoders.n == 5 and mapper.octree.max_level == 2  # the model's shape is left alone
+    assert mapper.model.decoders.n == 5 and mapper.model.octree.max_level == 2  # the model's shape is left alone
     assert config.refine.grad_threshold == 1.5e-4 and config.refine.threshold_by_resolution  # the caller's is left
     restored = Mapper.restore(mapper.snapshot())
     assert restored.config.refine.grad_threshold == 0.75e-4 and not restored.config.refine.threshold_by_resolution
@@ -150,11 +151,11 @@ def test_a_finer_first_frame_lowers_the_growth_threshold_as_set_by_hand_and_the_
 def test_a_finer_first_frame_turns_anchor_colours_on_as_set_by_hand_and_the_snapshot_keeps_them():
     overrides = {**TINY, "model.anchor_colour_by_resolution": "true", "keyframes.steps_reference_pixels": "1200"}
     config, mapper, frames = _mapped(overrides)
-    assert mapper.anchors.with_colours and mapper.config.model.anchor_colour
+    assert mapper.model.anchors.with_colours and mapper.config.model.anchor_colour
     assert not mapper.config.model.anchor_colour_by_resolution
     assert not config.model.anchor_colour and config.model.anchor_colour_by_resolution  # the caller's is left alone
     restored = Mapper.restore(mapper.snapshot())
-    assert restored.anchors.with_colours and not restored.config.model.anchor_colour_by_resolution
+    assert restored.model.anchors.with_colours and not restored.config.model.anchor_colour_by_resolution
     assert_same_map(mapper, {**overrides, "model.anchor_colour_by_resolution": "false", "model.anchor_colour": "true"},
                     frames)
 
@@ -163,11 +164,11 @@ def test_a_finer_first_frame_averages_with_the_other_decay_as_set_by_hand_and_th
     overrides = {**TINY, "optim.average_decay_by_resolution": "0.85", "model.offsets_by_resolution": "false",
                  "model.anchor_colour_by_resolution": "false", "keyframes.steps_reference_pixels": "1200"}
     config, mapper, frames = _mapped(overrides)
-    assert mapper.average.enabled and mapper.config.optim.average_decay == 0.85
+    assert mapper.model.average.enabled and mapper.config.optim.average_decay == 0.85
     assert not mapper.config.optim.average_decay_by_resolution
     assert config.optim.average_decay == 0 and config.optim.average_decay_by_resolution  # the caller's is left alone
     restored = Mapper.restore(mapper.snapshot())
-    assert restored.average.decay == 0.85 and not restored.config.optim.average_decay_by_resolution
+    assert restored.model.average.decay == 0.85 and not restored.config.optim.average_decay_by_resolution
     assert_same_map(mapper, {**overrides, "optim.average_decay_by_resolution": "0", "optim.average_decay": "0.85"},
                     frames)
 

@@ -63,8 +63,8 @@ def test_the_difference_jacobian_gives_the_losss_autograd_gradient(tracked):
     with torch.no_grad():
         correction.delta.copy_(delta)
     with mapper.lock:
-        mapper.tracking_objective(frame)(correction).backward()
-        residuals_at = mapper.tracking_residuals(frame)
+        mapper.tracker.objective(frame)(correction).backward()
+        residuals_at = mapper.tracker.residuals(frame)
         residuals, mask = residuals_at(delta, None)
         difference = jacobian(residuals_at, delta, residuals, mask).T @ torch.sign(residuals)
     autograd = correction.delta.grad
@@ -78,10 +78,10 @@ def test_newton_steps_lower_the_loss_and_take_the_pose_towards_the_truth(tracked
     settings = PosesConfig()
     correction = PoseCorrection(mapper.device)
     with mapper.lock:
-        loss_at = mapper.tracking_objective(frame)
+        loss_at = mapper.tracker.objective(frame)
         with torch.no_grad():
             before = float(loss_at(correction))
-        done = newton_track(mapper.tracking_residuals(frame), correction, settings, 3, lambda: False)
+        done = newton_track(mapper.tracker.residuals(frame), correction, settings, 3, lambda: False)
         with torch.no_grad():
             after = float(loss_at(correction))
     assert done.steps >= 1 and done.renders >= 1 + 7 * done.steps
@@ -98,7 +98,7 @@ def test_newton_track_leaves_a_held_pose_alone_and_stops_when_told(tracked):
     held = PoseCorrection(mapper.device)
     held.hold()
     with mapper.lock:
-        residuals_at = mapper.tracking_residuals(frame)
+        residuals_at = mapper.tracker.residuals(frame)
         assert newton_track(residuals_at, held, PosesConfig(), 3, lambda: False).renders == 0
         stopped = PoseCorrection(mapper.device)
         done = newton_track(residuals_at, stopped, PosesConfig(), 3, lambda: True)
@@ -110,6 +110,6 @@ def test_a_newton_step_past_the_bound_is_clamped_and_reported(tracked):
     settings = PosesConfig(max_translation=0.001, prior=0.0)
     correction = PoseCorrection(mapper.device)
     with mapper.lock:
-        newton_track(mapper.tracking_residuals(frame), correction, settings, 2, lambda: False)
+        newton_track(mapper.tracker.residuals(frame), correction, settings, 2, lambda: False)
     assert correction.clamped
     assert float(correction.translation.detach().norm()) == pytest.approx(0.001, rel=1e-5)

@@ -66,8 +66,7 @@ def render_and_grad(batched: bool, backend: str, dtype: torch.dtype, posed: bool
     if batched:
         outputs = rasterize_batch(scenes, cameras, background, backend=backend)
     else:
-        outputs = [rasterize(*(getattr(s, k) for k in PARAMS), c.viewmat, c.K, c.width, c.height, background,
-                             backend=backend, blur=c.blur) for s, c in zip(scenes, cameras, strict=True)]
+        outputs = [rasterize(s, c, background, backend=backend) for s, c in zip(scenes, cameras, strict=True)]
     weighted_loss(outputs).backward()
     results = {"background.grad": background.grad}
     for v, (out, scene, camera) in enumerate(zip(outputs, scenes, cameras, strict=True)):

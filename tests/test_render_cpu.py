@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-from ogmapping.render import cpu_backend, cpu_kernels, torch_backend
+from ogmapping.render import Camera, SplatSet, cpu_backend, cpu_kernels, torch_backend
 from ogmapping.render.rules import ALPHA_MIN, COVARIANCE_BLUR
 
 TOLERANCE = 1e-4
@@ -61,10 +61,8 @@ def render_and_grad(backend, scene, width, height, dtype, background=None, blur=
     """Render, backprop a random weighting of colour, depth and alpha; return outputs and grads."""
     leaves = {k: v.to(dtype).clone().requires_grad_(True) for k, v in scene.items()}
     bg = None if background is None else background.to(dtype)
-    out = backend.rasterize(
-        *(leaves[k] for k in PARAMS), torch.eye(4, dtype=dtype), intrinsics(width, height).to(dtype),
-        width, height, bg, blur,
-    )
+    camera = Camera(torch.eye(4, dtype=dtype), intrinsics(width, height).to(dtype), width, height, blur)
+    out = backend.rasterize(SplatSet(*(leaves[k] for k in PARAMS)), camera, bg)
     g = torch.Generator().manual_seed(123)
     loss = (
         (out.color * torch.rand(out.color.shape, generator=g).to(dtype)).sum()
@@ -168,10 +166,8 @@ def test_background_gradient() -> None:
         background = torch.tensor([0.2, 0.3, 0.4], dtype=torch.float64 if backend is torch_backend else None)
         background.requires_grad_(True)
         leaves = [scene[k].to(background.dtype) for k in PARAMS]
-        out = backend.rasterize(
-            *leaves, torch.eye(4, dtype=background.dtype), intrinsics(64, 48).to(background.dtype), 64, 48,
-            background,
-        )
+        camera = Camera(torch.eye(4, dtype=background.dtype), intrinsics(64, 48).to(background.dtype), 64, 48)
+        out = backend.rasterize(SplatSet(*leaves), camera, background)
         out.color.sum().backward()
         expected = (1.0 - out.alpha.detach()).sum().double()
         torch.testing.assert_close(background.grad.double(), expected.expand(3), rtol=1e-5, atol=1e-3)

@@ -17,7 +17,7 @@ import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts
 import pytest
 import torch
 
-from ogmapping.render import cpu_backend, cpu_projection, rasterize
+from ogmapping.render import Camera, SplatSet, cpu_backend, cpu_projection, rasterize
 from ogmapping.render.projection import FOV_MARGIN, project_gaussians
 from ogmapping.render.rules import ALPHA_MIN, COVARIANCE_BLUR
 
@@ -141,8 +141,8 @@ def test_backend_opacity_gradient_comes_from_compositing_only() -> None:
     for dtype in (torch.float64, torch.float32):
         leaves = {k: v.to(dtype).clone().requires_grad_(True) for k, v in params.items()}
         colors = torch.rand(500, 3, dtype=dtype)
-        out = cpu_backend.rasterize(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"],
-                                    colors, viewmat.to(dtype), K.to(dtype), WIDTH, HEIGHT)
+        splats = SplatSet(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], colors)
+        out = cpu_backend.rasterize(splats, Camera(viewmat.to(dtype), K.to(dtype), WIDTH, HEIGHT))
         out.means2d.sum().backward()  # means2d alone: no path to the opacities
         assert leaves["opacities"].grad is None
         assert out.means2d.grad is not None and leaves["means"].grad.dtype == dtype
@@ -200,7 +200,8 @@ def test_backend_routes_each_viewmat_its_gradient_only_when_asked(monkeypatch) -
                                   ("torch", torch.float64, True)):
         leaves = {k: v.to(dtype).clone().requires_grad_(True) for k, v in params.items()}
         pose = viewmat.to(dtype).clone().requires_grad_(posed)
-        out = rasterize(*leaves.values(), colors.to(dtype), pose, K.to(dtype), WIDTH, HEIGHT, backend=backend)
+        out = rasterize(SplatSet(*leaves.values(), colors.to(dtype)), Camera(pose, K.to(dtype), WIDTH, HEIGHT),
+                        backend=backend)
         (out.color.sum() + 0.1 * out.depth.sum() + out.alpha.sum()).backward()
         results[backend, posed] = {**{k: v.grad for k, v in leaves.items()}, "viewmat": pose.grad}
     assert asked == [False, True]
@@ -215,4 +216,5 @@ def test_intrinsics_gradient_is_refused() -> None:
     viewmat, K = camera(4)
     params, _ = scene(4, 10, viewmat, K)
     with pytest.raises(NotImplementedError, match="no gradient for K"):
-        cpu_backend.rasterize(*params.values(), torch.rand(10, 3), viewmat, K.requires_grad_(True), WIDTH, HEIGHT)
+        cpu_backend.rasterize(SplatSet(*params.values(), torch.rand(10, 3)),
+                              Camera(viewmat, K.requires_grad_(True), WIDTH, HEIGHT))

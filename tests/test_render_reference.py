@@ -13,6 +13,7 @@ import torch
 from ogmapping.render.projection import project_gaussians
 from ogmapping.render.rules import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN
 from ogmapping.render.torch_backend import rasterize
+from ogmapping.render.views import Camera, SplatSet
 
 WIDTH, HEIGHT = 8, 6
 
@@ -71,10 +72,8 @@ def naive_render(scene: dict[str, torch.Tensor], background: torch.Tensor) -> tu
 
 def render(scene: dict[str, torch.Tensor], background: torch.Tensor | None = None):
     viewmat, K = camera(scene["means"].dtype)
-    return rasterize(
-        scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["colors"],
-        viewmat, K, WIDTH, HEIGHT, background,
-    )
+    splats = SplatSet(scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["colors"])
+    return rasterize(splats, Camera(viewmat, K, WIDTH, HEIGHT), background)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
@@ -211,7 +210,7 @@ def test_gradcheck() -> None:
     inputs = tuple(scene[name].clone().requires_grad_(True) for name in names)
 
     def fn(*params: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        out = rasterize(*params, viewmat, K, WIDTH, HEIGHT, background)
+        out = rasterize(SplatSet(*params), Camera(viewmat, K, WIDTH, HEIGHT), background)
         return out.color, out.depth, out.alpha
 
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
@@ -232,12 +231,12 @@ def test_gradcheck_viewmat() -> None:
     params = tuple(scene[name] for name in ("means", "quats", "scales", "opacities", "colors"))
 
     def fn(pose: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        out = rasterize(*params, pose, K, WIDTH, HEIGHT, background)
+        out = rasterize(SplatSet(*params), Camera(pose, K, WIDTH, HEIGHT), background)
         return out.color, out.depth, out.alpha
 
     leaf = viewmat.clone().requires_grad_(True)
     assert torch.autograd.gradcheck(fn, (leaf,), eps=1e-6, atol=1e-6, rtol=1e-4)
-    out = rasterize(*params, leaf, K, WIDTH, HEIGHT, background)
+    out = rasterize(SplatSet(*params), Camera(leaf, K, WIDTH, HEIGHT), background)
     (out.color.sum() + out.depth.sum() + out.alpha.sum()).backward()
     assert bool(leaf.grad[:3].abs().gt(0).all()) and not bool(leaf.grad[3].any())
 

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from ogmapping.frames.camera import Intrinsics
-from ogmapping.render import rasterize
+from ogmapping.render import Camera, SplatSet, rasterize
 from ogmapping.render.rules import COVARIANCE_BLUR
 
 FULL = Intrinsics(fx=52.0, fy=50.0, cx=40.3, cy=29.6, width=80, height=60)
@@ -37,8 +37,9 @@ def scene_in_view(seed: int, n: int) -> dict[str, torch.Tensor]:
 
 def render(scene, intrinsics: Intrinsics, blur: float, backend: str, dtype: torch.dtype):
     K = torch.tensor(intrinsics.matrix(), dtype=dtype)
-    return rasterize(*(scene[k].to(dtype) for k in ("means", "quats", "scales", "opacities", "colors")),
-                     torch.eye(4, dtype=dtype), K, intrinsics.width, intrinsics.height, backend=backend, blur=blur)
+    splats = SplatSet(*(scene[k].to(dtype) for k in ("means", "quats", "scales", "opacities", "colors")))
+    return rasterize(splats, Camera(torch.eye(4, dtype=dtype), K, intrinsics.width, intrinsics.height, blur),
+                     backend=backend)
 
 
 @pytest.mark.parametrize(("backend", "dtype", "tolerance"), [("torch", torch.float64, 1e-9),

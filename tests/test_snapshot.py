@@ -25,8 +25,8 @@ def test_round_trip_renders_within_float16_tolerance(mapped):
     mapper, source = mapped
     data = mapper.snapshot()
     restored = Mapper.restore(data)
-    assert len(restored.anchors) == len(mapper.anchors)
-    assert restored.anchors.levels.tolist() == mapper.anchors.levels.tolist()
+    assert len(restored.model.anchors) == len(mapper.model.anchors)
+    assert restored.model.anchors.levels.tolist() == mapper.model.anchors.levels.tolist()
     for position in (0, 3):
         frame = source[position]
         before = mapper.render(frame.c2w, frame.color_intrinsics)
@@ -43,7 +43,7 @@ def test_restored_map_keeps_mapping(mapped):
     restored = Mapper.restore(mapper.snapshot())
     result = restored.process(source[1])
     assert result.keyframe and result.iterations > 0
-    assert restored.stats().frames == mapper.frames + 1
+    assert restored.stats().frames == mapper.model.frames + 1
 
 
 def test_snapshot_metadata_and_corruption(mapped):
@@ -80,7 +80,7 @@ def test_state_round_trip_is_exact(mapped):
     assert rebuilt.tensors.keys() == state.tensors.keys()
     for name, value in state.tensors.items():
         assert torch.equal(rebuilt.tensors[name], value), name
-    assert (rebuilt.frames, rebuilt.iterations) == (mapper.frames, mapper.iterations)
+    assert (rebuilt.frames, rebuilt.iterations) == (mapper.model.frames, mapper.model.iterations)
 
 
 def test_a_state_that_does_not_fit_its_config_is_refused(mapped):

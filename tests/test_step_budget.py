@@ -33,7 +33,7 @@ def test_a_mapper_at_1200x680_takes_twice_the_configured_steps() -> None:
     config = resolve("sparse")
     mapper = Mapper(config, "cpu")
     multiple = step_multiple(config.keyframes, camera(1200, 680))
-    assert multiple * mapper._iterations_for(True) == 2 * config.keyframes.first_iterations
+    assert multiple * mapper.iterations_for(True) == 2 * config.keyframes.first_iterations
 
 
 @pytest.mark.parametrize(("width", "height", "linear", "area"), [

@@ -17,7 +17,7 @@ def _mapped(preset: str) -> tuple[Mapper, list]:
 
 
 def _views(mapper: Mapper, frames: list) -> list[torch.Tensor]:
-    return [mapper._rows_in_view(torch.as_tensor(frame.c2w, dtype=torch.float32), frame.color_intrinsics)
+    return [mapper.model.rows_in_view(torch.as_tensor(frame.c2w, dtype=torch.float32), frame.color_intrinsics)
             for frame in frames]
 
 
@@ -25,14 +25,14 @@ def test_hash_features_encoded_once_match_per_view_encoding_in_value_and_table_g
     mapper, frames = _mapped("dense")
     rows = _views(mapper, frames)
     assert all(len(view) for view in rows) and len(torch.unique(torch.cat(rows))) < sum(map(len, rows))
-    weights = [torch.randn(len(view), mapper.encoding.output_dim, generator=torch.Generator().manual_seed(i))
+    weights = [torch.randn(len(view), mapper.model.encoding.output_dim, generator=torch.Generator().manual_seed(i))
                for i, view in enumerate(rows)]
     gradients = []
-    for features in (mapper._window_features(rows), mapper._features):
-        mapper.encoding.gradients.clear()
+    for features in (mapper.model.window_features(rows), mapper.model.features):
+        mapper.model.encoding.gradients.clear()
         outputs = [features(view) for view in rows]
         sum((output * weight).sum() for output, weight in zip(outputs, weights, strict=True)).backward()
-        gradients.append((outputs, mapper.encoding.gradients.dense(mapper.encoding.table.shape)))
+        gradients.append((outputs, mapper.model.encoding.gradients.dense(mapper.model.encoding.table.shape)))
     (once, once_gradient), (per_view, per_view_gradient) = gradients
     for a, b in zip(once, per_view, strict=True):
         torch.testing.assert_close(a, b)
@@ -40,9 +40,9 @@ def test_hash_features_encoded_once_match_per_view_encoding_in_value_and_table_g
     # Summed in another order (per anchor over the views, then per row), so equal to float32 rounding.
     scale = float(per_view_gradient.abs().max())
     torch.testing.assert_close(once_gradient, per_view_gradient, rtol=1e-4, atol=1e-5 * scale)
-    mapper.encoding.gradients.clear()
+    mapper.model.encoding.gradients.clear()
 
 
 def test_per_anchor_features_are_read_as_before():
     mapper, frames = _mapped("sparse")
-    assert mapper._window_features(_views(mapper, frames)) == mapper._features
+    assert mapper.model.window_features(_views(mapper, frames)) == mapper.model.features

@@ -66,7 +66,7 @@ def main() -> int:
     exact = np.asarray(frame.c2w, dtype=np.float64)
     given = read_tum(args.noisy).pose_of(frame)
     noisy = prepare(dataclasses.replace(frame, c2w=given), config.octree.depth_min, config.octree.depth_max)
-    loss_at = mapper.tracking_objective(noisy)
+    loss_at = mapper.tracker.objective(noisy)
     settings = mapper.config.poses
 
     def error(correction: PoseCorrection) -> str:
@@ -86,7 +86,7 @@ def main() -> int:
         if step < args.steps:
             (loss + correction.prior(settings)).backward()
             correction.step(settings)
-    residuals_at = mapper.tracking_residuals(noisy)
+    residuals_at = mapper.tracker.residuals(noisy)
     for step in range(args.newton):
         done = newton_track(residuals_at, correction, settings, 1, lambda: False)
         with torch.no_grad():

@@ -11,7 +11,8 @@ import numpy as np
 
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.trajectory import Trajectory, frame_key, pose_errors, write_tum
-from ogmapping.mapper import FrameResult, KeyframePose
+from ogmapping.mapper import FrameResult
+from ogmapping.queries import KeyframePose
 
 
 @dataclass

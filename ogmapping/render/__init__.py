@@ -21,10 +21,9 @@ import torch
 from ogmapping.backends import BACKENDS
 from ogmapping.render import gsplat_backend
 from ogmapping.render.output import RenderOutput
-from ogmapping.render.rules import COVARIANCE_BLUR
-from ogmapping.render.views import Camera, Splats
+from ogmapping.render.views import Camera, Splats, SplatSet
 
-__all__ = ["Camera", "RenderOutput", "Splats", "rasterize", "rasterize_batch", "resolve_backend"]
+__all__ = ["Camera", "RenderOutput", "SplatSet", "Splats", "rasterize", "rasterize_batch", "resolve_backend"]
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:
@@ -51,33 +50,20 @@ def resolve_backend(backend: str, device: torch.device) -> str:
 
 
 def rasterize(
-    means: torch.Tensor,
-    quats: torch.Tensor,
-    scales: torch.Tensor,
-    opacities: torch.Tensor,
-    colors: torch.Tensor,
-    viewmat: torch.Tensor,
-    K: torch.Tensor,
-    width: int,
-    height: int,
-    background: torch.Tensor | None = None,
-    backend: str = "auto",
-    blur: float = COVARIANCE_BLUR,
+    splats: Splats, camera: Camera, background: torch.Tensor | None = None, backend: str = "auto"
 ) -> RenderOutput:
-    """Render N Gaussians into one camera.
+    """Render N Gaussians, ``splats``, into one ``camera``.
 
-    ``means`` (N, 3) world positions, ``quats`` (N, 4) (w, x, y, z) unnormalised rotations,
-    ``scales`` (N, 3) standard deviations in metres, ``opacities`` (N,) in [0, 1], ``colors``
-    (N, 3), ``viewmat`` (4, 4) world-to-camera, ``K`` (3, 3) pixel intrinsics (pixel centres at
-    +0.5, see ``ogmapping.frames.camera``). ``blur`` (pixels^2) is added to every splat's 2D
+    ``splats.means`` (N, 3) world positions, ``quats`` (N, 4) (w, x, y, z) unnormalised rotations,
+    ``scales`` (N, 3) standard deviations in metres, ``opacities`` (N,) in [0, 1], ``colors`` (N, 3);
+    ``camera.viewmat`` (4, 4) world-to-camera, ``K`` (3, 3) pixel intrinsics (pixel centres at +0.5,
+    see ``ogmapping.frames.camera``). ``camera.blur`` (pixels^2) is added to every splat's 2D
     covariance so that none is thinner than a pixel; an image sampling every s-th pixel of another
     (``Intrinsics.strided``) reproduces that image's pixels with ``blur / s**2``.
     """
-    name = resolve_backend(backend, means.device)
+    name = resolve_backend(backend, splats.means.device)
     module = importlib.import_module(f"ogmapping.render.{name}_backend")
-    return module.rasterize(
-        means, quats, scales, opacities, colors, viewmat, K, int(width), int(height), background, float(blur)
-    )
+    return module.rasterize(splats, camera, background)
 
 
 def rasterize_batch(

@@ -27,8 +27,7 @@ from ogmapping.render import cpu_kernels as kernels
 from ogmapping.render import cpu_projection
 from ogmapping.render.output import RenderOutput, finish_output
 from ogmapping.render.projection import Projection
-from ogmapping.render.rules import COVARIANCE_BLUR
-from ogmapping.render.views import Camera, Splats, SplatSet, check_batch, parameters
+from ogmapping.render.views import Camera, Splats, check_batch, parameters
 
 
 def _depth_order(depths: np.ndarray, visible: np.ndarray) -> np.ndarray:
@@ -179,26 +178,13 @@ class _Composite(torch.autograd.Function):
         return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:9], grads[:, 9], grad_bg, None, None
 
 
-def rasterize(
-    means: torch.Tensor,
-    quats: torch.Tensor,
-    scales: torch.Tensor,
-    opacities: torch.Tensor,
-    colors: torch.Tensor,
-    viewmat: torch.Tensor,
-    K: torch.Tensor,
-    width: int,
-    height: int,
-    background: torch.Tensor | None = None,
-    blur: float = COVARIANCE_BLUR,
-) -> RenderOutput:
+def rasterize(splats: Splats, camera: Camera, background: torch.Tensor | None = None) -> RenderOutput:
     """Render with the compiled kernels; see ``ogmapping.render.rasterize`` for the arguments.
 
     ``viewmat`` may require grad (pose refinement); intrinsics are fixed here: the projection's
     backward has no gradient for ``K``, so asking for one is an error rather than a silent zero.
     """
-    scene = SplatSet(means, quats, scales, opacities, colors)
-    return rasterize_batch([scene], [Camera(viewmat, K, int(width), int(height), blur)], background)[0]
+    return rasterize_batch([splats], [camera], background)[0]
 
 
 def rasterize_batch(scenes: list[Splats], cameras: list[Camera],

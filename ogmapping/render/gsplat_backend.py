@@ -45,8 +45,8 @@ from torch.nn.functional import pad
 from torch.nn.utils.rnn import pad_sequence
 
 from ogmapping.render.output import RenderOutput
-from ogmapping.render.rules import COVARIANCE_BLUR, NEAR_PLANE
-from ogmapping.render.views import Camera, Splats, SplatSet, check_batch, parameters
+from ogmapping.render.rules import NEAR_PLANE
+from ogmapping.render.views import Camera, Splats, check_batch, parameters
 
 INSTALL_HINT = (
     "the gsplat backend needs gsplat 1.5.x (1.5.3 or later) with its CUDA kernels and a CUDA build of PyTorch: after "
@@ -135,22 +135,9 @@ def _empty(means: torch.Tensor, width: int, height: int, background: torch.Tenso
     )
 
 
-def rasterize(
-    means: torch.Tensor,
-    quats: torch.Tensor,
-    scales: torch.Tensor,
-    opacities: torch.Tensor,
-    colors: torch.Tensor,
-    viewmat: torch.Tensor,
-    K: torch.Tensor,
-    width: int,
-    height: int,
-    background: torch.Tensor | None = None,
-    blur: float = COVARIANCE_BLUR,
-) -> RenderOutput:
+def rasterize(splats: Splats, camera: Camera, background: torch.Tensor | None = None) -> RenderOutput:
     """Render with gsplat; see ``ogmapping.render.rasterize`` for shapes and conventions."""
-    scene = SplatSet(means, quats, scales, opacities, colors)
-    return rasterize_batch([scene], [Camera(viewmat, K, int(width), int(height), blur)], background)[0]
+    return rasterize_batch([splats], [camera], background)[0]
 
 
 def rasterize_batch(scenes: list[Splats], cameras: list[Camera],

@@ -15,7 +15,7 @@ from torch.utils.checkpoint import checkpoint
 
 from ogmapping.render.output import RenderOutput, finish_output
 from ogmapping.render.projection import project_gaussians, tile_grid
-from ogmapping.render.rules import ALPHA_MAX, ALPHA_MIN, COVARIANCE_BLUR, TRANSMITTANCE_MIN
+from ogmapping.render.rules import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN
 from ogmapping.render.tiles import TILE_SIZE, tile_lists
 from ogmapping.render.views import Camera, Splats, check_batch, parameters
 
@@ -67,20 +67,10 @@ def active_gaussians(
     return ((alpha > 0) & (before >= TRANSMITTANCE_MIN)).any(0)
 
 
-def rasterize(
-    means: torch.Tensor,
-    quats: torch.Tensor,
-    scales: torch.Tensor,
-    opacities: torch.Tensor,
-    colors: torch.Tensor,
-    viewmat: torch.Tensor,
-    K: torch.Tensor,
-    width: int,
-    height: int,
-    background: torch.Tensor | None = None,
-    blur: float = COVARIANCE_BLUR,
-) -> RenderOutput:
+def rasterize(splats: Splats, camera: Camera, background: torch.Tensor | None = None) -> RenderOutput:
     """Render with torch ops only; see ``ogmapping.render.rasterize`` for the arguments."""
+    means, quats, scales, opacities, colors = parameters(splats)
+    viewmat, K, width, height, blur = camera.viewmat, camera.K, camera.width, camera.height, camera.blur
     proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height, blur)
     if proj.means2d.requires_grad:
         proj.means2d.retain_grad()
@@ -131,6 +121,5 @@ def rasterize_batch(scenes: list[Splats], cameras: list[Camera],
     """Scene i into camera i, one ``rasterize`` after another: the definition of a batched render."""
     check_batch(scenes, cameras)
     return [
-        rasterize(*parameters(scene), camera.viewmat, camera.K, camera.width, camera.height, background, camera.blur)
-        for scene, camera in zip(scenes, cameras, strict=True)
+        rasterize(scene, camera, background) for scene, camera in zip(scenes, cameras, strict=True)
     ]

@@ -42,7 +42,7 @@ def test_close_interrupts_the_frame_being_mapped(tmp_path: Path) -> None:
     deadline = time.monotonic() + 60
     # The counter itself, not stats(): stats() waits for the mapper's lock, which the mapping
     # thread takes again straight after each step, so it could return only after the whole frame.
-    while session.mapper.iterations == 0 and time.monotonic() < deadline:
+    while session.mapper.model.iterations == 0 and time.monotonic() < deadline:
         time.sleep(0.05)
     start = time.monotonic()
     session.close()

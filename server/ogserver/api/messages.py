@@ -16,8 +16,9 @@ from ogapi.convert import matrix_to_list
 from ogapi.images import encode_color, encode_depth
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogmapping.mapper import FrameResult, Rendered
+from ogmapping.mapper import FrameResult
 from ogmapping.optim.poses import PoseReport
+from ogmapping.queries import Rendered
 from ogmapping.runtime.time_budget import Stop
 from ogmapping.stats import MapStats, PoseSummary
 from ogserver.api.validation import RenderSpec

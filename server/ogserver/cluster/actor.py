@@ -21,7 +21,7 @@ import ray
 from ogapi.v1 import mapping_pb2 as pb
 from ray.actor import ActorHandle
 
-from ogmapping.mapper import Rendered
+from ogmapping.queries import Rendered
 from ogmapping.runtime.profile import resolve_device
 from ogmapping.stats import MapStats
 from ogserver import LOG_FORMAT

@@ -24,7 +24,7 @@ from ray import ObjectRef
 from ray.actor import ActorHandle
 from ray.exceptions import GetTimeoutError, RayActorError, RayTaskError
 
-from ogmapping.mapper import Rendered
+from ogmapping.queries import Rendered
 from ogmapping.stats import MapStats
 from ogserver.api.validation import RenderSpec
 from ogserver.errors import ServiceError

@@ -18,7 +18,7 @@ from typing import Protocol
 
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogmapping.mapper import Rendered
+from ogmapping.queries import Rendered
 from ogmapping.stats import MapStats
 from ogserver.api.validation import RenderSpec
 from ogserver.sessions.counters import FrameTotals, SessionCounters

@@ -38,7 +38,8 @@ from ogapi import SESSION_METADATA_KEY
 from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.frames.frame import Frame
-from ogmapping.mapper import Mapper, Rendered
+from ogmapping.mapper import Mapper
+from ogmapping.queries import Rendered
 from ogmapping.runtime.time_budget import Budget
 from ogmapping.stats import MapStats
 from ogserver.access.tokens import TokenHash

@@ -1,0 +1,139 @@
+"""The mapping steps: each trains the map on a view and a freshly drawn window of keyframes, and every
+``refine.interval`` steps of the session the anchors grow and are pruned.
+
+A step decodes every view's anchors in view, rasterizes the window in one batch, weighs each view's
+loss (``loss.view``), backpropagates, gathers the screen-space gradients refinement grows from, and
+steps Adam, the hash grid's lazy Adam, the map's moving average and the pose corrections that move.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import torch
+
+from ogmapping.mapping.model import MapModel
+from ogmapping.model.gaussians import generate_window
+from ogmapping.optim import refine
+from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
+from ogmapping.optim.losses import mapping_loss
+from ogmapping.optim.poses import PoseCorrection
+from ogmapping.render import rasterize_batch
+from ogmapping.runtime.time_budget import Budget, Stop
+
+
+class MappingSteps:
+    """Trains ``model`` on views and windows drawn from ``keyframes``; ``lock`` (the mapper's) is held
+    per step, so queries are served between steps."""
+
+    def __init__(self, model: MapModel, keyframes: KeyframeSet, lock: threading.RLock) -> None:
+        self.model = model
+        self.keyframes = keyframes
+        self.lock = lock
+
+    def run(self, iterations: int, view: View | None, view_is_newest: bool, budget: Budget,
+            started: float) -> tuple[float, int, int, Stop | None]:
+        """Up to ``iterations`` steps, each on ``view`` and a freshly drawn window of keyframes (the
+        newest one is ``view`` itself when ``view_is_newest``); grow and prune every
+        ``refine.interval`` steps of the whole session (frames may get fewer steps than that).
+        Returns the last loss (read from the device once, after the loop), the anchors grown, the
+        steps done and why they stopped short, if they did."""
+        model = self.model
+        loss, grown = torch.full((), float("nan")), 0
+        for done in range(iterations):
+            if (stopped := budget.stop(started)) is not None:
+                return float(loss), grown, done, stopped
+            with self.lock:
+                loss = self.step(view, self.keyframes.draw_window(view_is_newest))
+                model.iterations += 1
+                if model.iterations % model.config.refine.interval == 0:
+                    grown += self._refine()
+        return float(loss), grown, iterations, None
+
+    def _refine(self) -> int:
+        """Grow anchors where the gradients ask for them, prune the faint ones; returns the anchors grown."""
+        model, config = self.model, self.model.config
+        with model.timed("refine"):
+            grown = refine.grow(model.anchors, model.octree, config.refine, config.octree.voxel_size, model.optimizer)
+            refine.prune(model.anchors, config.refine, model.optimizer)
+            refine.end_interval(model.anchors)
+        return grown
+
+    def step(self, view: View, keyframes: list[Keyframe]) -> torch.Tensor:
+        """One optimisation step on ``view`` and ``keyframes``; returns its loss as a tensor on the
+        device (reading it on the host would wait for the step to finish)."""
+        model, config = self.model, self.model.config
+        model.optimizer.zero_grad(set_to_none=True)
+        if model.hash_optimizer is not None:
+            model.hash_optimizer.zero_grad()
+        with model.timed("window"):
+            window = [view, *(self.drawn(keyframe) for keyframe in keyframes)]
+            moving = [(drawn, self.moves(drawn.correction, view)) for drawn in window]
+            poses = [drawn.pose() if moves else drawn.pose().detach() for drawn, moves in moving]
+            corrections = list({id(drawn.correction): drawn.correction for drawn, moves in moving if moves}.values())
+        with model.timed("decode"):
+            views = list(zip(poses, window, strict=True))
+            rows = [model.rows_in_view(pose.detach(), drawn.intrinsics) for pose, drawn in views]
+            window_gaussians = generate_window(model.anchors, model.window_features(rows), model.decoders,
+                                               [pose.detach()[:3, 3] for pose in poses], rows,
+                                               compiled=model.profile.compiled,
+                                               shared_decode=model.profile.shared_decode)
+        with model.timed("rasterize"):
+            cameras = [model.camera(pose, drawn.intrinsics) for pose, drawn in views]
+            outputs = rasterize_batch(window_gaussians, cameras, backend=model.backend)
+        renders = list(zip(window_gaussians, outputs, window, strict=True))
+        total = torch.zeros((), device=model.device)
+        weights = self.window_weights(keyframes)
+        weight_sum = sum(weights)
+        with model.timed("loss"):
+            for (gaussians, output, drawn), weight in zip(renders, weights, strict=True):
+                loss, _ = mapping_loss(output.color, output.depth, drawn.rgb, drawn.depth,
+                                       gaussians.scales, config.loss, drawn.ssim_reference,
+                                       compiled=model.profile.compiled)
+                total = total + loss * weight / weight_sum
+            for correction in corrections:
+                total = total + correction.prior(config.poses)
+        with model.timed("backward"):
+            if total.requires_grad:
+                total.backward()
+        with model.timed("statistics"):
+            for gaussians, output, drawn in renders:
+                grad = output.means2d.grad if output.means2d.requires_grad else None
+                refine.accumulate(model.anchors, gaussians, grad, output.visible,
+                                  drawn.intrinsics.width, drawn.intrinsics.height)
+        with model.timed("optimizer"):
+            model.optimizer.step()
+            if model.hash_optimizer is not None:
+                model.hash_optimizer.step()
+            model.average.update()
+            for correction in corrections:
+                correction.step(config.poses)
+        model.last_gaussians = len(renders[0][0]) if renders else 0
+        return total.detach()
+
+    def moves(self, correction: PoseCorrection | None, view: View) -> bool:
+        """Whether a step moves ``correction``: not one held at the client's pose by its tracking, and not
+        the view's without ``poses.view_steps`` (the view then keeps the pose its tracking found)."""
+        if correction is None or correction.held:
+            return False
+        return self.model.config.poses.view_steps or correction is not view.correction
+
+    def window_weights(self, keyframes: list[Keyframe]) -> list[float]:
+        """Loss weights of a step's view and its window ``keyframes``: ``loss.view`` for the view once
+        the window is full, else 1, and 1 for each keyframe. Keyframes hold what the map has to keep;
+        a streamed view, what the camera sees now (bench/RESULTS.md "Loss weights")."""
+        view = self.model.config.loss.view if self.keyframes.is_full() else 1.0
+        return [view] + [1.0] * len(keyframes)
+
+    def drawn(self, keyframe: Keyframe) -> View:
+        """A drawn keyframe as a view on the device: full size if it is local, else downscaled."""
+        if not self.keyframes.is_local(keyframe):
+            keyframe = keyframe.downscaled(self.window_scale(keyframe.intrinsics.width))
+        return keyframe.view(self.model.device, compiled=self.model.profile.compiled)
+
+    def window_scale(self, width: int) -> float:
+        """Scale for a global window keyframe: ``window_scale``, but not below ``window_min_width``
+        pixels. The view and local keyframes stay full size: they supervise what the view sees
+        (half-size local keyframes cost 1.6 dB on Replica room0 at 600x340, bench/RESULTS.md)."""
+        settings = self.model.config.keyframes
+        return min(1.0, max(settings.window_scale, settings.window_min_width / width))
