@@ -24,13 +24,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from rosbag_writer import BagRecorder, compressed_depth_16
 
-from ogmapping.datasets.rosbag.transforms import invert, rigid
+from ogmapping.datasets.rosbag.transforms import invert
 from ogmapping.datasets.sevenscenes import MEASURED_COLOR_K, SevenScenes
+from ogmapping.frames.rotation import quaternion_pose
 
 T0 = 1_700_000_000 * 10**9
 PERIOD = 33_333_333
-BASE_CAMERA = rigid(np.array([0.1, 0.0, 1.2]), np.array([0.0, 0.0, 0.0, 1.0]))
-OPTICAL = rigid(np.zeros(3), np.array([-0.5, 0.5, -0.5, 0.5]))
+BASE_CAMERA = quaternion_pose(np.array([0.1, 0.0, 1.2]), np.array([0.0, 0.0, 0.0, 1.0]))
+OPTICAL = quaternion_pose(np.zeros(3), np.array([-0.5, 0.5, -0.5, 0.5]))
 CAMERA = "camera_color_optical_frame"
 DEPTH_CAMERA = "camera_depth_optical_frame"
 

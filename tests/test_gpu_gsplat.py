@@ -19,6 +19,7 @@ import importlib.util
 import pytest
 import torch
 
+from ogmapping.frames.rotation import exp_so3
 from ogmapping.render import Camera, gsplat_backend, rasterize, rasterize_batch
 from ogmapping.render.rules import ALPHA_MAX, COVARIANCE_BLUR
 from ogmapping.render.views import SplatSet
@@ -42,10 +43,9 @@ def random_scene(seed: int, n: int = 300) -> tuple[dict[str, torch.Tensor], torc
     z = 1.5 + 2.5 * torch.rand(n, generator=g)
     x = (torch.rand(n, generator=g) - 0.5) * 1.0 * z
     y = (torch.rand(n, generator=g) - 0.5) * 0.7 * z
-    wx, wy, wz = (0.3 * torch.randn(3, generator=g)).tolist()
-    skew = torch.tensor([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
+    turn = 0.3 * torch.randn(3, generator=g)
     c2w = torch.eye(4)
-    c2w[:3, :3] = torch.linalg.matrix_exp(skew)
+    c2w[:3, :3] = exp_so3(turn)
     c2w[:3, 3] = torch.randn(3, generator=g)
     means = torch.stack([x, y, z], dim=-1) @ c2w[:3, :3].T + c2w[:3, 3]
     scene = {

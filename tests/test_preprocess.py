@@ -17,6 +17,7 @@ from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.geometry import backproject, project
 from ogmapping.frames.preprocess import clip_depth, register_depth, reproject_depth, resize_frame, stride_frame
+from ogmapping.frames.rotation import axis_angle_matrix
 
 
 def make_frame(depth: np.ndarray, depth_k: Intrinsics, color_k: Intrinsics, transform: np.ndarray | None) -> Frame:
@@ -74,10 +75,8 @@ def small_scene_depth(height: int, width: int) -> np.ndarray:
 
 
 def rigid(angle: float, axis: np.ndarray, translation: tuple[float, float, float]) -> np.ndarray:
-    axis = axis / np.linalg.norm(axis)
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
     transform = np.eye(4)
-    transform[:3, :3] = np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
+    transform[:3, :3] = axis_angle_matrix(axis / np.linalg.norm(axis), angle)
     transform[:3, 3] = translation
     return transform
 

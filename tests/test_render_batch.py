@@ -18,6 +18,7 @@ import pytest
 import torch
 from test_render_cpu import TOLERANCE, intrinsics, mixed_scene, relative_error
 
+from ogmapping.frames.rotation import exp_so3
 from ogmapping.render import Camera, rasterize, rasterize_batch
 from ogmapping.render.views import SplatSet
 
@@ -29,10 +30,9 @@ VIEWS = ((0, 300, 64, 48, 0.3), (1, 500, 64, 48, 0.075), (2, 0, 64, 48, 0.3), (3
 def pose(seed: int) -> torch.Tensor:
     """A world-to-camera matrix near the identity, so the mixed scenes stay mostly in view."""
     g = torch.Generator().manual_seed(100 + seed)
-    wx, wy, wz = (0.05 * torch.randn(3, generator=g)).tolist()
-    skew = torch.tensor([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
+    turn = 0.05 * torch.randn(3, generator=g)
     viewmat = torch.eye(4)
-    viewmat[:3, :3] = torch.linalg.matrix_exp(skew)
+    viewmat[:3, :3] = exp_so3(turn)
     viewmat[:3, 3] = 0.05 * torch.randn(3, generator=g)
     return viewmat
 

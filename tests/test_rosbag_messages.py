@@ -16,7 +16,8 @@ from ogmapping.datasets.rosbag.bagfile import MessageRef
 from ogmapping.datasets.rosbag.calibration import Calibration, undistort
 from ogmapping.datasets.rosbag.headers import read_header
 from ogmapping.datasets.rosbag.pairing import StampedImage, pair_images
-from ogmapping.datasets.rosbag.transforms import Track, TransformTree, rigid
+from ogmapping.datasets.rosbag.transforms import Track, TransformTree
+from ogmapping.frames.rotation import quaternion_pose
 
 STAMP = 1_700_000_123 * 10**9 + 456_789_012
 RNG = np.random.default_rng(3)
@@ -267,7 +268,8 @@ def test_track_takes_the_short_way_round() -> None:
 def test_tree_composes_a_chain_through_the_common_ancestor() -> None:
     tree = TransformTree()
     world_odom = _about_z(0.3, (1.0, 2.0, 0.0))
-    mount = rigid(np.array([0.2, 0.0, 0.5]), np.array([-0.5, 0.5, -0.5, 0.5]))  # a camera_link -> optical rotation
+    # a camera_link -> optical rotation
+    mount = quaternion_pose(np.array([0.2, 0.0, 0.5]), np.array([-0.5, 0.5, -0.5, 0.5]))
     tree.add("world", "odom", 0, tuple(world_odom[:3, 3]), _quaternion_z(0.3), static=True)
     tree.add("base", "cam", 0, tuple(mount[:3, 3]), (-0.5, 0.5, -0.5, 0.5), static=True)
     for second in (0, 2):

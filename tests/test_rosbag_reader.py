@@ -16,8 +16,9 @@ from rosbag_writer import BagRecorder, compressed_depth_16, compressed_depth_32,
 from ogmapping.datasets import detect_format, open_dataset
 from ogmapping.datasets.base import opencv_intrinsics
 from ogmapping.datasets.rosbag.topics import BagTopicError
-from ogmapping.datasets.rosbag.transforms import invert, rigid
+from ogmapping.datasets.rosbag.transforms import invert
 from ogmapping.datasets.synthetic import SyntheticSource
+from ogmapping.frames.rotation import quaternion_pose
 
 T0 = 1_700_000_000 * 10**9
 PERIOD = 33_333_333
@@ -52,13 +53,13 @@ def base_motion(t_ns: int) -> np.ndarray:
     """odom -> base_link: a constant turn and drive, so TF's interpolation between samples is exact."""
     seconds = (t_ns - T0) * 1e-9
     angle = 0.4 * seconds
-    return rigid(np.array([0.5 * seconds, 0.1 * seconds, 0.0]),
+    return quaternion_pose(np.array([0.5 * seconds, 0.1 * seconds, 0.0]),
                  np.array([0.0, 0.0, np.sin(angle / 2), np.cos(angle / 2)]))
 
 
-WORLD_ODOM = rigid(np.array([1.0, -2.0, 0.0]), np.array([0.0, 0.0, np.sin(0.15), np.cos(0.15)]))
-BASE_LINK = rigid(np.array([0.2, 0.0, 1.1]), np.array([0.0, 0.0, 0.0, 1.0]))
-LINK_OPTICAL = rigid(np.zeros(3), np.array(OPTICAL))
+WORLD_ODOM = quaternion_pose(np.array([1.0, -2.0, 0.0]), np.array([0.0, 0.0, np.sin(0.15), np.cos(0.15)]))
+BASE_LINK = quaternion_pose(np.array([0.2, 0.0, 1.1]), np.array([0.0, 0.0, 0.0, 1.0]))
+LINK_OPTICAL = quaternion_pose(np.zeros(3), np.array(OPTICAL))
 
 
 def write_frames(bag: BagRecorder, frames, i: int, color: str, depth: str,
@@ -157,7 +158,7 @@ def test_ros2_sqlite_odometry_mounted_by_tf_and_depth_from_its_own_camera(tmp_pa
     """Odometry gives base_link in odom, /tf_static mounts the colour camera on it and the depth camera 5 cm to
     the side; depth runs 4 ms behind colour and misses a frame, which is dropped and counted."""
     path = tmp_path / "robot_db3"
-    colour_in_depth = rigid(np.array([0.05, 0.0, 0.0]), np.array([0.0, 0.0, 0.0, 1.0]))
+    colour_in_depth = quaternion_pose(np.array([0.05, 0.0, 0.0]), np.array([0.0, 0.0, 0.0, 1.0]))
     with BagRecorder(path, ros2=True, storage="sqlite3") as bag:
         bag.write("/tf_static", T0, bag.tf(T0, [
             ("base_link", "camera_color_optical_frame", BASE_LINK @ LINK_OPTICAL),

@@ -11,9 +11,9 @@ import pytest
 from ogmapping.datasets.synthetic import trajectory as synthetic_trajectory
 from ogmapping.frames.camera import validate_pose
 from ogmapping.frames.frame import Frame
+from ogmapping.frames.rotation import axis_angle_matrix
 from ogmapping.frames.trajectory import (
     Trajectory,
-    axis_angle_matrix,
     frame_key,
     perturb,
     pose_errors,

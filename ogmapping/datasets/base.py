@@ -1,7 +1,9 @@
-"""What every dataset reader offers, and the image decoding they share.
+"""What every dataset reader offers, and what they share: frames built from fixed cameras, frames
+read from listed image files, image decoding.
 
 Readers index frames by position in their own sorted frame list, never by the numbers in file
-names, so that skipped or renumbered frames cannot shift poses against images.
+names, so that skipped or renumbered frames cannot shift poses against images. A reader of files
+keeps only what is its own format: how it finds and pairs the files, poses and cameras when it opens.
 
 Intrinsics files of the public datasets follow OpenCV's convention (pixel centres at integers);
 ``opencv_intrinsics`` moves them to ours (centres at +0.5, see ``ogmapping.frames.camera``) in one place.
@@ -10,13 +12,14 @@ Intrinsics files of the public datasets follow OpenCV's convention (pixel centre
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.camera import Intrinsics, validate_pose
 from ogmapping.frames.frame import Frame
 
 # Sensors write these raw values where they have no measurement.
@@ -59,6 +62,68 @@ class FrameSource(ABC):
             yield self._load(position)
 
 
+class CameraSource(FrameSource):
+    """A source whose cameras are fixed when it opens; every frame it builds carries them."""
+
+    color_intrinsics: Intrinsics
+    depth_intrinsics: Intrinsics
+    depth_to_color: np.ndarray | None = None  # colour-camera coordinates from depth-camera ones; None: one centre
+
+    @property
+    def intrinsics(self) -> Intrinsics:
+        return self.color_intrinsics
+
+    def _frame(self, position: int, rgb: np.ndarray, depth: np.ndarray, c2w: np.ndarray, timestamp: float) -> Frame:
+        """The frame at ``position``, with this source's cameras (``depth_to_color`` copied: frames own it)."""
+        return Frame(
+            index=position,
+            rgb=rgb,
+            depth=depth,
+            color_intrinsics=self.color_intrinsics,
+            depth_intrinsics=self.depth_intrinsics,
+            c2w=c2w,
+            timestamp=timestamp,
+            depth_to_color=None if self.depth_to_color is None else self.depth_to_color.copy(),
+        )
+
+
+@dataclass(frozen=True)
+class FrameFiles:
+    """One frame on disk: its images, its camera-to-world (or the file to read it from when the frame
+    loads, so opening a long sequence reads no pose file) and its time in seconds."""
+
+    color: Path
+    depth: Path
+    pose: np.ndarray | Path
+    timestamp: float
+
+
+class FileSource(CameraSource):
+    """A reader of the frames it lists when it opens (``_files``), depth at ``depth_scale`` units per metre."""
+
+    _files: list[FrameFiles]
+
+    def __init__(self, kind: str, root: Path, depth_scale: float) -> None:
+        self.root = root
+        self.name = f"{kind}:{root}"
+        self.depth_scale = depth_scale
+
+    def __len__(self) -> int:
+        return len(self._files)
+
+    def _load(self, position: int) -> Frame:
+        files = self._files[position]
+        c2w = self._pose(files)
+        return self._frame(position, read_rgb(files.color), read_depth(files.depth, self.depth_scale), c2w,
+                           files.timestamp)
+
+    def _pose(self, files: FrameFiles) -> np.ndarray:
+        """The frame's camera-to-world: a copy of the listed one, or its file's, checked."""
+        if isinstance(files.pose, Path):
+            return validate_pose(read_matrix(files.pose, (4, 4)), name=str(files.pose))
+        return files.pose.copy()
+
+
 def opencv_intrinsics(fx: float, fy: float, cx: float, cy: float, width: int, height: int) -> Intrinsics:
     """Our Intrinsics from values published with integer pixel centres (OpenCV, ROS, the datasets)."""
     return Intrinsics(float(fx), float(fy), float(cx) + 0.5, float(cy) + 0.5, int(width), int(height))
@@ -76,6 +141,23 @@ def explicit_intrinsics(option: Intrinsics | Sequence[float], width: int, height
     if len(values) != 4:
         raise ValueError(f"intrinsics must be an Intrinsics or (fx, fy, cx, cy), got {option!r}")
     return opencv_intrinsics(*values, width, height)
+
+
+def resolve_intrinsics(
+    option: IntrinsicsOption, published: Callable[[int, int], Intrinsics], image: Path,
+) -> Intrinsics:
+    """The user's intrinsics if given, else the dataset's own at ``image``'s (width, height): a function
+    of the size, so that a calibration file is read only when the user gave none."""
+    width, height = image_size(image)
+    if option is None:
+        return published(width, height)
+    return explicit_intrinsics(option, width, height)
+
+
+def matrix_intrinsics(path: Path, shape: tuple[int, int], width: int, height: int) -> Intrinsics:
+    """Intrinsics from a file holding K in the top left of a ``shape`` matrix (OpenCV convention)."""
+    k = read_matrix(path, shape)
+    return opencv_intrinsics(k[0, 0], k[1, 1], k[0, 2], k[1, 2], width, height)
 
 
 def read_rgb(path: Path) -> np.ndarray:

@@ -13,17 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ogmapping.datasets.base import (
-    FrameSource,
-    IntrinsicsOption,
-    explicit_intrinsics,
-    image_size,
-    opencv_intrinsics,
-    read_depth,
-    read_rgb,
-)
-from ogmapping.frames.camera import Intrinsics
-from ogmapping.frames.frame import Frame
+from ogmapping.datasets.base import FileSource, FrameFiles, IntrinsicsOption, opencv_intrinsics, resolve_intrinsics
 
 REPLICA_K = (600.0, 600.0, 599.5, 339.5)
 REPLICA_SIZE = (1200, 680)
@@ -46,61 +36,30 @@ def is_replica(path: Path) -> bool:
     return (path / "traj.txt").is_file() and results.is_dir() and bool(numbered(results, DEPTH_PATTERN))
 
 
-class Replica(FrameSource):
+class Replica(FileSource):
     """Reader for one Replica scene folder (the one holding ``results/`` and ``traj.txt``)."""
 
-    def __init__(
-        self,
-        path: str | Path,
-        intrinsics: IntrinsicsOption = None,
-        depth_scale: float = 6553.5,
-        fps: float = 30.0,
-    ) -> None:
+    def __init__(self, path: str | Path, intrinsics: IntrinsicsOption = None, depth_scale: float = 6553.5,
+                 fps: float = 30.0) -> None:
         root = Path(path)
         if not is_replica(root):
             raise ValueError(f"no Replica scene in {root}: expected traj.txt and results/depth*.png")
-        self.root = root
-        self.name = f"replica:{root}"
-        self.depth_scale = depth_scale
+        super().__init__("replica", root, depth_scale)
         self.fps = fps
 
         colors = numbered(root / "results", COLOR_PATTERN)
         depths = numbered(root / "results", DEPTH_PATTERN)
-        self._numbers = sorted(set(colors) & set(depths))
-        if not self._numbers:
+        numbers = sorted(set(colors) & set(depths))
+        if not numbers:
             raise ValueError(f"Replica scene {root}: no frame has both frame*.jpg and depth*.png")
-        self._colors = [colors[n] for n in self._numbers]
-        self._depths = [depths[n] for n in self._numbers]
 
         values = np.loadtxt(root / "traj.txt", dtype=np.float64, ndmin=2)
         if values.shape[1] != 16:
             raise ValueError(f"{root / 'traj.txt'}: expected 16 numbers per line, got {values.shape[1]}")
-        if self._numbers[-1] >= len(values):
-            raise ValueError(
-                f"{root / 'traj.txt'} has {len(values)} poses but frames run to number {self._numbers[-1]}"
-            )
-        self._poses = values[self._numbers].reshape(-1, 4, 4)
+        if numbers[-1] >= len(values):
+            raise ValueError(f"{root / 'traj.txt'} has {len(values)} poses but frames run to number {numbers[-1]}")
+        poses = values[numbers].reshape(-1, 4, 4)
+        self._files = [FrameFiles(colors[n], depths[n], pose, n / fps) for n, pose in zip(numbers, poses, strict=True)]
 
-        width, height = image_size(self._colors[0])
-        if intrinsics is None:
-            self._intrinsics = opencv_intrinsics(*REPLICA_K, *REPLICA_SIZE).resized(width, height)
-        else:
-            self._intrinsics = explicit_intrinsics(intrinsics, width, height)
-
-    def __len__(self) -> int:
-        return len(self._numbers)
-
-    @property
-    def intrinsics(self) -> Intrinsics:
-        return self._intrinsics
-
-    def _load(self, position: int) -> Frame:
-        return Frame(
-            index=position,
-            rgb=read_rgb(self._colors[position]),
-            depth=read_depth(self._depths[position], self.depth_scale),
-            color_intrinsics=self._intrinsics,
-            depth_intrinsics=self._intrinsics,
-            c2w=self._poses[position].copy(),
-            timestamp=self._numbers[position] / self.fps,
-        )
+        published = opencv_intrinsics(*REPLICA_K, *REPLICA_SIZE).resized
+        self.color_intrinsics = self.depth_intrinsics = resolve_intrinsics(intrinsics, published, colors[numbers[0]])

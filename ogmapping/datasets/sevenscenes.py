@@ -23,23 +23,20 @@ same rays that every other tool casts from this data; the shift is half a pixel 
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ogmapping.datasets.base import (
-    FrameSource,
+    FileSource,
+    FrameFiles,
     IntrinsicsOption,
     explicit_intrinsics,
     image_size,
+    matrix_intrinsics,
     opencv_intrinsics,
-    read_depth,
-    read_matrix,
-    read_rgb,
 )
-from ogmapping.frames.camera import Intrinsics, validate_pose
-from ogmapping.frames.frame import Frame
+from ogmapping.frames.camera import Intrinsics
 
 DEPTH_PATTERN = re.compile(r"^frame-(\d+)\.depth\.png$")
 DEFAULT_DEPTH_K = (585.0, 585.0, 320.0, 240.0)
@@ -47,14 +44,6 @@ MEASURED_COLOR_K = (526.5, 526.5, 321.625, 238.125)
 MEASURED_BASELINE = 0.0281  # metres: the colour camera sits this far along the depth camera's +x axis
 MEASURED_SIZE = (640, 480)
 COLOR_SUFFIXES = (".color.png", ".color.jpg")
-
-
-@dataclass(frozen=True)
-class _Entry:
-    number: int
-    color: Path
-    depth: Path
-    pose: Path
 
 
 def find_root(path: Path) -> Path | None:
@@ -65,36 +54,29 @@ def find_root(path: Path) -> Path | None:
     return None
 
 
-class SevenScenes(FrameSource):
+class SevenScenes(FileSource):
     """Reader for one 7-Scenes sequence folder (or a folder with it under ``data/``)."""
 
-    def __init__(
-        self,
-        path: str | Path,
-        color_intrinsics: str | IntrinsicsOption = "measured",
-        depth_scale: float = 1000.0,
-        fps: float = 30.0,
-    ) -> None:
+    def __init__(self, path: str | Path, color_intrinsics: str | IntrinsicsOption = "measured",
+                 depth_scale: float = 1000.0, fps: float = 30.0) -> None:
         root = find_root(Path(path))
         if root is None:
             raise ValueError(f"no 7-Scenes frames (frame-*.depth.png) in {path} or {Path(path) / 'data'}")
-        self.root = root
-        self.name = f"7scenes:{root}"
-        self.depth_scale = depth_scale
+        super().__init__("7scenes", root, depth_scale)
         self.fps = fps
-        self._entries = self._scan(root)
-        if not self._entries:
+        self._files = self._scan(root, fps)
+        if not self._files:
             raise ValueError(f"no complete 7-Scenes frame (colour + depth + pose) in {root}")
 
-        first = self._entries[0]
+        first = self._files[0]
         depth_w, depth_h = image_size(first.depth)
         color_w, color_h = image_size(first.color)
         k_file = root / "camera-intrinsics.txt"
-        k = read_matrix(k_file, (3, 3)) if k_file.exists() else None
-        depth_k = DEFAULT_DEPTH_K if k is None else (k[0, 0], k[1, 1], k[0, 2], k[1, 2])
-        self.depth_intrinsics = opencv_intrinsics(*depth_k, depth_w, depth_h)
-        # depth_to_color: colour-camera coordinates from depth-camera ones; None: the same optical centre.
-        self._color_intrinsics, self.depth_to_color = self._resolve_color(color_intrinsics, color_w, color_h)
+        if k_file.exists():
+            self.depth_intrinsics = matrix_intrinsics(k_file, (3, 3), depth_w, depth_h)
+        else:
+            self.depth_intrinsics = opencv_intrinsics(*DEFAULT_DEPTH_K, depth_w, depth_h)
+        self.color_intrinsics, self.depth_to_color = self._resolve_color(color_intrinsics, color_w, color_h)
         self._color_to_depth = None if self.depth_to_color is None else np.linalg.inv(self.depth_to_color)
 
     def _resolve_color(
@@ -112,7 +94,8 @@ class SevenScenes(FrameSource):
         raise ValueError(f"color_intrinsics must be 'measured', 'depth' or explicit values, got {option!r}")
 
     @staticmethod
-    def _scan(root: Path) -> list[_Entry]:
+    def _scan(root: Path, fps: float) -> list[FrameFiles]:
+        """The complete frames in ``root`` by frame number; poses stay in their files until a frame loads."""
         names = {p.name for p in root.iterdir()}
         entries = []
         for name in names:
@@ -123,27 +106,11 @@ class SevenScenes(FrameSource):
             color = next((stem + s for s in COLOR_SUFFIXES if stem + s in names), None)
             if color is None or stem + ".pose.txt" not in names:
                 continue
-            entries.append(_Entry(int(match.group(1)), root / color, root / name, root / (stem + ".pose.txt")))
-        return sorted(entries, key=lambda e: e.number)
+            entries.append((int(match.group(1)), stem, color))
+        return [FrameFiles(root / color, root / (stem + ".depth.png"), root / (stem + ".pose.txt"), number / fps)
+                for number, stem, color in sorted(entries, key=lambda e: e[0])]
 
-    def __len__(self) -> int:
-        return len(self._entries)
-
-    @property
-    def intrinsics(self) -> Intrinsics:
-        return self._color_intrinsics
-
-    def _load(self, position: int) -> Frame:
-        entry = self._entries[position]
-        depth_c2w = validate_pose(read_matrix(entry.pose, (4, 4)), name=str(entry.pose))
-        c2w = depth_c2w if self._color_to_depth is None else depth_c2w @ self._color_to_depth
-        return Frame(
-            index=position,
-            rgb=read_rgb(entry.color),
-            depth=read_depth(entry.depth, self.depth_scale),
-            color_intrinsics=self._color_intrinsics,
-            depth_intrinsics=self.depth_intrinsics,
-            c2w=c2w,
-            timestamp=entry.number / self.fps,
-            depth_to_color=None if self.depth_to_color is None else self.depth_to_color.copy(),
-        )
+    def _pose(self, files: FrameFiles) -> np.ndarray:
+        """The colour camera's pose: the files hold the depth camera's."""
+        depth_c2w = super()._pose(files)
+        return depth_c2w if self._color_to_depth is None else depth_c2w @ self._color_to_depth

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ogmapping.datasets.base import FrameSource
+from ogmapping.datasets.base import CameraSource
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
 
@@ -367,7 +367,7 @@ def synthetic_intrinsics(width: int, height: int) -> Intrinsics:
     return Intrinsics(fx, fx, width / 2.0, height / 2.0, width, height)
 
 
-class SyntheticSource(FrameSource):
+class SyntheticSource(CameraSource):
     """Frames rendered on demand; the same seed always gives the same scene and path."""
 
     def __init__(self, n_frames: int = 100, width: int = 320, height: int = 240, seed: int = 0) -> None:
@@ -376,8 +376,7 @@ class SyntheticSource(FrameSource):
         self.name = f"synthetic:seed={seed}"
         self.scene = SyntheticScene(seed)
         self.poses = trajectory(n_frames, seed)
-        self._intrinsics = synthetic_intrinsics(width, height)
-        k = self._intrinsics
+        k = self.color_intrinsics = self.depth_intrinsics = synthetic_intrinsics(width, height)
         u = (np.arange(width) + 0.5 - k.cx) / k.fx
         v = (np.arange(height) + 0.5 - k.cy) / k.fy
         grid_u, grid_v = np.meshgrid(u, v)
@@ -386,22 +385,12 @@ class SyntheticSource(FrameSource):
     def __len__(self) -> int:
         return len(self.poses)
 
-    @property
-    def intrinsics(self) -> Intrinsics:
-        return self._intrinsics
-
     def _load(self, position: int) -> Frame:
         c2w = self.poses[position]
         # Rays with camera z = 1, so the hit distance is the depth along the camera axis.
         dirs = np.einsum("ij,jn->in", c2w[:3, :3], self._rays)  # einsum: no BLAS threads for a 3x3
         depth, colour = self.scene.raycast(c2w[:3, 3], dirs)
-        k = self._intrinsics
-        return Frame(
-            index=position,
-            rgb=colour.reshape(k.height, k.width, 3).astype(np.float32),
-            depth=depth.reshape(k.height, k.width).astype(np.float32),
-            color_intrinsics=k,
-            depth_intrinsics=k,
-            c2w=c2w.copy(),
-            timestamp=position / FPS,
-        )
+        k = self.color_intrinsics
+        rgb = colour.reshape(k.height, k.width, 3).astype(np.float32)
+        depth_image = depth.reshape(k.height, k.width).astype(np.float32)
+        return self._frame(position, rgb, depth_image, c2w.copy(), position / FPS)

@@ -14,18 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ogmapping.datasets.base import (
-    FrameSource,
-    IntrinsicsOption,
-    explicit_intrinsics,
-    image_size,
-    opencv_intrinsics,
-    read_depth,
-    read_rgb,
-)
-from ogmapping.frames.camera import Intrinsics
-from ogmapping.frames.frame import Frame
-from ogmapping.frames.rotation import quaternion_to_matrix
+from ogmapping.datasets.base import FileSource, FrameFiles, IntrinsicsOption, opencv_intrinsics, resolve_intrinsics
+from ogmapping.frames.rotation import quaternion_pose
 
 FR1_K = (517.3, 516.5, 318.6, 255.3)
 MAX_DT = 0.02
@@ -77,25 +67,18 @@ def associate_unique(a: np.ndarray, b: np.ndarray, max_dt: float) -> list[tuple[
     return sorted(pairs)
 
 
-class TUM(FrameSource):
+class TUM(FileSource):
     """Reader for one TUM RGB-D sequence folder."""
 
-    def __init__(
-        self,
-        path: str | Path,
-        intrinsics: IntrinsicsOption = None,
-        depth_scale: float = 5000.0,
-        max_dt: float = MAX_DT,
-    ) -> None:
+    def __init__(self, path: str | Path, intrinsics: IntrinsicsOption = None, depth_scale: float = 5000.0,
+                 max_dt: float = MAX_DT) -> None:
         root = Path(path)
         if not is_tum(root):
             raise ValueError(f"no TUM RGB-D sequence in {root}: expected rgb.txt and depth.txt")
         ground_truth = root / "groundtruth.txt"
         if not ground_truth.is_file():
             raise ValueError(f"TUM sequence {root} has no groundtruth.txt; poses are required")
-        self.root = root
-        self.name = f"tum:{root}"
-        self.depth_scale = depth_scale
+        super().__init__("tum", root, depth_scale)
 
         rgb_t, rgb_rows = read_list(root / "rgb.txt", 2)
         depth_t, depth_rows = read_list(root / "depth.txt", 2)
@@ -106,41 +89,16 @@ class TUM(FrameSource):
         pose_t = pose_t[pose_order]
         poses = np.asarray([pose_rows[i] for i in pose_order], dtype=np.float64)
 
-        self._frames: list[tuple[float, Path, Path, np.ndarray]] = []
+        self._files = []
         for i, j in associate_unique(rgb_t, depth_t, max_dt):
             k, gap = nearest(rgb_t[i : i + 1], pose_t)
             if gap[0] >= max_dt:
                 continue
-            tx, ty, tz, qx, qy, qz, qw = poses[k[0]]
-            c2w = np.eye(4)
-            c2w[:3, :3] = quaternion_to_matrix(qx, qy, qz, qw)
-            c2w[:3, 3] = (tx, ty, tz)
-            self._frames.append((float(rgb_t[i]), root / rgb_rows[i][0], root / depth_rows[j][0], c2w))
-        self._frames.sort(key=lambda f: f[0])
-        if not self._frames:
+            c2w = quaternion_pose(poses[k[0], :3], poses[k[0], 3:])  # tx ty tz, then qx qy qz qw
+            self._files.append(FrameFiles(root / rgb_rows[i][0], root / depth_rows[j][0], c2w, float(rgb_t[i])))
+        self._files.sort(key=lambda f: f.timestamp)
+        if not self._files:
             raise ValueError(f"TUM sequence {root}: no colour image has depth and a pose within {max_dt} s")
 
-        width, height = image_size(self._frames[0][1])
-        if intrinsics is None:
-            self._intrinsics = opencv_intrinsics(*FR1_K, 640, 480).resized(width, height)
-        else:
-            self._intrinsics = explicit_intrinsics(intrinsics, width, height)
-
-    def __len__(self) -> int:
-        return len(self._frames)
-
-    @property
-    def intrinsics(self) -> Intrinsics:
-        return self._intrinsics
-
-    def _load(self, position: int) -> Frame:
-        timestamp, rgb_path, depth_path, c2w = self._frames[position]
-        return Frame(
-            index=position,
-            rgb=read_rgb(rgb_path),
-            depth=read_depth(depth_path, self.depth_scale),
-            color_intrinsics=self._intrinsics,
-            depth_intrinsics=self._intrinsics,
-            c2w=c2w.copy(),
-            timestamp=timestamp,
-        )
+        published = opencv_intrinsics(*FR1_K, 640, 480).resized
+        self.color_intrinsics = self.depth_intrinsics = resolve_intrinsics(intrinsics, published, self._files[0].color)

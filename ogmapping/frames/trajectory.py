@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ogmapping.frames.frame import Frame
-from ogmapping.frames.rotation import matrix_to_quaternion, quaternion_to_matrix
+from ogmapping.frames.rotation import axis_angle_matrix, matrix_to_quaternion, quaternion_pose
 
 KEY_TOLERANCE = 1e-4  # seconds: far below any camera's frame interval, above six-decimal rounding
 COLUMNS = "timestamp tx ty tz qx qy qz qw"
@@ -67,13 +67,6 @@ class Trajectory:
         return pose
 
 
-def pose_matrix(tx: float, ty: float, tz: float, qx: float, qy: float, qz: float, qw: float) -> np.ndarray:
-    pose = np.eye(4)
-    pose[:3, :3] = quaternion_to_matrix(qx, qy, qz, qw)
-    pose[:3, 3] = (tx, ty, tz)
-    return pose
-
-
 def parse_line(fields: list[str], where: str) -> tuple[float, np.ndarray]:
     """(key, c2w) of one data line's fields; ValueError starting with ``where`` (file:line) on bad input."""
     if len(fields) != 8:
@@ -86,7 +79,7 @@ def parse_line(fields: list[str], where: str) -> tuple[float, np.ndarray]:
         raise ValueError(f"{where}: non-finite value in {' '.join(fields)}")
     if math.hypot(*values[4:]) < MIN_QUATERNION_NORM:
         raise ValueError(f"{where}: the quaternion (qx qy qz qw) is zero, it gives no rotation")
-    return values[0], pose_matrix(*values[1:])
+    return values[0], quaternion_pose(values[1:4], values[4:])
 
 
 def read_tum(path: str | Path) -> Trajectory:
@@ -128,13 +121,6 @@ def write_tum(
     header = [f"# {comment}" for comment in comments] + [f"# {COLUMNS}"]
     body = [format_pose(key, np.asarray(pose, dtype=np.float64)) for key, pose in zip(keys, poses, strict=True)]
     Path(path).write_text("\n".join(header + body) + "\n")
-
-
-def axis_angle_matrix(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rotation by ``angle`` radians about the unit vector ``axis`` (Rodrigues)."""
-    x, y, z = axis
-    cross = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    return np.eye(3) + math.sin(angle) * cross + (1.0 - math.cos(angle)) * (cross @ cross)
 
 
 def perturb(

@@ -22,21 +22,10 @@ import numpy as np
 import torch
 
 from ogmapping.config import PosesConfig
+from ogmapping.frames.rotation import exp_so3
 
 STATE_SIZE = 9  # a correction's checkpoint row: delta (6), steps, clamped, held
 STATE_SIZES = (8, STATE_SIZE)  # rows written before ``held`` lack it
-
-
-def skew(vector: torch.Tensor) -> torch.Tensor:
-    """The cross-product matrix of a 3-vector (differentiable)."""
-    zero = vector.new_zeros(())
-    x, y, z = vector.unbind()
-    return torch.stack([torch.stack([zero, -z, y]), torch.stack([z, zero, -x]), torch.stack([-y, x, zero])])
-
-
-def rotation_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
-    """exp of an axis-angle 3-vector: its rotation matrix, differentiable also at zero."""
-    return torch.linalg.matrix_exp(skew(axis_angle))
 
 
 @dataclass(frozen=True)
@@ -97,7 +86,7 @@ class PoseCorrection:
     def refined(self, c2w: torch.Tensor) -> torch.Tensor:
         """The corrected camera-to-world of the client's ``c2w``, differentiable in ``delta``."""
         delta = self.delta.to(c2w.dtype)
-        rotation = rotation_matrix(delta[3:]) @ c2w[:3, :3]
+        rotation = exp_so3(delta[3:]) @ c2w[:3, :3]
         top = torch.cat([rotation, (c2w[:3, 3] + delta[:3]).unsqueeze(1)], dim=1)
         return torch.cat([top, c2w[3:]], dim=0)
 

@@ -63,7 +63,7 @@ def _unit_quat(quats, i):
 
 @njit(cache=True, error_model="numpy")
 def _rotation(w, x, y, z):
-    """Row-major rotation matrix entries of a unit quaternion (``projection.rotation_entries``)."""
+    """Row-major rotation matrix entries of a unit quaternion (``rotation.quaternion_entries``)."""
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z

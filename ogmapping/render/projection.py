@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ogmapping.frames.rotation import quaternion_entries
 from ogmapping.render.rules import ALPHA_MIN, COVARIANCE_BLUR, NEAR_PLANE
 
 # Off-axis limit of the Jacobian, as a fraction of the half field of view beyond the image edge:
@@ -32,20 +33,6 @@ class Projection:
     conics: torch.Tensor  # (N, 3) inverse 2D covariance (a, b, c): [[a, b], [b, c]]
     depths: torch.Tensor  # (N,) camera z
     radii: torch.Tensor  # (N,) int32, 0 = culled
-
-
-def rotation_entries(quats: torch.Tensor) -> list[list[torch.Tensor]]:
-    """Rotation matrix of (w, x, y, z) quaternions (normalised here) as 3x3 nested lists of (N,)."""
-    q = torch.nn.functional.normalize(quats, dim=-1)
-    w, x, y, z = q.unbind(-1)
-    xx, yy, zz = x * x, y * y, z * z
-    xy, xz, yz = x * y, x * z, y * z
-    wx, wy, wz = w * x, w * y, w * z
-    return [
-        [1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)],
-        [2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)],
-        [2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)],
-    ]
 
 
 def alpha_extent(opacities: torch.Tensor) -> torch.Tensor:
@@ -129,7 +116,7 @@ def _project_chunk(
     jw0 = [gx * (w[0][k] - tx * w[2][k]) for k in range(3)]
     jw1 = [gy * (w[1][k] - ty * w[2][k]) for k in range(3)]
     # T = J W R S, R S being the Gaussian's axes scaled by its standard deviations.
-    rot = rotation_entries(quats)
+    rot = quaternion_entries(*torch.nn.functional.normalize(quats, dim=-1).unbind(-1))  # (w, x, y, z)
     s = scales.unbind(-1)
     t0 = [s[j] * (jw0[0] * rot[0][j] + jw0[1] * rot[1][j] + jw0[2] * rot[2][j]) for j in range(3)]
     t1 = [s[j] * (jw1[0] * rot[0][j] + jw1[1] * rot[1][j] + jw1[2] * rot[2][j]) for j in range(3)]

@@ -14,15 +14,7 @@ from collections import defaultdict
 
 import numpy as np
 
-from ogmapping.frames.rotation import quaternion_to_matrix, slerp
-
-
-def rigid(translation: np.ndarray, quaternion: np.ndarray) -> np.ndarray:
-    """4x4 from a translation and a quaternion in ROS order (x, y, z, w)."""
-    matrix = np.eye(4)
-    matrix[:3, :3] = quaternion_to_matrix(*quaternion)
-    matrix[:3, 3] = translation
-    return matrix
+from ogmapping.frames.rotation import quaternion_pose, slerp
 
 
 def invert(transform: np.ndarray) -> np.ndarray:
@@ -70,19 +62,19 @@ class Track:
         if len(stamps) == 0:
             return None
         if self.static:
-            return rigid(translations[-1], rotations[-1])
+            return quaternion_pose(translations[-1], rotations[-1])
         right = int(np.searchsorted(stamps, stamp_ns, side="left"))
         if right < len(stamps) and stamps[right] == stamp_ns:
-            return rigid(translations[right], rotations[right])
+            return quaternion_pose(translations[right], rotations[right])
         if right == 0 or right == len(stamps):
             end = 0 if right == 0 else len(stamps) - 1
             if abs(int(stamps[end]) - stamp_ns) > tolerance_ns:
                 return None
-            return rigid(translations[end], rotations[end])
+            return quaternion_pose(translations[end], rotations[end])
         left = right - 1
         alpha = (stamp_ns - int(stamps[left])) / (int(stamps[right]) - int(stamps[left]))
         translation = translations[left] + alpha * (translations[right] - translations[left])
-        return rigid(translation, slerp(rotations[left], rotations[right], alpha))
+        return quaternion_pose(translation, slerp(rotations[left], rotations[right], alpha))
 
 
 class TransformTree:
