@@ -20,6 +20,7 @@ from ogmapping.config import (
     preset,
     resolve,
 )
+from ogmapping.config.fields import check
 from ogmapping.optim.keyframes import FIXED_WINDOWS
 from ogmapping.optim.refine import GROWTH
 
@@ -156,8 +157,8 @@ def test_server_bounds_refuse_costly_configs_and_can_be_tightened():
     tightened = ConfigBounds(max_iterations=10)
     with pytest.raises(ValueError, match=r"keyframes.first_iterations = 60 is above this server's limit of 10"):
         resolve("dense", bounds=tightened)
-    with pytest.raises(ValueError, match=r"config_bounds.max_iterations must be a positive int"):
-        ConfigBounds(max_iterations=0).validate()
+    with pytest.raises(ValueError, match=r"^settings config_bounds.max_iterations is out of range: must be >= 1"):
+        check(ConfigBounds(max_iterations=0), "settings", "config_bounds.")
     # The level the first frame may add counts against the bound before any frame arrives.
     levels = ConfigBounds(max_octree_level=1)
     resolve("sparse", overrides={"octree.levels_by_resolution": "false"}, bounds=levels)

@@ -28,11 +28,10 @@ from ogmapping.runtime.threads import torch_threads
 
 MAPPED = 4  # frames mapped before the counted step, two of them keyframes at least
 # Operators per step with the window rendered as one batch: 1337 with ``cpu`` (the compiled kernels
-# dispatch none themselves; backward 476, decode 330, optimizer 224, rasterize 135, loss 93; 1396
-# with one render per view, at 0a316be), 1135 with ``cpu`` and the decoders run once per window as
-# on a GPU (backward 321, decode 283), and 23458 with ``torch`` (the reference rasterizer, forward
-# 7701 and most of backward's 14770, loops over the tiles Gaussians reach, so its count also follows
-# the scene).
+# dispatch none themselves; backward 476, decode 330, optimizer 224, rasterize 135, loss 93), 1135
+# with ``cpu`` and the decoders run once per window as on a GPU (backward 321, decode 283), and 23458
+# with ``torch`` (the reference rasterizer, forward 7701 and most of backward's 14770, loops over the
+# tiles Gaussians reach, so its count also follows the scene).
 BUDGETS = {"cpu": 1400, "cpu-shared-decode": 1180, "torch": 24400}
 
 

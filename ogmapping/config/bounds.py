@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import dataclasses
-import math
 from dataclasses import dataclass
 
+from ogmapping.config.fields import ranged
 from ogmapping.config.sections import MAX_OCTREE_LEVEL, MapperConfig, ModelConfig
 
 MIB = 1 << 20
@@ -15,24 +14,20 @@ MIB = 1 << 20
 class ConfigBounds:
     """The most one session's config may ask for: what a server grants its clients, on top of
     ``validate``'s ranges. Each bound names the config keys it limits; a server operator tightens
-    (or widens) them in the server settings (``config_bounds``)."""
+    (or widens) them in the server settings (``config_bounds``), within each bound's own range."""
 
-    max_iterations: int = 500  # keyframes.first_iterations, keyframes.iterations, keyframes.frame_iterations
-    max_window_keyframes: int = 16  # keyframes.local_count + keyframes.global_count
-    max_n_offsets: int = 32  # model.n_offsets
-    max_feature_dim: int = 256  # model.feature_dim, model.hidden_dim
-    max_hash_levels: int = 32  # model.hash_levels
-    max_hash_features_per_level: int = 16  # model.hash_features_per_level
-    max_hash_table_mib: int = 256  # model.hash_levels x 2^model.hash_log2_size x hash_features_per_level x 4 bytes
-    max_octree_level: int = MAX_OCTREE_LEVEL  # octree.max_level
-    min_voxel_size: float = 0.01  # octree.voxel_size, metres: smaller coarse cells mean more anchors
-    max_new_anchors: int = 100000  # refine.max_new_anchors
-
-    def validate(self) -> None:
-        for item in dataclasses.fields(self):
-            value, kind = getattr(self, item.name), type(item.default)
-            if isinstance(value, bool) or not isinstance(value, kind) or not (math.isfinite(value) and value > 0):
-                raise ValueError(f"config_bounds.{item.name} must be a positive {kind.__name__} (got {value!r})")
+    max_iterations: int = ranged(500, 1)  # keyframes.first_iterations, keyframes.iterations, keyframes.frame_iterations
+    max_window_keyframes: int = ranged(16, 1)  # keyframes.local_count + keyframes.global_count
+    max_n_offsets: int = ranged(32, 1)  # model.n_offsets
+    max_feature_dim: int = ranged(256, 1)  # model.feature_dim, model.hidden_dim
+    max_hash_levels: int = ranged(32, 1)  # model.hash_levels
+    max_hash_features_per_level: int = ranged(16, 1)  # model.hash_features_per_level
+    # model.hash_levels x 2^model.hash_log2_size x hash_features_per_level x 4 bytes
+    max_hash_table_mib: int = ranged(256, 1)
+    max_octree_level: int = ranged(MAX_OCTREE_LEVEL, 1)  # octree.max_level
+    # octree.voxel_size, metres: smaller coarse cells mean more anchors
+    min_voxel_size: float = ranged(0.01, 0, open_low=True)
+    max_new_anchors: int = ranged(100000, 1)  # refine.max_new_anchors
 
     def check(self, config: MapperConfig) -> None:
         """Raise ValueError naming the first config key beyond these bounds."""

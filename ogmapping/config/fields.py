@@ -1,16 +1,19 @@
 """What a config field may hold, declared with the field: a ``Literal`` type lists its choices, a
-``Range`` in its metadata bounds its number; ``check`` reads both, so a refusal names the key and
-what it allows."""
+``Range`` in its metadata bounds its number, a ``Form`` shapes its text; ``check`` reads all three, so
+a refusal names the key and what it allows."""
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import typing
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
-RANGE = "range"  # the metadata key
+RANGE = "range"  # the metadata keys
+FORM = "form"
 
 
 @dataclass(frozen=True)
@@ -48,6 +51,40 @@ def ranged(default: Any, low: float | str = -math.inf, high: float = math.inf, *
     return dataclasses.field(default=default, metadata={RANGE: Range(low, high, open_low, open_high)})
 
 
+@dataclass(frozen=True)
+class Form:
+    """Text that ``pattern`` matches in full, ``shape`` in words for a refusal; a list's items and a
+    mapping's values each."""
+
+    pattern: re.Pattern[str]
+    shape: str
+
+    def refusal(self, key: str, value: Any) -> str | None:
+        """What is wrong with ``value`` under ``key``, or None."""
+        for name, text in _texts(key, value):
+            if not (isinstance(text, str) and self.pattern.fullmatch(text)):
+                return f"{name} must be {self.shape}, got {text!r}"
+        return None
+
+
+def _texts(key: str, value: Any) -> Iterator[tuple[str, Any]]:
+    if isinstance(value, Mapping):
+        yield from ((f"{key}.{name}", item) for name, item in value.items())
+    elif isinstance(value, list):
+        yield from ((f"{key}[{index}]", item) for index, item in enumerate(value))
+    else:
+        yield key, value
+
+
+def formed(default: Any, pattern: re.Pattern[str], shape: str) -> Any:
+    """A dataclass field whose text must have ``Form(pattern, shape)``; a ``default`` of ``list`` or
+    ``dict`` makes each instance an empty one of its own."""
+    metadata = {FORM: Form(pattern, shape)}
+    if default in (list, dict):
+        return dataclasses.field(default_factory=default, metadata=metadata)
+    return dataclasses.field(default=default, metadata=metadata)
+
+
 def choices(hint: Any) -> tuple[Any, ...] | None:
     """A ``Literal`` type's values (nested ones flattened), or None for any other type."""
     return typing.get_args(hint) if typing.get_origin(hint) is Literal else None
@@ -55,7 +92,7 @@ def choices(hint: Any) -> tuple[Any, ...] | None:
 
 def check(section: Any, label: str, prefix: str = "") -> None:
     """Raise ValueError for the first field of the dataclass ``section`` (and its sections, in field
-    order) outside its choices or its range."""
+    order) outside its choices, its range or its form."""
     hints = typing.get_type_hints(type(section))
     for item in dataclasses.fields(section):
         key, value = f"{prefix}{item.name}", getattr(section, item.name)
@@ -65,6 +102,10 @@ def check(section: Any, label: str, prefix: str = "") -> None:
         allowed = choices(hints[item.name])
         if allowed is not None and value not in allowed:
             raise ValueError(f"{label} {key} must be one of {', '.join(allowed)}, got {value!r}")
+        form = item.metadata.get(FORM)
+        refusal = form.refusal(key, value) if form is not None else None
+        if refusal is not None:
+            raise ValueError(f"{label} {refusal}")
         bound = item.metadata.get(RANGE)
         if bound is None:
             continue

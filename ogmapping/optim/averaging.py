@@ -1,11 +1,11 @@
 """The map that renders: an exponential moving average of the learnable values over the last steps.
 
-An online map follows whichever views it trained on last (bench/RESULTS.md; commit 0d2fa42,
-2026-11-25); the average of its values over the last few steps (Polyak averaging) renders every view
-better. Training keeps stepping the live values; queries (renders, snapshots, exports) use the
-average. The average is debiased per row, so an anchor grown a few steps ago averages only its own
-steps, not the zeros before it: after k updates with decay d the newest value weighs
-(1 - d) / (1 - d^k), so the first update copies the value.
+An online map follows whichever views it trained on last (bench/RESULTS.md, "Map averaging"); the
+average of its values over the last few steps (Polyak averaging) renders every view better. Training
+keeps stepping the live values; queries (renders, snapshots, exports) use the average. The average
+is debiased per row, so an anchor grown a few steps ago averages only its own steps, not the zeros
+before it: after k updates with decay d the newest value weighs (1 - d) / (1 - d^k), so the first
+update copies the value.
 
 What is averaged: the anchors' rows (kept in ``AnchorMap``, which carries them through growth and
 pruning) and the decoders. The dense version's hash table is not: it is stepped lazily, row by row,

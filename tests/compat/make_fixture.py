@@ -1,9 +1,9 @@
 """Write the compatibility fixture: a recording, a snapshot and renders made by a real server.
 
-Run once, at commit 03e848c (before the engine, server and client were split at their seams), with
-``.venv/bin/python tests/compat/make_fixture.py``; ``tests/service/test_compatibility.py`` checks
-that today's code still loads the snapshot and replays the recording to the same images. Do not
-re-run it to make a failing check pass: the files are the record of what older code wrote.
+Run once, at commit 03e848c, with ``.venv/bin/python tests/compat/make_fixture.py``;
+``tests/service/test_compatibility.py`` checks that today's code still loads the snapshot and
+replays the recording to the same images. Do not re-run it to make a failing check pass: the files
+are the record of what older code wrote.
 """
 
 from __future__ import annotations

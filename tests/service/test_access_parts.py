@@ -319,8 +319,8 @@ def test_access_settings_from_file_and_flags(tmp_path) -> None:
     ("access:\n  tls_cert: a.crt\n", "tls_cert and access.tls_key go together"),
     ("access:\n  tls_client_ca: ca.crt\n", "tls_client_ca needs"),
     ("access:\n  api_keys:\n    alice: abc\n", "api_keys.alice must be the key's sha256"),
-    ("access:\n  stream_idle_seconds: -1\n", "access.stream_idle_seconds must be a finite number"),
-    ("access:\n  max_concurrent_calls: 0\n", "access.max_concurrent_calls must be an integer >= 1"),
+    ("access:\n  stream_idle_seconds: -1\n", "access.stream_idle_seconds is out of range: must be >= 0 and finite"),
+    ("access:\n  max_concurrent_calls: 0\n", "access.max_concurrent_calls is out of range: must be >= 1, got 0"),
     ("access:\n  metrics_address: 'metrics'\n", "metrics_address must be HOST:PORT"),
     ("limits:\n  max_queued_bytes: 0\n", "limits.max_queued_bytes"),
 ])

@@ -240,7 +240,8 @@ def test_bad_subscribes_leave_a_bounded_log(tmp_path) -> None:
 
 
 def test_bad_origins_and_tokens_are_refused_in_one_line(tmp_path) -> None:
-    with pytest.raises(ValueError, match=r"live\.foxglove_origins: 'app\.foxglove\.dev' is not an origin"):
+    refused = r"live\.foxglove_origins\[0\] must be an origin such as https://app\.foxglove\.dev"
+    with pytest.raises(ValueError, match=refused):
         load(None, {"foxglove_origins": ["app.foxglove.dev"]})
     configured = live_settings(tmp_path)
     short = tmp_path / "short.token"

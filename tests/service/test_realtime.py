@@ -166,5 +166,5 @@ def test_skipped_frames_can_be_left_out_of_recordings() -> None:
     configured.limits.max_skipped_recording_bytes = configured.limits.skipped_recording_bytes_per_second = 0
     configured.validate()
     configured.limits.skipped_recording_bytes_per_second = -1
-    with pytest.raises(ValueError, match="skipped_recording_bytes_per_second must be an integer >= 0"):
+    with pytest.raises(ValueError, match="skipped_recording_bytes_per_second is out of range: must be >= 0, got -1"):
         configured.validate()

@@ -222,8 +222,8 @@ def test_with_mutual_tls_a_client_certificate_names_the_caller(tmp_path) -> None
 
 
 @pytest.mark.parametrize(("flags", "problem"), [
-    ({"web_port": 70000}, "live.web_port must be -1"),
-    ({"web_seconds": 0.0}, "live.web_seconds must be a finite number > 0"),
+    ({"web_port": 70000}, r"live.web_port is out of range: must be in \[-1, 65535\]"),
+    ({"web_seconds": 0.0}, "live.web_seconds is out of range: must be > 0 and finite"),
     ({"web_port": 0, "cluster": "auto"}, "live.web_port: the web view is not available in cluster mode"),
 ])
 def test_web_settings_are_checked(flags, problem) -> None:
