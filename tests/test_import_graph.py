@@ -107,7 +107,7 @@ def may_import(importer: str, imported: str) -> bool:
 
 
 # Leaf modules of the engine (no project imports of their own) that the render backends share.
-RENDER_MAY_USE = {"ogmapping.backends", "ogmapping.arrays"}
+RENDER_MAY_USE = {"ogmapping.backends", "ogmapping.arrays", "ogmapping.frames.rotation"}
 
 
 def test_imports_flow_one_way() -> None:
