@@ -1,6 +1,8 @@
 """The project's modules import each other without cycles and only downwards (lazy, in-function imports
 included): client -> server -> engine (ogmapping) -> render, with the API package (ogapi) below the
-client and the server and independent of the engine."""
+client and the server and independent of the engine. The client never imports the server: it reaches
+one over gRPC, or starts one as a child process through the server's command line (``ogclient view``,
+``make demo``)."""
 
 from __future__ import annotations
 
@@ -93,7 +95,7 @@ def test_the_cycle_finder_finds_cycles() -> None:
 
 def may_import(importer: str, imported: str) -> bool:
     """The layering: ogapi stands alone; the engine knows neither the API, the server nor the client;
-    the server no client; render only itself and the engine's leaf modules it shares."""
+    the server no client, the client no server; render only itself and the engine's leaf modules it shares."""
     package = imported.split(".")[0]
     if importer.startswith("ogapi"):
         return package == "ogapi"
@@ -103,6 +105,8 @@ def may_import(importer: str, imported: str) -> bool:
         return package == "ogmapping"
     if importer.startswith("ogserver"):
         return package != "ogclient"
+    if importer.startswith("ogclient"):
+        return package != "ogserver"
     return True
 
 
@@ -116,6 +120,14 @@ def test_imports_flow_one_way() -> None:
                     if not may_import(importer, target))
     assert upward == []
     assert all(not graph[leaf] for leaf in RENDER_MAY_USE), "render's shared engine modules stay leaves"
+
+
+def test_a_lazy_import_of_the_server_in_the_client_is_refused(tmp_path) -> None:
+    source = tmp_path / "viewing.py"
+    source.write_text("def view():\n    from ogserver.web import still\n    import ogserver.view\n")
+    found = imported("ogclient.viewing", source, project_modules())
+    assert found == {"ogserver.web.still", "ogserver.view"}
+    assert not any(may_import("ogclient.viewing", target) for target in found)
 
 
 def stage_of(module: str) -> str:

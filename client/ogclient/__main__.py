@@ -144,11 +144,12 @@ def parser() -> argparse.ArgumentParser:
     trajectory.set_defaults(handler=commands.trajectory, offline=True)
 
     view = sub.add_parser(
-        "view", help="show a snapshot's or a recording's map as Gaussians in the browser (no server needed)",
+        "view", help="show a snapshot's or a recording's map as Gaussians in the browser (no running server needed)",
         description="Serve the web view of a snapshot (.safetensors), or of the map at the end of a recording "
         "(.mcap: its final snapshot beside it, else its frames mapped here as a replay would), on 127.0.0.1 "
-        "until Ctrl-C. Prints the page's URL, a one-time token in its query; append #pose=... (docs/service.md) "
-        "for a fixed camera.")
+        "until Ctrl-C. The page is served by a local `ogserver view` started for it as a child process and "
+        "stopped with this command. Prints the page's URL, a one-time token in its query; append #pose=... "
+        "(docs/service.md) for a fixed camera. A map that cannot be read: one line, exit status 2.")
     view.add_argument("map", help="a snapshot (.safetensors) or a recording (.mcap)")
     view.add_argument("--port", type=int, default=0, help="port on 127.0.0.1 (default: any free one)")
     view.add_argument("--device", default="auto", help="where to load and decode the map: auto, cpu, cuda")

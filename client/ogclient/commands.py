@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import webbrowser
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +19,7 @@ from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 
 from ogclient import replay as replaying
 from ogclient import trajectory as trajectories
+from ogclient import viewing
 from ogclient.connection import ClientError, SessionRef
 from ogclient.evaluation import evaluate, snapshot_bytes
 from ogclient.messages import frame_to_proto, intrinsics_to_proto
@@ -283,23 +285,11 @@ def close(ctx: Context, args: argparse.Namespace) -> int:
 
 def view(args: argparse.Namespace) -> int:
     """Serve the web view of a snapshot or a recording's map on 127.0.0.1 until interrupted."""
-    import threading
-    import webbrowser
-
-    from ogclient import viewing  # the engine and the server's web view: loaded only for this command
-
     path = Path(args.map)
-    if not path.is_file():
-        raise ClientError(f"{path}: no such file")
-    still = viewing.open_map(path, args.device)
-    server, url = viewing.serve(still, args.port)
-    print(f"web view of {path.name} on {url}", flush=True)
-    if args.open:
-        webbrowser.open(url)
-    try:
-        threading.Event().wait()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        server.stop()
-    return 0
+
+    def ready(url: str) -> None:
+        print(f"web view of {path.name} on {url}", flush=True)
+        if args.open:
+            webbrowser.open(url)
+
+    return viewing.view(path, args.port, args.device, ready)

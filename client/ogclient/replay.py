@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import itertools
-import json
 import time
 from collections.abc import Iterator
 
 from ogapi.recording import Recording
 from ogapi.v1 import mapping_pb2 as pb
 
-from ogmapping.config import flatten
+from ogmapping.config import pinned
 
 
 def session_request(config: pb.SessionConfig | None, label: str = "") -> pb.CreateSessionRequest:
@@ -19,10 +18,8 @@ def session_request(config: pb.SessionConfig | None, label: str = "") -> pb.Crea
     the resolved config (none, or an empty one) falls back to its preset and overrides."""
     if config is None:
         return pb.CreateSessionRequest(label=label)
-    overrides = dict(config.overrides)
-    if config.config_json:
-        overrides.update({key: str(value) for key, value in flatten(json.loads(config.config_json)).items()})
-    return pb.CreateSessionRequest(preset=config.preset or "dense", overrides=overrides, label=label)
+    preset, overrides = pinned(config.preset, config.overrides, config.config_json)
+    return pb.CreateSessionRequest(preset=preset, overrides=overrides, label=label)
 
 
 def recorded_times(recording: Recording) -> list[float]:

@@ -1,90 +1,78 @@
-"""``ogclient view``: the web view of one map on this machine, from a snapshot or a recording (the engine
-and the server's web view, imported only when the command runs).
+"""``ogclient view``: the web view of one map on this machine, served by the server's own entry for it,
+``python -m ogserver view MAP``, run as a child process (the client never imports the server).
 
-A snapshot is loaded as it is. A recording's map is its final snapshot where the server wrote one
-beside it (``--final-snapshots``: ``<session>.safetensors``), else the map a replay builds: its
-recorded frames mapped here, in order, with its recorded config. The page is the server's, on
-127.0.0.1, behind a random token in the URL.
+The child prints its progress, then ``ogserver map view on URL``; a map it cannot read is its one line
+``ogserver view: ...`` on stderr and exit status 2, reported here as this command's one line (exit
+status 2 too). The command stops the child whenever it ends itself: Ctrl-C, SIGTERM or an error
+(SIGTERM, then SIGKILL ``STOP_SECONDS`` later).
 """
 
 from __future__ import annotations
 
-import secrets
-from dataclasses import dataclass
+import signal
+import subprocess
+import sys
+import threading
+from collections.abc import Callable
 from pathlib import Path
+from typing import IO
 
-from ogapi import recording as layout
-from ogserver.api import validation
-from ogserver.errors import ServiceError
-from ogserver.live.views import MappedFrame
-from ogserver.sessions.registry import requested_config
-from ogserver.settings import Settings
-from ogserver.web.catalogue import OneMap
-from ogserver.web.http_server import WebServer
-from ogserver.web.maps import MapView
+from ogclient.connection import ClientError
 
-from ogclient.replay import session_request
-from ogmapping.frames.frame import Frame
-from ogmapping.mapper import Mapper
-from ogmapping.runtime.profile import resolve_device
-
-HOST = "127.0.0.1"
-MIN_SECONDS = 0.2
+READY_PREFIX = "ogserver map view on"
+ERROR_PREFIX = "ogserver view:"
+STOP_SECONDS = 3.0
 
 
-@dataclass
-class StillMap:
-    """A map that no longer changes, as a ``maps.Source``."""
+class Stderr(threading.Thread):
+    """Passes the child's stderr through, keeping its error line (``ogserver view: ...``) to report as ours."""
 
-    id: str
-    label: str
-    mapper: Mapper
+    def __init__(self, stream: IO[str]) -> None:
+        super().__init__(name="ogserver-view-stderr", daemon=True)
+        self.stream = stream
+        self.error = ""
 
-    def latest(self) -> MappedFrame | None:
-        return None
-
-    def render_of(self, frame: MappedFrame) -> bytes | None:
-        return None
-
-    def version(self) -> int:
-        return 0
-
-    def counters(self) -> dict[str, float]:
-        return {}
+    def run(self) -> None:
+        for line in self.stream:
+            if line.startswith(ERROR_PREFIX):
+                self.error = line[len(ERROR_PREFIX):].strip()
+            else:
+                sys.stderr.write(line)
+                sys.stderr.flush()
 
 
-def replay(path: Path, device: str, progress=print) -> Mapper:
-    """The map a replay of the recording at ``path`` builds."""
-    recorded = layout.load(path)
-    if recorded.config is None:
-        raise ValueError(f"{path} holds no session config: not a session recording")
-    settings = Settings()
+def stop(child: subprocess.Popen) -> int:
+    """SIGTERM, then SIGKILL where the child is still there ``STOP_SECONDS`` later; its exit status."""
+    if child.poll() is None:
+        child.terminate()
+        try:
+            child.wait(STOP_SECONDS)
+        except subprocess.TimeoutExpired:
+            child.kill()
+    return child.wait()
+
+
+def view(path: Path, port: int, device: str, ready: Callable[[str], None]) -> int:
+    """Serve the map at ``path`` until Ctrl-C or SIGTERM, calling ``ready(url)`` once its page is served; the
+    child's progress lines are printed as they come. ClientError where it fails."""
+    command = [sys.executable, "-m", "ogserver", "view", str(path), "--port", str(port), "--device", device]
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # stops the child too, like Ctrl-C
+    child = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True, bufsize=1)
+    stderr = Stderr(child.stderr)
+    stderr.start()
     try:
-        _, _, config = requested_config(session_request(recorded.config), settings)  # the config a replay sends
-        mapper = Mapper(config, device=device)
-        progress(f"mapping the {len(recorded.frames)} recorded frames of {path.name} here (a snapshot beside it, "
-                 f"{path.stem}.safetensors, would be read instead)")
-        for _, message in recorded.frames:
-            frame: Frame = validation.frame(message, settings.limits.max_image_pixels, config.octree)
-            mapper.process(frame)
-    except ServiceError as error:
-        raise ValueError(f"{path}: {error.message}") from None
-    return mapper
-
-
-def open_map(path: Path, device: str = "auto", progress=print) -> StillMap:
-    """The map at ``path``: a snapshot (.safetensors) or a recording (.mcap)."""
-    device = str(resolve_device(device))
-    if path.suffix == ".mcap":
-        beside = path.with_suffix(".safetensors")
-        mapper = Mapper.restore(beside.read_bytes(), device) if beside.is_file() else replay(path, device, progress)
-    else:
-        mapper = Mapper.restore(path.read_bytes(), device)
-    return StillMap(path.stem.split(".")[0] or "map", path.name, mapper)
-
-
-def serve(still: StillMap, port: int = 0) -> tuple[WebServer, str]:
-    """A started web server for ``still`` on 127.0.0.1 and the URL of its page (token included)."""
-    token = secrets.token_urlsafe(24)
-    server = WebServer(HOST, port, OneMap(MapView(still, MIN_SECONDS), token)).start()
-    return server, f"{server.url(HOST)}map/{still.id}?token={token}"
+        for line in child.stdout:
+            if line.startswith(READY_PREFIX):
+                ready(line[len(READY_PREFIX):].strip())
+            else:
+                print(line, end="", flush=True)
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        status = stop(child)
+        signal.signal(signal.SIGTERM, previous)
+    stderr.join()
+    if status == 0:  # ended by a signal to the whole process group: Ctrl-C in a terminal
+        return 0
+    raise ClientError(stderr.error or f"ogserver view exited with status {status}")

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from ogmapping.config.bounds import MIB, ConfigBounds, hash_table_bytes
-from ogmapping.config.overrides import flatten, parse_override_args, read_mapping
+from ogmapping.config.overrides import flatten, parse_override_args, pinned, read_mapping
 from ogmapping.config.presets import PRESET_VALUES, PRESETS, preset
 from ogmapping.config.sections import (
     Allocation,
@@ -42,7 +42,7 @@ __all__ = [
     "MIB", "PRESETS", "PRESET_VALUES", "Allocation", "AnchorColourStart", "Backend", "ConfigBounds", "Encoding",
     "Growth", "KeyframeConfig", "LossConfig", "MapperConfig", "ModelConfig", "OctreeConfig", "OptimConfig",
     "PosesConfig", "RefineConfig", "Window", "apply_overrides", "flatten", "hash_table_bytes", "load_file",
-    "parse_override_args", "preset", "resolve", "validate",
+    "parse_override_args", "pinned", "preset", "resolve", "validate",
 ]
 
 

@@ -32,6 +32,17 @@ def flatten(data: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     return flat
 
 
+def pinned(preset: str, overrides: Mapping[str, str], resolved_json: str) -> tuple[str, dict[str, str]]:
+    """The preset and text overrides that resolve to a recorded config again: every value of the resolved
+    config (``MapperConfig.to_dict`` as JSON, "" where a recording lacks it) pinned on top of the recorded
+    overrides, so a later version whose presets changed their defaults still rebuilds the recorded map. A
+    restored session recorded no preset: with every value pinned, any preset does."""
+    text = dict(overrides)
+    if resolved_json:
+        text.update({key: str(value) for key, value in flatten(json.loads(resolved_json)).items()})
+    return preset or "dense", text
+
+
 def parse_override_args(items: list[str]) -> dict[str, str]:
     """``["a.b=1", ...]`` -> ``{"a.b": "1"}``."""
     parsed = {}

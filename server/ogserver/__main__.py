@@ -9,7 +9,7 @@ import signal
 import sys
 import threading
 
-from ogserver import LOG_FORMAT
+from ogserver import LOG_FORMAT, view
 from ogserver import settings as settings_module
 
 READY_PREFIX = "ogserver listening on"
@@ -24,7 +24,10 @@ under "limits:", TLS, callers, timeouts and metrics under "access:", the bounds 
 written as RECORD_DIR/<session>.safetensors). Nothing waits without a bound: what is still running
 --stop-timeout seconds later is left behind, the recordings are closed regardless and the process
 exits. After a crash or kill -9, the next server on the same record dir resumes the sessions left
-open (same ids and tokens) from their checkpoints and recordings. See docs/service.md."""
+open (same ids and tokens) from their checkpoints and recordings. See docs/service.md.
+
+ogserver view MAP serves one snapshot's or recording's map in the web view on 127.0.0.1 instead, behind a
+random token, and prints "ogserver map view on URL" (what ogclient view runs; ogserver view --help)."""
 
 
 def parser() -> argparse.ArgumentParser:
@@ -134,6 +137,9 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["view"]:
+        return view.main(argv[1:])
     args = parser().parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format=LOG_FORMAT)
     flags = {key: value for key, value in vars(args).items() if key not in ("config", "log_level")}

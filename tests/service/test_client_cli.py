@@ -14,8 +14,8 @@ from ogclient.commands import overrides_from_args
 from ogserver import healthcheck
 from ogserver.recording.recorder import Recorder
 
-COMMANDS = ["create", "stream", "replay", "repair-recording", "trajectory", "render", "snapshot", "restore", "stats",
-            "eval", "list", "close"]
+COMMANDS = ["create", "stream", "replay", "repair-recording", "trajectory", "view", "render", "snapshot", "restore",
+            "stats", "eval", "list", "close"]
 
 
 def free_port() -> int:
@@ -80,3 +80,19 @@ def test_repair_recording_needs_no_server(tmp_path, capsys: pytest.CaptureFixtur
     assert main([*unreachable, "repair-recording", str(cut), str(tmp_path / "again.mcap")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "not a readable recording" in err
+
+
+@pytest.mark.parametrize(("name", "data", "problem"), [
+    ("room.safetensors", b"not a snapshot", "snapshot"),
+    ("room.mcap", b"not an mcap file at all", "not a readable recording"),
+    ("missing.safetensors", None, "missing.safetensors: no such file"),
+])
+def test_view_of_a_map_it_cannot_read_is_one_line_and_exit_2(tmp_path, name: str, data: bytes | None,
+                                                             problem: str) -> None:
+    path = tmp_path / name
+    if data is not None:
+        path.write_bytes(data)
+    done = subprocess.run([sys.executable, "-m", "ogclient", "view", str(path), "--device", "cpu"],
+                          capture_output=True, text=True, timeout=120)
+    assert (done.returncode, done.stdout) == (2, "")
+    assert done.stderr.startswith("ogclient: ") and done.stderr.count("\n") == 1 and problem in done.stderr

@@ -1,29 +1,33 @@
 """The web view in a real browser: a session's map drawn by Spark from a pose agrees with the server's own
-render from it, and follows the map as more frames arrive; callers see only what gRPC lets them see."""
+render from it, and follows the map as more frames arrive; callers see only what gRPC lets them see.
+``ogserver view`` serves one snapshot's or recording's map, and ``ogclient view`` runs it as a child."""
 
 from __future__ import annotations
 
 import http.client
 import json
 import os
+import signal
 import ssl
 import subprocess
 import sys
 import time
 import urllib.error
 import urllib.request
+from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 from ogapi import API_KEY_METADATA_KEY
 from ogapi.v1 import mapping_pb2 as pb
-from ogclient import viewing
 from ogclient.connection import SessionRef, Transport, connect
 from ogclient.evaluation import render, snapshot_bytes
 from ogclient.streaming import stream_frames
-from ogserver import apikeys
+from ogserver import apikeys, view
 from ogserver.settings import load
+from ogserver.web import still
 from ogserver.web.http_server import is_loopback
 
 from ogmapping.frames.camera import Intrinsics
@@ -34,6 +38,7 @@ from .inprocess import serving, settings
 from .scene import FROZEN, TINY, create_request, messages, scene
 
 MIN_PSNR = 25.0
+STOP_SECONDS = 5  # a stopped view is gone this soon
 PATH = os.pathsep.join(sys.path)  # this process's packages for the ogclient it starts
 
 
@@ -145,8 +150,20 @@ def test_a_server_on_a_loopback_address_answers_only_loopback_hosts(tmp_path) ->
         assert refused.value.code == 403
 
 
-@needs_browser
-def test_ogclient_view_serves_a_snapshot_and_a_recordings_map(tmp_path) -> None:
+@dataclass(frozen=True)
+class Room:
+    """A small map as a snapshot and as a recording (no snapshot beside it), and the server's render of it."""
+
+    snapshot: Path
+    recording: Path
+    c2w: np.ndarray
+    camera: Intrinsics
+    expected: np.ndarray
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory: pytest.TempPathFactory) -> Room:
+    tmp_path = tmp_path_factory.mktemp("room")
     frames = messages(scene())
     with serving(web_settings(tmp_path)) as running:
         session = SessionRef.from_credentials(running.stub.CreateSession(create_request(TINY)))
@@ -157,26 +174,70 @@ def test_ogclient_view_serves_a_snapshot_and_a_recordings_map(tmp_path) -> None:
         snapshot.write_bytes(snapshot_bytes(running.stub, session))
         closed = running.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id),
                                            metadata=session.metadata())
-        recorded = running.record_dir / closed.recording
+        return Room(snapshot, running.record_dir / closed.recording, c2w, camera, expected)
 
-    replayed = viewing.open_map(recorded, "cpu", progress=lambda _: None)
+
+def start(*command: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", *command, "--device", "cpu"], stdout=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONPATH": PATH})
+
+
+def test_a_recordings_map_is_the_map_a_replay_builds(room: Room) -> None:
+    said: list[str] = []
+    replayed = still.open_map(room.recording, "cpu", said.append)
+    assert said == [f"mapping the 4 recorded frames of {room.recording.name} here (a snapshot beside it, "
+                    f"{room.recording.stem}.safetensors, would be read instead)"]
     assert replayed.mapper.stats().frames == 4
-    assert psnr(replayed.mapper.render(c2w, camera).color, expected) >= 40
+    assert psnr(replayed.mapper.render(room.c2w, room.camera).color, room.expected) >= 40
 
-    command = [sys.executable, "-m", "ogclient", "view", str(snapshot), "--device", "cpu"]
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": PATH})
+
+def test_ogserver_view_serves_the_map_page_on_loopback_until_sigterm(room: Room) -> None:
+    process = start("ogserver", "view", str(room.snapshot))
     try:
         line = process.stdout.readline()
-        assert line.startswith("web view of room.safetensors on http://127.0.0.1:"), line
+        assert line.startswith(f"{view.READY_PREFIX} http://127.0.0.1:"), line
+        url = line[len(view.READY_PREFIX):].strip()
+        status, page = get(url)
+        assert status == 200 and b"<html" in page.lower()
+        assert get(url.split("?")[0])[0] == 401
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(STOP_SECONDS) == 0
+    finally:
+        process.kill()
+        process.wait()
+
+
+def test_ogclient_view_forwards_progress_and_stops_its_server_with_it(room: Room) -> None:
+    process = start("ogclient", "view", str(room.recording))
+    try:
+        assert process.stdout.readline().startswith("mapping the 4 recorded frames of ")
+        line = process.stdout.readline()
+        assert line.startswith(f"web view of {room.recording.name} on http://127.0.0.1:"), line
         url = line.split(" on ", 1)[1].strip()
         assert get(url)[0] == 200
         assert get(url.split("?")[0])[0] == 401
         assert get(url.replace("?token=", "?key="))[0] == 200  # the login form sends its one field as key
+        process.terminate()
+        assert process.wait(STOP_SECONDS) == 0
+        with pytest.raises(urllib.error.URLError):  # the server it started is gone too
+            urllib.request.urlopen(url, timeout=5)
+    finally:
+        process.kill()
+        process.wait()
+
+
+@needs_browser
+def test_ogclient_view_draws_a_snapshot_as_the_server_renders_it(room: Room) -> None:
+    process = start("ogclient", "view", str(room.snapshot))
+    try:
+        line = process.stdout.readline()
+        assert line.startswith("web view of room.safetensors on http://127.0.0.1:"), line
+        url = line.split(" on ", 1)[1].strip()
         with browser() as chromium:
             page = chromium.new_page()
-            page.goto(url + fragment(c2w, camera))
+            page.goto(url + fragment(room.c2w, room.camera))
             page.wait_for_function("window.ogmapReady === true || window.ogmapError", timeout=PAGE_SECONDS * 1000)
-            agreement = psnr(screenshot(page), expected)
+            agreement = psnr(screenshot(page), room.expected)
             assert agreement >= MIN_PSNR, f"PSNR {agreement:.2f} dB"
     finally:
         process.terminate()

@@ -138,7 +138,7 @@ class Sessions:
 
 
 class OneMap:
-    """A single map (``ogclient view``), seen by whoever holds its one token."""
+    """A single map (``ogserver view``, which ``ogclient view`` starts), seen by whoever holds its one token."""
 
     asks_credential = True
 

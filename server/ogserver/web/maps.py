@@ -28,7 +28,7 @@ CENTER_DECIMALS = 3  # a viewpoint to the millimetre: pages at one pose share on
 
 
 class Source(Protocol):
-    """One map as the web view sees it: a session's, or a snapshot's (``ogclient view``)."""
+    """One map as the web view sees it: a session's, or a snapshot's or recording's (``ogserver view``)."""
 
     id: str
     label: str
