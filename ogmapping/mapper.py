@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from ogmapping import queries
-from ogmapping.config import ConfigBounds, MapperConfig, by_resolution
+from ogmapping.config import ConfigBounds, MapperConfig, resolution
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.preprocess import prepare
@@ -37,7 +37,6 @@ from ogmapping.mapping.tracker import Tracker
 from ogmapping.model.gaussians import GaussianSet
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
 from ogmapping.optim.poses import PoseCorrection, PoseReport
-from ogmapping.optim.step_budget import step_count_multiple, step_multiple
 from ogmapping.persist import map_io, snapshot
 from ogmapping.persist.state import MapState
 from ogmapping.queries import KeyframePose, Rendered
@@ -131,8 +130,7 @@ class Mapper:
         with model.timed("keyframes"):
             codes = model.octree.seen_from(depth, frame.color_intrinsics, placed)
             is_keyframe = self.keyframes.should_insert(codes)
-            multiple = step_count_multiple(self.config.keyframes, frame.color_intrinsics)
-            iterations = multiple * self.iterations_for(is_keyframe)
+            iterations = self.config.keyframes.step_multiple * self.iterations_for(is_keyframe)
             if is_keyframe:
                 self.keyframes.insert(Keyframe.capture(frame.index, rgb, depth, frame.color_intrinsics, c2w, codes,
                                                        pinned=self.device.type == "cuda", correction=correction))
@@ -157,20 +155,24 @@ class Mapper:
         )
 
     def _fit_to(self, intrinsics: Intrinsics) -> None:
-        """On the first frame, the config's by-resolution switches resolved against the frame's step multiple
-        (``ogmapping.config.by_resolution``); a model whose shape changes is rebuilt (still empty), drawn
-        afresh from the seed. A multiple of 1 keeps everything as it was, so such maps are exactly as
-        without the switches."""
-        model = self.model
-        if model.frames or len(model.anchors) or not by_resolution.pending(self.config):
+        """While the config's resolution rules are pending (until its first frame), resolve them for the step
+        multiple of ``intrinsics`` (``ogmapping.config.resolution``); a model whose shape changes is rebuilt
+        (still empty: a map with anchors never loads with such rules pending), drawn afresh from the seed."""
+        if not resolution.pending(self.config):
             return
-        resolved = by_resolution.resolve_switches(self.config, step_multiple(self.config.keyframes, intrinsics))
-        if resolved.averaged:
-            model.restart_average()
-        if resolved.reshaped:
-            model.generator.manual_seed(self.config.seed)
-            with self.lock:
-                model.build(self.config)
+        multiple = resolution.step_multiple(self.config.resolution.reference_pixels, intrinsics.width,
+                                            intrinsics.height)
+        resolved = resolution.resolve(self.config, multiple)
+        model = self.model
+        self.keyframes.config = resolved.config.keyframes
+        with self.lock:
+            if resolved.reshaped:
+                model.generator.manual_seed(resolved.config.seed)
+                model.build(resolved.config)
+                return
+            model.config = resolved.config
+            if resolved.restarts_average:
+                model.restart_average()
 
     def _footprint(self, keyframe: Keyframe) -> torch.Tensor:
         depth = keyframe.depth.to(self.device, non_blocking=keyframe.pinned).to(torch.float32)
@@ -179,7 +181,7 @@ class Mapper:
     def iterations_for(self, is_keyframe: bool) -> int:
         """k for a keyframe (more for the very first), ``frame_iterations`` for any other frame, but
         no more than ``frame_renders`` renders of the view and its window (at least one step); the
-        frame then gets ``step_count_multiple`` times this (by the image's resolution).
+        frame then gets ``keyframes.step_multiple`` times this (set by the image's resolution).
 
         The cap bounds a streamed frame's cost as the window fills: with ``frame_renders`` 4 a frame
         with a full window (the view, a local and two global keyframes) takes one step, a frame whose

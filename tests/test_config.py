@@ -159,13 +159,8 @@ def test_server_bounds_refuse_costly_configs_and_can_be_tightened():
         resolve("dense", bounds=tightened)
     with pytest.raises(ValueError, match=r"^settings config_bounds.max_iterations is out of range: must be >= 1"):
         check(ConfigBounds(max_iterations=0), "settings", "config_bounds.")
-    # The level the first frame may add counts against the bound before any frame arrives.
-    levels = ConfigBounds(max_octree_level=1)
-    resolve("sparse", overrides={"octree.levels_by_resolution": "false"}, bounds=levels)
-    with pytest.raises(ValueError, match=r"octree.max_level \(one more with octree.levels_by_resolution\) = 2 is "
-                                         r"above this server's limit of 1"):
-        resolve("sparse", bounds=levels)
-
+    # The level a resolution rule may set on the first frame counts against the bound before any frame arrives
+    # (tests/test_resolution_rules.py).
 
 if __name__ == "__main__":
     GOLDEN.write_text(resolved_presets())

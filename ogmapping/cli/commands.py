@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from ogmapping.cli.options import add_config_arguments, add_dataset_arguments, dataset_source, parse_intrinsics
+from ogmapping.cli.show_config import add_config_command
 from ogmapping.cli.trajectory import command_trajectory
 from ogmapping.config import parse_override_args, resolve
 from ogmapping.frames.camera import validate_pose
@@ -24,6 +25,7 @@ EPILOG = """examples:
   ogmap trajectory --data synthetic --format synthetic --frames 0:20 --noise-translation 0.01 \
       --noise-rotation 0.5 --noise-seed 1 --out noisy.tum
   ogmap run --data synthetic --format synthetic --frames 0:20 --poses noisy.tum --eval-poses exact.tum
+  ogmap config --preset sparse --resolution 1200x680     # what the preset resolves to at that size
   ogmap render --snapshot runs/kitchen/map.safetensors --pose pose.txt --intrinsics 146,146,80,60 \\
       --size 160x120 --out renders/
 """
@@ -160,6 +162,7 @@ def parser() -> argparse.ArgumentParser:
     viewpoint.add_argument("--pose", metavar="FILE",
                            help="bake it as seen from this camera (text file, 4x4 camera-to-world matrix)")
     export.set_defaults(handler=command_export)
+    add_config_command(commands)
     return root
 
 

@@ -7,7 +7,7 @@ command line, the service's ``map<string,string>``) or typed (a YAML/JSON file, 
 and the server all call it, so they accept and refuse the same values with the same messages.
 
 The sections and their ranges are in ``sections``, the presets in ``presets``, a server's bounds in
-``bounds``, what a first frame's size resolves in ``by_resolution``; ``overrides`` is the dotted-key and
+``bounds``, how settings follow a first frame's size in ``resolution``; ``overrides`` is the dotted-key and
 file mechanism the server's settings share.
 """
 

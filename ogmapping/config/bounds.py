@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ogmapping.config.fields import ranged
+from ogmapping.config.resolution import highest
 from ogmapping.config.sections import MAX_OCTREE_LEVEL, MapperConfig, ModelConfig
 
 MIB = 1 << 20
@@ -37,13 +38,13 @@ class ConfigBounds:
               for name in ("first_iterations", "iterations", "frame_iterations")),
             ("keyframes.local_count + keyframes.global_count", keyframes.local_count + keyframes.global_count,
              self.max_window_keyframes, "max_window_keyframes"),
-            ("model.n_offsets", model.n_offsets, self.max_n_offsets, "max_n_offsets"),
+            # Counted at the most that the resolution rules may make of them once the first frame arrives.
+            ("model.n_offsets (at most, by resolution.n_offsets)", highest(config, "n_offsets"), self.max_n_offsets,
+             "max_n_offsets"),
             ("model.feature_dim", model.feature_dim, self.max_feature_dim, "max_feature_dim"),
             ("model.hidden_dim", model.hidden_dim, self.max_feature_dim, "max_feature_dim"),
-            # octree.levels_by_resolution may add a level once the first frame arrives: counted now.
-            ("octree.max_level (one more with octree.levels_by_resolution)",
-             config.octree.max_level + int(config.octree.levels_by_resolution), self.max_octree_level,
-             "max_octree_level"),
+            ("octree.max_level (at most, by resolution.max_level)", highest(config, "max_level"),
+             self.max_octree_level, "max_octree_level"),
             ("refine.max_new_anchors", config.refine.max_new_anchors, self.max_new_anchors, "max_new_anchors"),
         ]
         if model.encoding == "hash":  # the anchor encoding has no hash table

@@ -12,24 +12,48 @@ from typing import Any
 from ogmapping.config.overrides import assign
 from ogmapping.config.sections import MapperConfig
 
-# Ten Gaussians an anchor, twice the SSIM weight and half the growth threshold at 1200x680, as up to about
-# 900x510 below that ("Gaussians by resolution", "SSIM by resolution", "Growth by resolution").
-_BY_RESOLUTION: dict[str, Any] = {
-    "model.offsets_by_resolution": True,
-    "loss.ssim_by_resolution": True,
-    "refine.threshold_by_resolution": True,
+# How each setting follows the first frame's step multiple (``ogmapping.config.resolution``: x1 up to about
+# 900x510, x2 at 1200x680), per preset; a setting a preset leaves out keeps its value at every size. Every
+# rule was fitted on Replica room0 0-19 at 1200x680, the one set at that size (bench/RESULTS.md, the section
+# named on each line); nothing below about 900x510 changes.
+RESOLUTION_RULES: dict[str, dict[str, str]] = {
+    # The step counts times the multiple, in `dense` times its square: 21 steps a frame on Replica room0,
+    # within the paper's 5.6 FPS at 8 ms a step ("Steps by resolution", "Four times the steps in `dense`").
+    "steps": {"dense": "area", "sparse": "linear", "sparse-fast": "linear"},
+    # Gaussians per anchor: an anchor's Gaussians stand for a fixed patch of surface, which a finer image sees
+    # as more pixels; `sparse` takes twenty at 1200x680 ("Gaussians by resolution", "Growth by resolution").
+    "n_offsets": {"dense": "linear", "sparse": "area", "sparse-fast": "linear"},
+    # The hash grid's finest cells half the size at 1200x680 ("Hash grid by resolution").
+    "hash_max_resolution": {"dense": "linear"},
+    # Anchor colours pay at 1200x680, where twice the steps a frame learn them ("Anchor colours by resolution").
+    "anchor_colour": {"sparse-fast": "true from 2"},
+    # 6 mm anchors too at 1200x680 ("Octree levels by resolution").
+    "max_level": {"dense": "2 from 2", "sparse": "2 from 2"},
+    # A finer image holds finer structure, which the L1 term spread over more pixels barely asks for: the SSIM
+    # weight times the multiple's square in `dense` (LPIPS 0.054 to 0.040, "SSIM by area"), `dense`'s weight
+    # in `sparse` (its own 0.1 was chosen for speed on small images: 36.55 to 38.13 dB with the threshold
+    # below, "Growth by resolution").
+    "ssim": {"dense": "area", "sparse": "0.8 from 2", "sparse-fast": "linear"},
+    # The growth threshold divided by the multiple: the anchors that draw the edges a finer image resolves
+    # grow only where the threshold lets them ("Growth by resolution").
+    "grad_threshold": {"dense": "inverse", "sparse": "inverse", "sparse-fast": "inverse"},
+    # `sparse-fast` averages the map only at 1200x680, where an average no longer lags a map of few steps
+    # ("Map averaging by resolution").
+    "average_decay": {"sparse-fast": "0.85 from 2"},
 }
 
+
+def _rules(preset_name: str) -> dict[str, str]:
+    """``preset_name``'s column of ``RESOLUTION_RULES`` as dotted keys."""
+    return {f"resolution.{setting}": rules[preset_name] for setting, rules in RESOLUTION_RULES.items()
+            if preset_name in rules}
+
+
 _DENSE_AND_SPARSE: dict[str, Any] = {
-    **_BY_RESOLUTION,
     "octree.max_level": 1,  # 2.5 cm anchors, no 6 mm ones, which carry little of the colour ("Octree levels")
-    "octree.levels_by_resolution": True,  # ...but 6 mm ones too at 1200x680 ("Octree levels by resolution")
     "optim.average_decay": 0.85,  # queries see the map averaged over about its last 7 steps ("Map averaging")
     "optim.average_growth": 0.015,  # ...and over 1.5% of its steps once it is older ("Map averaging")
     "refine.grad_threshold": 1.5e-4,  # grows more anchors than Scaffold-GS's 2e-4 ("Growth and pruning")
-    # The SSIM weight four times its value at 1200x680, not two: LPIPS 0.087 to 0.073 in `sparse`, 0.054
-    # to 0.040 in `dense` ("SSIM by area").
-    "loss.ssim_growth": "area",
 }
 
 PRESET_VALUES: dict[str, dict[str, Any]] = {
@@ -37,10 +61,7 @@ PRESET_VALUES: dict[str, dict[str, Any]] = {
         **_DENSE_AND_SPARSE,
         "model.initial_visible": 0.95,  # no seed lottery of the first Gaussians' opacity ("Visible start")
         "keyframes.global_count": 2,  # worth the tenth of the speed it costs ("Keyframes and the window")
-        "model.hash_by_resolution": True,  # cells half the size at 1200x680 ("Hash grid by resolution")
-        # Four times the steps at 1200x680, not two: 21 a frame on Replica room0, within the paper's 5.6 FPS
-        # at 8 ms a step ("Four times the steps in `dense`").
-        "keyframes.steps_growth": "area",
+        **_rules("dense"),
     },
     "sparse": {
         **_DENSE_AND_SPARSE,
@@ -54,25 +75,18 @@ PRESET_VALUES: dict[str, dict[str, Any]] = {
         "keyframes.frame_renders": 4,
         "loss.ssim": 0.1,  # its gradients drive growth: fewer anchors pay for the window's fifth view ("Loss weights")
         "loss.view": 0.5,  # once the window is full, the view weighs half a window keyframe ("Loss weights")
-        # At 1200x680 twenty Gaussians an anchor, not ten, and `dense`'s SSIM weight, not four times its own:
-        # with the threshold halved, Replica room0 from 36.55 to 38.13 dB, LPIPS 0.073 to 0.036 ("Growth by
-        # resolution").
-        "model.offsets_growth": "area",
-        "loss.ssim_at_fine_resolution": 0.8,
+        **_rules("sparse"),
     },
     "sparse-fast": {
-        **_BY_RESOLUTION,
         "model.encoding": "anchor",
-        "model.anchor_colour": False,  # slower and not better with so few steps ("Anchor colours")...
-        "model.anchor_colour_by_resolution": True,  # ...but pay at 1200x680 ("Anchor colours by resolution")
-        # No average below (it lags a map of few steps: "Map averaging"); sparse's and dense's at 1200x680
-        # ("Map averaging by resolution").
-        "optim.average_decay_by_resolution": 0.85,
+        "model.anchor_colour": False,  # slower and not better with so few steps ("Anchor colours")
+        # No average (it lags a map of few steps: "Map averaging"), but at 1200x680: see RESOLUTION_RULES.
         "refine.prune_opacity": 0.05,
         "keyframes.window_scale": 0.5,  # the window's global keyframes at half size ("Keyframes and the window")
         "keyframes.iterations": 6,  # fewer steps than sparse, as the paper's sparse-fast
         "keyframes.frame_iterations": 1,
         "loss.depth": 1.0,  # fewer steps leave depth less converged ("Loss weights")
+        **_rules("sparse-fast"),
     },
 }
 

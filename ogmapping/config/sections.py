@@ -8,13 +8,14 @@ Values the paper does not give follow Scaffold-GS / H2-Mapping, tuned for this e
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from ogmapping.backends import RasterizerBackend
 from ogmapping.config.fields import check, ranged
 from ogmapping.config.overrides import assign, flatten
+from ogmapping.config.resolution import ResolutionConfig, check_rules
+from ogmapping.config.retired import retire
 
 Encoding = Literal["hash", "anchor"]  # the dense version's hash grid, or the sparse version's feature per anchor
 AnchorColourStart = Literal["zero", "cell"]
@@ -23,10 +24,8 @@ Backend = Literal["auto", RasterizerBackend]
 Allocation = Literal["octree", "unique", "projection"]  # map densification: the paper's, naive, SplaTAM's
 Window = Literal["dynamic", "random", "overlap", "coverage"]  # the paper's, or a fixed window (random: ESLAM's)
 Growth = Literal["anchor", "error", "none"]  # the paper's progressive growth, Scaffold-GS's error-based, none
-ResolutionGrowth = Literal["linear", "area"]  # a value times the step multiple, or times its square
 
 MAX_OCTREE_LEVEL = 4
-MAX_SCALED_OFFSETS = 32  # model.offsets_by_resolution never makes more Gaussians per anchor than this
 # Pixels per axis between allocation samples: wider than any image samples at most one pixel; beyond int64
 # torch's slicing fails.
 MAX_ALLOCATION_STRIDE = 1 << 16
@@ -52,15 +51,6 @@ def _learning_rate(default: float) -> Any:
 class ModelConfig:
     encoding: Encoding = "hash"
     n_offsets: int = ranged(5, 1)  # Scaffold-GS uses 10; 5 renders as well here at half the cost
-    # Gaussians per anchor scale with the image: n_offsets times the first frame's step multiple
-    # (``keyframes.steps_reference_pixels``; x1 up to about 900x510, x2 at 1200x680), at most
-    # MAX_SCALED_OFFSETS. An anchor's Gaussians stand for a fixed patch of surface, which a finer image
-    # sees as more pixels ("Gaussians by resolution"). Resolved when the first frame arrives: the map
-    # is then built with the count, and the config keeps it (with this cleared).
-    offsets_by_resolution: bool = False
-    # ...times the multiple ("linear", x2 at 1200x680) or its square ("area", x4), as ``keyframes.steps_growth``
-    # grows the steps: the pixels an anchor's patch covers grow with the area ("Growth by resolution").
-    offsets_growth: ResolutionGrowth = "linear"
     feature_dim: int = ranged(32, 1)
     hidden_dim: int = ranged(32, 1)
     hash_levels: int = ranged(8, 1)
@@ -69,17 +59,9 @@ class ModelConfig:
     # Cells per metre at the coarsest and the finest hash level.
     hash_min_resolution: float = ranged(4.0, 0, MAX_HASH_RESOLUTION, open_low=True)
     hash_max_resolution: float = ranged(128.0, 0, MAX_HASH_RESOLUTION, open_low=True)
-    # The finest level's cells per metre times the first frame's step multiple (x2 at 1200x680, x1 up to
-    # about 900x510), at most MAX_HASH_RESOLUTION, resolved then as ``offsets_by_resolution`` is: a finer
-    # image resolves finer surface detail, which coarser cells blur ("Hash grid by resolution").
-    hash_by_resolution: bool = False
     # A learnable colour logit per anchor, added to the colour decoder's logits for its n Gaussians (not in
     # the paper): a direct, fast-learning colour next to the shared decoder ("Anchor colours").
     anchor_colour: bool = True
-    # ...on where the first frame's step multiple is 2 or more (1200x680), resolved then as
-    # ``offsets_by_resolution`` is: with twice the steps a frame, the colours that the fewest steps leave
-    # unlearnt pay for themselves ("Anchor colours by resolution").
-    anchor_colour_by_resolution: bool = False
     # Where a new anchor's colour starts: "zero" (the decoder's colour), or "cell", the mean colour of the
     # allocating frame's depth points in its cell, which gains on Replica but loses on 7-Scenes, whose colour
     # and depth cameras are not registered ("Anchor colours").
@@ -99,11 +81,6 @@ class OctreeConfig:
     # Back-project every n-th pixel per axis when allocating; 0: by resolution.
     allocation_stride: int = ranged(0, 0, MAX_ALLOCATION_STRIDE)
     allocation: Allocation = "octree"
-    # One level more (its anchors four times finer) where the first frame's step multiple is 2 or more
-    # (``keyframes.steps_reference_pixels``; from about 900x510, as at 1200x680): a finer image resolves
-    # finer surface detail ("Octree levels by resolution"). Resolved when the first frame arrives, as
-    # ``model.offsets_by_resolution`` is, at most MAX_OCTREE_LEVEL.
-    levels_by_resolution: bool = False
 
 
 @dataclass
@@ -122,15 +99,9 @@ class KeyframeConfig:
     window_scale: float = ranged(1.0, 0, 1, open_low=True)
     window_min_width: int = ranged(160, 1)  # ...but never narrower than this many pixels (or the keyframe itself)
     window: Window = "dynamic"
-    # The four step counts above (iterations, first_iterations, frame_iterations, frame_renders) times
-    # the image's linear size against an image of this many pixels, rounded to a whole multiple (at
-    # least 1): x1 up to about 1.5 times 600x340's width, x2 at 1200x680; 0: never scaled. A finer
-    # image holds more detail for the same map to learn ("Steps by resolution").
-    steps_reference_pixels: int = ranged(204000, 0)
-    # How those four step counts grow: "linear", times that multiple (x2 at 1200x680); "area", times its
-    # square (x4 at 1200x680), as the pixels grow. The by-resolution switches of the other sections take
-    # the multiple itself either way; x1 up to about 900x510 either way ("Steps by resolution").
-    steps_growth: ResolutionGrowth = "linear"
+    # The four step counts above (iterations, first_iterations, frame_iterations, frame_renders) are
+    # multiplied by this; ``resolution.steps`` sets it from the first frame's size ("Steps by resolution").
+    step_multiple: int = ranged(1, 1)
 
 
 @dataclass
@@ -144,11 +115,6 @@ class RefineConfig:
     prune_min_observations: int = ranged(10, 0)  # anchors seen fewer times are never pruned
     max_new_anchors: int = ranged(20000, 0)  # cap per growth step, keeps one step bounded
     growth: Growth = "anchor"
-    # ``grad_threshold`` divided by the first frame's step multiple (``keyframes.steps_reference_pixels``; half
-    # at 1200x680, unchanged up to about 900x510), resolved as ``model.offsets_by_resolution`` is: a finer
-    # image resolves edges that a coarser one blurs, and the anchors that draw them grow only where the
-    # threshold lets them ("Growth by resolution").
-    threshold_by_resolution: bool = False
 
 
 @dataclass
@@ -157,19 +123,6 @@ class LossConfig:
     ssim: float = _weight(0.2)
     depth: float = _weight(0.5)
     scale: float = _weight(0.01)
-    # The SSIM weight times the first frame's step multiple (``keyframes.steps_reference_pixels``; x2 at
-    # 1200x680, x1 up to about 900x510), resolved when the first frame arrives as
-    # ``model.offsets_by_resolution`` is: a finer image holds finer structure, which the L1 term, spread
-    # over four times the pixels, barely asks for ("SSIM by resolution").
-    ssim_by_resolution: bool = False
-    # ...times the multiple ("linear", x2 at 1200x680) or its square ("area", x4), as ``keyframes.steps_growth``
-    # grows the steps ("SSIM by area").
-    ssim_growth: ResolutionGrowth = "linear"
-    # The SSIM weight where the first frame's step multiple is 2 or more (1200x680), in place of the one
-    # grown above (0: the grown one), resolved then as ``model.offsets_by_resolution`` is: `sparse` keeps a
-    # small weight for speed on small images ("Loss weights"), which at 1200x680 leaves its SSIM and LPIPS
-    # short of what the same map reaches with `dense`'s weight there ("Growth by resolution").
-    ssim_at_fine_resolution: float = _weight(0.0)
     # Weight of a step's view (the streamed frame or the new keyframe) in its loss against each window
     # keyframe's 1, once the window is full (it draws all its global keyframes); before, 1 like them.
     # It divides the step's loss, which a view alone would make 0 / 0 at 0.
@@ -194,10 +147,6 @@ class OptimConfig:
     # The average's horizon grows with the map: it covers max(1 / (1 - average_decay), average_growth x
     # steps so far) steps, so an old map averages longer than a young one still converging; 0: fixed.
     average_growth: float = ranged(0.0, 0, 1)
-    # The decay where the first frame's step multiple is 2 or more (1200x680; 0: ``average_decay`` at every
-    # size), resolved then as ``model.offsets_by_resolution`` is: an average lags a map of few steps, which
-    # twice the steps a frame make pay ("Map averaging by resolution").
-    average_decay_by_resolution: float = ranged(0.0, 0, 1, open_high=True)
 
 
 @dataclass
@@ -254,6 +203,8 @@ class MapperConfig:
     loss: LossConfig = field(default_factory=LossConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     poses: PosesConfig = field(default_factory=PosesConfig)
+    # How settings follow the first frame's size (``ogmapping.config.resolution``), resolved then.
+    resolution: ResolutionConfig = field(default_factory=ResolutionConfig)
     backend: Backend = "auto"  # on the CPU only "cpu" runs the compiled kernels
     seed: int = ranged(0, *SEED_RANGE)
 
@@ -263,21 +214,12 @@ class MapperConfig:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> MapperConfig:
         """A stored config (a snapshot's, a checkpoint's), retired keys turned into their successors."""
-        flat = flatten(data)
-        for old, (new, convert) in RETIRED_KEYS.items():
-            if old in flat:
-                value = flat.pop(old)
-                flat.setdefault(new, convert(value))
+        flat = retire(flatten(data))
         config = cls()
         apply_overrides(config, flat)
         return config
 
 
-# Keys that configs stored before them may hold, each with its successor and how its value maps there,
-# so that every snapshot written before still loads.
-RETIRED_KEYS: dict[str, tuple[str, Callable[[Any], Any]]] = {
-    "poses.track_scale": ("poses.track_stride", lambda scale: max(1, round(1 / float(scale)))),
-}
 
 
 def apply_overrides(config: MapperConfig, overrides: dict[str, Any]) -> MapperConfig:
@@ -291,4 +233,5 @@ def apply_overrides(config: MapperConfig, overrides: dict[str, Any]) -> MapperCo
 def validate(config: MapperConfig) -> None:
     """Reject values the engine cannot run with, naming the key and its choices or range."""
     check(config, "config")
+    check_rules(config)
 

@@ -11,6 +11,7 @@ from contextlib import nullcontext
 import numpy as np
 import torch
 
+from ogmapping.config import resolution
 from ogmapping.mapping.model import MapModel
 from ogmapping.optim.keyframes import KeyframeSet
 from ogmapping.persist import training
@@ -81,6 +82,8 @@ def load(model: MapModel, keyframes: KeyframeSet, state: MapState, training_stat
 
 
 def _load_map(model: MapModel, state: MapState) -> None:
+    if state.tensors["anchors.codes"].numel() and resolution.reshape_pending(state.config):
+        raise ValueError("a map with anchors holds resolution rules still to resolve that would rebuild its model")
     model.octree.load_state_dict(state.section("octree"))
     model.octree.device = model.device
     model.decoders.load_state_dict(state.section("decoders"))
