@@ -1,1 +1,2 @@
-"""How the map is trained: the mapping loss and SSIM, keyframe windows, the moving average and anchor refinement."""
+"""What the map is trained with: the mapping loss and SSIM, keyframes and their windows, the moving average, anchor
+refinement, pose corrections and their Gauss-Newton steps, the hash table's lazy Adam."""
