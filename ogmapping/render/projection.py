@@ -94,7 +94,13 @@ def _project_chunk(
     """``project_gaussians`` on one chunk of Gaussians."""
     viewmat = viewmat.to(means)
     K = K.to(means)
-    x, y, z = (means @ viewmat[:3, :3].T + viewmat[:3, 3]).unbind(-1)
+    # The camera-frame centre term by term, summed in the order the cpu backend's kernel sums it,
+    # not as a matmul: a matmul's rounding is the BLAS kernel's (MKL's AVX-512 one on Intel Xeons
+    # rounds a quarter of the depths of a map one ulp off the kernel's), and one ulp reorders
+    # Gaussians of equal depth, which changes the image where they overlap.
+    w = [[viewmat[i, j] for j in range(4)] for i in range(3)]
+    mx, my, mz = means.unbind(-1)
+    x, y, z = (w[i][0] * mx + w[i][1] * my + w[i][2] * mz + w[i][3] for i in range(3))
     in_front = z >= NEAR_PLANE
     z_safe = torch.where(in_front, z, torch.ones_like(z))
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
@@ -109,7 +115,6 @@ def _project_chunk(
     half_tan_y = 0.5 * height / fy
     tx = torch.clamp(x_z, -(cx / fx + FOV_MARGIN * half_tan_x), (width - cx) / fx + FOV_MARGIN * half_tan_x)
     ty = torch.clamp(y_z, -(cy / fy + FOV_MARGIN * half_tan_y), (height - cy) / fy + FOV_MARGIN * half_tan_y)
-    w = [[viewmat[i, j] for j in range(3)] for i in range(3)]
     # Rows of J @ W: perspective Jacobian times the world-to-camera rotation.
     gx = fx / z_safe
     gy = fy / z_safe
