@@ -15,19 +15,14 @@ from collections import Counter
 
 import pytest
 import torch
+from steady_step import mapped
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from ogmapping.config import resolve
-from ogmapping.frames.preprocess import prepare
-from ogmapping.mapper import Mapper
-from ogmapping.optim.keyframes import View
-from ogmapping.quality.evaluation import open_frames
 from ogmapping.runtime.threads import torch_threads
 
 WAITING = {"aten.nonzero.default", "aten._local_scalar_dense.default", "aten._unique2.default",
            "aten.unique_dim.default", "aten.unique_consecutive.default", "aten.masked_select.default",
            "aten.repeat_interleave.Tensor"}
-MAPPED = 4  # frames mapped before the counted steps
 # Per steady step of a three-view window: the frustum test's nonzero per view; `dense` also encodes each anchor
 # the window sees once, through a unique over the views' rows.
 STEADY = {
@@ -66,26 +61,10 @@ def _engine_site() -> str:
     return "outside the engine"
 
 
-def _mapper_and_window(preset: str, interval: int) -> tuple[Mapper, View, list]:
-    frames = open_frames("synthetic", "synthetic", f"0:{MAPPED + 2}", scale=0.25)
-    config = resolve(preset, overrides={"keyframes.first_iterations": "2", "keyframes.iterations": "1",
-                                        "refine.interval": str(interval)})
-    mapper = Mapper(config, "cpu")
-    for position in frames.selection.streamed[:MAPPED]:
-        mapper.process(frames.load(position))
-    frame = prepare(frames.load(frames.selection.streamed[MAPPED]), config.octree.depth_min, config.octree.depth_max)
-    as_tensor = lambda array: torch.as_tensor(array, dtype=mapper.profile.precision)  # noqa: E731
-    view = View.of(as_tensor(frame.rgb), as_tensor(frame.depth), frame.color_intrinsics, as_tensor(frame.c2w),
-                   compiled=mapper.profile.compiled)
-    window = mapper.keyframes.keyframes[-2:]
-    assert len(window) == 2, "the counted steps render three views"
-    return mapper, view, window
-
-
 @pytest.mark.parametrize("preset", STEADY)
 def test_a_steady_step_waits_only_at_the_listed_sites(preset: str) -> None:
     steps = 3
-    mapper, view, window = _mapper_and_window(preset, interval=10_000)
+    mapper, view, window = mapped(preset, {"refine.interval": "10000"})
     waits = HostWaits()
     with torch_threads(mapper.profile.threads):
         mapper.steps.step(view, window)
@@ -99,7 +78,7 @@ def test_a_steady_step_waits_only_at_the_listed_sites(preset: str) -> None:
 def test_growth_and_pruning_wait_within_their_bar() -> None:
     """Growth and pruning reallocate the rows (a few times per ``refine.interval`` steps): their waits are
     counted apart from the steady step's: 14 on this map (sparse), most in growth's proposals."""
-    mapper, _, _ = _mapper_and_window("sparse", interval=1)
+    mapper, _, _ = mapped("sparse", {"refine.interval": "1"})
     waits = HostWaits()
     with torch_threads(mapper.profile.threads), waits:
         mapper.steps._refine()
