@@ -44,6 +44,8 @@ class MapAverage:
         self.growth = growth
         self.decoder_values = {name: torch.zeros_like(value) for name, value in decoders.named_parameters()}
         self.decoder_steps = 0
+        # The same count on the map's device, stepped there: a new tensor per step would be a host-to-device copy.
+        self._decoder_steps = torch.zeros(1, dtype=torch.int64, device=anchors.device)
 
     @property
     def enabled(self) -> bool:
@@ -72,8 +74,8 @@ class MapAverage:
         for name in LEARNABLE:
             _blend(anchors.averages[name], getattr(anchors, name), weight)
         self.decoder_steps += 1
-        # Every decoder value shares one count, on the map's device (a CPU tensor would not multiply a CUDA one).
-        weight = newest_weight(torch.tensor([self.decoder_steps], device=anchors.device), decay)
+        self._decoder_steps += 1
+        weight = newest_weight(self._decoder_steps, decay)  # every decoder value shares one count
         for name, value in self.decoders.named_parameters():
             _blend(self.decoder_values[name], value, weight)
 
@@ -121,3 +123,4 @@ class MapAverage:
                                  f"expected {tuple(value.shape)}")
             value.copy_(restored)
         self.decoder_steps = int(tensors["decoder_steps"][0])
+        self._decoder_steps.fill_(self.decoder_steps)
