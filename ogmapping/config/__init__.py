@@ -7,8 +7,8 @@ command line, the service's ``map<string,string>``) or typed (a YAML/JSON file, 
 and the server all call it, so they accept and refuse the same values with the same messages.
 
 The sections and their ranges are in ``sections``, the presets in ``presets``, a server's bounds in
-``bounds``, how settings follow a first frame's size in ``resolution``; ``overrides`` is the dotted-key and
-file mechanism the server's settings share.
+``bounds``, how settings follow a first frame's size in ``resolution``, stored configs' old keys in
+``retired``; ``overrides`` is the dotted-key and file mechanism the server's settings share.
 """
 
 from __future__ import annotations

@@ -1,1 +1,1 @@
-"""What a map renders with: anchor encodings, the hash table's lazy Adam, decoders, the Gaussians' assembly."""
+"""What a map renders with: anchor encodings, the hash table's row gradients, decoders, the Gaussians' assembly."""
