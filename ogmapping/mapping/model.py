@@ -87,9 +87,7 @@ class MapModel:
             groups.append({"params": [self.anchors.features], "lr": lr.features_lr, "name": "features"})
         if self.anchors.with_colours:
             groups.append({"params": [self.anchors.colours], "lr": lr.colour_lr, "name": "colours"})
-        # Fused: one kernel over every parameter, its step counts on the map's device, so a step reads none of
-        # them back on the host (the default keeps them on the host and reads each one every step).
-        return torch.optim.Adam(groups, eps=1e-15, fused=True)
+        return torch.optim.Adam(groups, eps=1e-15)
 
     @property
     def device(self) -> torch.device:

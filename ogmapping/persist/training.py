@@ -120,7 +120,7 @@ def restore(mapper: Optimisation, tensors: dict[str, torch.Tensor]) -> int | Non
             optimizer.state.pop(param, None)
             if state:
                 optimizer.state[param] = {
-                    "step": state["step"].to(param.device, torch.float32),
+                    "step": state["step"],
                     "exp_avg": _shaped(state, "exp_avg", param.detach()),
                     "exp_avg_sq": _shaped(state, "exp_avg_sq", param.detach()),
                 }
