@@ -13,6 +13,17 @@ READY_PREFIX = "ogserver listening on"
 WEB_PREFIX = "ogserver web view on"
 
 
+def stop_child(process: subprocess.Popen, timeout: float) -> int:
+    """SIGTERM, then SIGKILL where ``process`` is still there ``timeout`` seconds later; its exit status."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
+        try:
+            return process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            process.kill()
+    return process.wait()
+
+
 class LocalServer:
     """``with LocalServer(record_dir) as server: ... server.address``; stopped with SIGTERM on exit."""
 
@@ -58,14 +69,7 @@ class LocalServer:
 
     def stop(self, timeout: float = 60.0) -> int | None:
         """SIGTERM (the graceful path: recordings closed), SIGKILL if it does not exit in time."""
-        if self.process is None or self.process.poll() is not None:
-            return None if self.process is None else self.process.returncode
-        self.process.send_signal(signal.SIGTERM)
-        try:
-            return self.process.wait(timeout)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            return self.process.wait()
+        return None if self.process is None else stop_child(self.process, timeout)
 
     def kill(self) -> None:
         """SIGKILL, as a crash would."""

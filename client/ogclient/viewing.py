@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import IO
 
 from ogclient.connection import ClientError
+from ogclient.local_server import stop_child
 
 READY_PREFIX = "ogserver map view on"
 ERROR_PREFIX = "ogserver view:"
@@ -41,17 +42,6 @@ class Stderr(threading.Thread):
                 sys.stderr.flush()
 
 
-def stop(child: subprocess.Popen) -> int:
-    """SIGTERM, then SIGKILL where the child is still there ``STOP_SECONDS`` later; its exit status."""
-    if child.poll() is None:
-        child.terminate()
-        try:
-            child.wait(STOP_SECONDS)
-        except subprocess.TimeoutExpired:
-            child.kill()
-    return child.wait()
-
-
 def view(path: Path, port: int, device: str, ready: Callable[[str], None]) -> int:
     """Serve the map at ``path`` until Ctrl-C or SIGTERM, calling ``ready(url)`` once its page is served; the
     child's progress lines are printed as they come. ClientError where it fails."""
@@ -70,7 +60,7 @@ def view(path: Path, port: int, device: str, ready: Callable[[str], None]) -> in
     except KeyboardInterrupt:
         return 0
     finally:
-        status = stop(child)
+        status = stop_child(child, STOP_SECONDS)
         signal.signal(signal.SIGTERM, previous)
     stderr.join()
     if status == 0:  # ended by a signal to the whole process group: Ctrl-C in a terminal
