@@ -34,7 +34,8 @@ def _logits(count: int, seed: int, opacity_shift: float) -> list[torch.Tensor]:
 
 
 def _run(assemble, anchors: AnchorMap, rows: torch.Tensor, logits: list[torch.Tensor], seed: int):
-    for param in (anchors.log_scales, anchors.offsets, *logits):
+    learnable = (anchors.parameter("log_scales"), anchors.parameter("offsets"))
+    for param in (*learnable, *logits):
         param.grad = None
     gaussians = assemble(anchors, rows, *logits)
     generator = torch.Generator().manual_seed(seed + 2)
@@ -43,7 +44,7 @@ def _run(assemble, anchors: AnchorMap, rows: torch.Tensor, logits: list[torch.Te
     if len(gaussians):
         loss.backward()
     grads = [p.grad if p.grad is not None else torch.zeros_like(p)
-             for p in (anchors.log_scales, anchors.offsets, *logits)]
+             for p in (*learnable, *logits)]
     return gaussians, grads
 
 

@@ -64,18 +64,28 @@ def _engine_site() -> str:
     return "outside the engine"
 
 
-@pytest.mark.parametrize("preset", STEADY)
-def test_a_steady_step_waits_only_at_the_listed_sites(preset: str) -> None:
-    steps = 3
-    mapper, view, window = mapped(preset, {"refine.interval": "10000"})
+def waits_per_steady_step(preset: str, static_shapes: bool, steps: int = 3) -> dict[tuple[str, str], float]:
+    """Host waits per step by site, over ``steps`` steps that neither grow nor prune, after one uncounted."""
+    mapper, view, window = mapped(preset, {"refine.interval": "10000"}, static_shapes=static_shapes)
     waits = HostWaits()
     with torch_threads(mapper.profile.threads):
         mapper.steps.step(view, window)
         with waits:
             for _ in range(steps):
                 mapper.steps.step(view, window)
-    per_step = {site: count / steps for site, count in waits.sites.items()}
+    return {site: count / steps for site, count in waits.sites.items()}
+
+
+@pytest.mark.parametrize("preset", STEADY)
+def test_a_steady_step_waits_only_at_the_listed_sites(preset: str) -> None:
+    per_step = waits_per_steady_step(preset, static_shapes=False)
     assert per_step == STEADY[preset], f"{preset}: host waits per steady step by site: {per_step}"
+
+
+@pytest.mark.parametrize("preset", ["sparse", "sparse-fast"])
+def test_a_steady_step_with_static_shapes_never_waits(preset: str) -> None:
+    per_step = waits_per_steady_step(preset, static_shapes=True)
+    assert not per_step, f"{preset}: host waits per steady step with static shapes: {per_step}"
 
 
 def test_growth_and_pruning_wait_within_their_bar() -> None:

@@ -100,15 +100,22 @@ def test_duplicate_proposals_become_one_anchor():
 
 def test_prune_removes_faint_anchors_and_optimizer_state_follows():
     anchors, _ = build_map([[0.1, 0.1, 0.1], [1.0, 1.0, 1.0], [2.0, 2.0, 2.0]], [0, 0, 0])
-    optimizer = torch.optim.Adam([anchors.offsets, anchors.features, anchors.log_scales], lr=0.1)
-    (anchors.offsets.sum() + anchors.features.sum() + anchors.log_scales.sum()).backward()
+    offsets = anchors.parameter("offsets")
+    optimizer = torch.optim.Adam([offsets, anchors.parameter("features"), anchors.parameter("log_scales")], lr=0.1)
+    weights = torch.arange(1.0, 4.0).view(3, 1, 1)  # each anchor's moments its own
+    ((anchors.offsets * weights).sum() + anchors.features.sum() + anchors.log_scales.sum()).backward()
     optimizer.step()
+    moments = optimizer.state[offsets]["exp_avg"].clone()
     anchors.observations[:] = torch.tensor([20, 20, 2])
     anchors.max_opacity[:] = torch.tensor([0.5, 0.001, 0.001])  # the third is faint but seen too rarely
     removed = prune(anchors, RefineConfig(prune_opacity=0.01, prune_min_observations=10), optimizer)
     assert removed == 1 and len(anchors) == 2
-    assert optimizer.param_groups[0]["params"][0] is anchors.offsets
-    assert optimizer.state[anchors.offsets]["exp_avg"].shape == anchors.offsets.shape
+    # compacted in place: the same buffer, its moments following their anchors, the freed row inert
+    assert optimizer.param_groups[0]["params"][0] is anchors.parameter("offsets") is offsets
+    state = optimizer.state[offsets]["exp_avg"]
+    assert state.shape == offsets.shape == (anchors.capacity, 2, 3)
+    assert torch.equal(state[:2], moments[[0, 2]]) and not state[2:].any()
+    assert not anchors.live[2:].any() and anchors.live[:2].all()
 
 
 def test_prune_keeps_anchors_that_were_not_rendered_in_the_interval():

@@ -23,11 +23,13 @@ from ogmapping.frames.geometry import intrinsics_matrix, world_to_camera
 from ogmapping.model.decoders import Decoders
 from ogmapping.model.encoding import HashGridEncoding, feature_dim, initial_anchor_features
 from ogmapping.model.gaussians import GaussianSet, anchors_in_view, decoded_logits, generate
+from ogmapping.model.static_gaussians import view_mask
 from ogmapping.optim.averaging import MapAverage
 from ogmapping.optim.lazy_adam import LazyAdam
 from ogmapping.render import Camera, rasterize
 from ogmapping.render.output import RenderOutput
 from ogmapping.render.rules import COVARIANCE_BLUR
+from ogmapping.runtime.late_count import LateCount
 from ogmapping.runtime.profile import ExecutionProfile
 from ogmapping.runtime.stage_timer import StageTimer
 from ogmapping.structure.anchor_colour import cell_colour_logits, colour_sample_stride
@@ -46,7 +48,7 @@ class MapModel:
         self.build(config)
         self.frames = 0
         self.iterations = 0
-        self.last_gaussians = 0
+        self.drawn = LateCount()  # Gaussians the newest step drew in its view
         # Sum of the mapped frames' camera centres (float64): their mean is where a .ply export
         # bakes view-dependent colour by default, and it survives snapshots.
         self.camera_position_sum = torch.zeros(3, dtype=torch.float64)
@@ -77,17 +79,23 @@ class MapModel:
     def _make_optimizer(self) -> torch.optim.Adam:
         lr = self.config.optim
         groups = [
-            {"params": [self.anchors.log_scales], "lr": lr.scaling_lr, "name": "log_scales"},
-            {"params": [self.anchors.offsets], "lr": lr.offsets_lr, "name": "offsets"},
+            {"params": [self.anchors.parameter("log_scales")], "lr": lr.scaling_lr, "name": "log_scales"},
+            {"params": [self.anchors.parameter("offsets")], "lr": lr.offsets_lr, "name": "offsets"},
             {"params": self.decoders.opacity.parameters(), "lr": lr.opacity_mlp_lr, "name": "opacity_mlp"},
             {"params": self.decoders.color.parameters(), "lr": lr.color_mlp_lr, "name": "color_mlp"},
             {"params": self.decoders.cov.parameters(), "lr": lr.cov_mlp_lr, "name": "cov_mlp"},
         ]
         if self.encoding is None:
-            groups.append({"params": [self.anchors.features], "lr": lr.features_lr, "name": "features"})
+            groups.append({"params": [self.anchors.parameter("features")], "lr": lr.features_lr, "name": "features"})
         if self.anchors.with_colours:
-            groups.append({"params": [self.anchors.colours], "lr": lr.colour_lr, "name": "colours"})
-        return torch.optim.Adam(groups, eps=1e-15)
+            groups.append({"params": [self.anchors.parameter("colours")], "lr": lr.colour_lr, "name": "colours"})
+        # Fused: its step counts stay tensors (torch's loop reads each on the host). Only with static shapes,
+        # whose maps are not the CPU's: it rounds otherwise than the loop the CPU's maps were tuned with.
+        return torch.optim.Adam(groups, eps=1e-15, fused=self.profile.static_shapes or None)
+
+    @property
+    def last_gaussians(self) -> int:
+        return self.drawn.value()
 
     @property
     def device(self) -> torch.device:
@@ -118,8 +126,8 @@ class MapModel:
     def features(self, rows: torch.Tensor) -> torch.Tensor:
         """The decoders' input features of anchors ``rows``: the hash grid's at their centres, or their own."""
         if self.encoding is not None:
-            return self.encoding(self.anchors.positions.index_select(0, rows), compiled=self.profile.compiled)
-        return self.anchors.features.index_select(0, rows)  # index_add_ backward: faster than [rows]
+            return self.encoding(self.anchors.buffer("positions").index_select(0, rows), compiled=self.profile.compiled)
+        return self.anchors.parameter("features").index_select(0, rows)  # index_add_ backward: faster than [rows]
 
     def window_features(self, rows: list[torch.Tensor]) -> Callable[[torch.Tensor], torch.Tensor]:
         """Features for one step's renders of anchors ``rows`` (one tensor per view). The hash grid's
@@ -131,6 +139,16 @@ class MapModel:
         seen = torch.unique(torch.cat(rows))  # sorted
         encoded = self.features(seen)
         return lambda view_rows: encoded.index_select(0, torch.searchsorted(seen, view_rows))
+
+    def buffer_features(self) -> torch.Tensor:
+        """The decoders' input features of every row of the anchor buffers (``static_gaussians``)."""
+        if self.encoding is not None:
+            return self.encoding(self.anchors.buffer("positions"), compiled=self.profile.compiled)
+        return self.anchors.parameter("features")
+
+    def view_mask(self, c2w: torch.Tensor, intrinsics: Intrinsics) -> torch.Tensor:
+        """``rows_in_view`` as a mask over the anchor buffers' rows, for a step with static shapes."""
+        return view_mask(self.anchors, intrinsics, c2w, far=self.config.octree.depth_max * 2)
 
     def rows_in_view(self, c2w: torch.Tensor, intrinsics: Intrinsics) -> torch.Tensor:
         """The anchors a camera at ``c2w`` may see (its frustum out to twice the deepest depth kept)."""

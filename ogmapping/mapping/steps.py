@@ -13,7 +13,8 @@ import threading
 import torch
 
 from ogmapping.mapping.model import MapModel
-from ogmapping.model.gaussians import generate_window
+from ogmapping.model.gaussians import GaussianSet, generate_window
+from ogmapping.model.static_gaussians import generate_drawn
 from ogmapping.optim import refine
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
 from ogmapping.optim.losses import mapping_loss
@@ -73,11 +74,7 @@ class MappingSteps:
             corrections = list({id(drawn.correction): drawn.correction for drawn, moves in moving if moves}.values())
         with model.timed("decode"):
             views = list(zip(poses, window, strict=True))
-            rows = [model.rows_in_view(pose.detach(), drawn.intrinsics) for pose, drawn in views]
-            window_gaussians = generate_window(model.anchors, model.window_features(rows), model.decoders,
-                                               [pose.detach()[:3, 3] for pose in poses], rows,
-                                               compiled=model.profile.compiled,
-                                               shared_decode=model.profile.shared_decode)
+            window_gaussians = self.decode(views)
         with model.timed("rasterize"):
             cameras = [model.camera(pose, drawn.intrinsics) for pose, drawn in views]
             outputs = rasterize_batch(window_gaussians, cameras, backend=model.backend)
@@ -97,10 +94,11 @@ class MappingSteps:
             if total.requires_grad:
                 total.backward()
         with model.timed("statistics"):
+            accumulate = refine.accumulate_drawn if model.profile.static_shapes else refine.accumulate
             for gaussians, output, drawn in renders:
                 grad = output.means2d.grad if output.means2d.requires_grad else None
-                refine.accumulate(model.anchors, gaussians, grad, output.visible,
-                                  drawn.intrinsics.width, drawn.intrinsics.height)
+                accumulate(model.anchors, gaussians, grad, output.visible, drawn.intrinsics.width,
+                           drawn.intrinsics.height)
         with model.timed("optimizer"):
             model.optimizer.step()
             if model.hash_optimizer is not None:
@@ -108,8 +106,21 @@ class MappingSteps:
             model.average.update()
             for correction in corrections:
                 correction.step(config.poses)
-        model.last_gaussians = len(renders[0][0]) if renders else 0
+        first = window_gaussians[0]
+        model.drawn.post(first.drawn_count() if model.profile.static_shapes else len(first))
         return total.detach()
+
+    def decode(self, views: list[tuple[torch.Tensor, View]]) -> list[GaussianSet]:
+        """The Gaussians of each (pose, view): of the anchors in view, or with static shapes of every
+        buffer row, the ones not drawn inert."""
+        model = self.model
+        centers = [pose.detach()[:3, 3] for pose, _ in views]
+        if model.profile.static_shapes:
+            masks = [model.view_mask(pose.detach(), drawn.intrinsics) for pose, drawn in views]
+            return generate_drawn(model.anchors, model.buffer_features, model.decoders, centers, masks)
+        rows = [model.rows_in_view(pose.detach(), drawn.intrinsics) for pose, drawn in views]
+        return generate_window(model.anchors, model.window_features(rows), model.decoders, centers, rows,
+                               compiled=model.profile.compiled, shared_decode=model.profile.shared_decode)
 
     def moves(self, correction: PoseCorrection | None, view: View) -> bool:
         """Whether a step moves ``correction``: not one held at the client's pose by its tracking, and not

@@ -89,7 +89,7 @@ def generate_window(
                 for center, view_rows in zip(camera_centers, rows, strict=True)]
     counts = [int(view_rows.shape[0]) for view_rows in rows]
     all_rows = torch.cat(rows)
-    positions = anchors.positions.index_select(0, all_rows)
+    positions = anchors.buffer("positions").index_select(0, all_rows)
     # Expanded views, not repeat_interleave: its repeats would be copied from the host to the device.
     per_row = torch.cat([center.to(positions).expand(count, 3) for center, count in zip(camera_centers, counts,
                                                                                          strict=True)])
@@ -101,7 +101,7 @@ def generate_window(
 
 def _generate_one(anchors: AnchorMap, features: Callable[[torch.Tensor], torch.Tensor], decoders: Decoders,
                   camera_center: torch.Tensor, rows: torch.Tensor, compiled: bool) -> GaussianSet:
-    positions = anchors.positions.index_select(0, rows)
+    positions = anchors.buffer("positions").index_select(0, rows)
     logits = _logits(anchors, decoders, features(rows), positions, camera_center, rows)
     return _assemble(anchors, rows, positions, *logits, compiled=compiled)
 
@@ -111,7 +111,7 @@ def _logits(anchors: AnchorMap, decoders: Decoders, features: torch.Tensor, posi
     """The decoders' logits, with each anchor's own colour added where the map keeps one."""
     opacity, color, cov = decoded_logits(decoders, features, positions, camera_centers)
     if anchors.with_colours:
-        color = with_anchor_colours(color, anchors.colours, rows)
+        color = with_anchor_colours(color, anchors.parameter("colours"), rows)
     return opacity, color, cov
 
 
@@ -127,8 +127,8 @@ def _assemble_torch(anchors: AnchorMap, rows: torch.Tensor, positions: torch.Ten
     """``positions``: the anchors' centres, ``anchors.positions[rows]``."""
     n = anchors.n_offsets
     decoded = activate(opacity_logits, color_logits, cov, n)
-    anchor_scale = torch.exp(anchors.log_scales[rows])  # (V, 3)
-    means = positions.unsqueeze(1) + anchors.offsets[rows] * anchor_scale.unsqueeze(1)
+    anchor_scale = torch.exp(anchors.parameter("log_scales")[rows])  # (V, 3)
+    means = positions.unsqueeze(1) + anchors.parameter("offsets")[rows] * anchor_scale.unsqueeze(1)
     scales = anchor_scale.unsqueeze(1) * decoded.scale_factor
     keep = torch.nonzero(decoded.opacity.reshape(-1) > 0).squeeze(-1)  # one nonzero, shared by every gather
     return GaussianSet(
@@ -147,6 +147,7 @@ def _assemble_torch(anchors: AnchorMap, rows: torch.Tensor, positions: torch.Ten
 def _assemble_compiled(anchors: AnchorMap, rows: torch.Tensor, opacity_logits: torch.Tensor,
                        color_logits: torch.Tensor, cov: torch.Tensor) -> GaussianSet:
     means, quats, scales, opacities, colors, kept_rows, slots, anchor_opacity = AssembleGaussians.apply(
-        opacity_logits, color_logits, cov, anchors.positions, anchors.log_scales, anchors.offsets, rows)
+        opacity_logits, color_logits, cov, anchors.buffer("positions"), anchors.parameter("log_scales"),
+        anchors.parameter("offsets"), rows)
     return GaussianSet(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
                        rows=kept_rows, slots=slots, anchor_rows=rows, anchor_opacity=anchor_opacity)

@@ -69,10 +69,11 @@ class MapAverage:
             return
         decay = self.decay_at(self.decoder_steps + 1)
         anchors = self.anchors
-        anchors.average_steps += 1
-        weight = newest_weight(anchors.average_steps, decay)
+        steps = anchors.buffer("average_steps")  # every row of the buffers: their shapes stay put
+        steps += 1
+        weight = newest_weight(steps, decay)
         for name in LEARNABLE:
-            _blend(anchors.averages[name], getattr(anchors, name), weight)
+            _blend(anchors.average_rows[name], anchors.parameter(name), weight)
         self.decoder_steps += 1
         self._decoder_steps += 1
         weight = newest_weight(self._decoder_steps, decay)  # every decoder value shares one count

@@ -20,6 +20,7 @@ import torch
 
 from ogmapping.config import Growth, RefineConfig
 from ogmapping.model.gaussians import GaussianSet
+from ogmapping.model.static_gaussians import DrawnGaussianSet
 from ogmapping.structure.anchors import AnchorMap, cell_size
 from ogmapping.structure.octree import SparseVoxelOctree
 
@@ -41,11 +42,30 @@ def accumulate(anchors: AnchorMap, gaussians: GaussianSet, means2d_grad: torch.T
     # Gaussian, adding 0 where it is not visible, instead of a gather of the visible ones (its
     # data-dependent size makes the host wait for the device). Each (row, slot) appears once per
     # render, so the sums are the same to the bit.
-    scaled = torch.stack([means2d_grad[:, 0] * (width / 2.0), means2d_grad[:, 1] * (height / 2.0)], dim=-1)
-    norms = torch.where(visible, scaled.norm(dim=-1), 0.0)
+    norms = _gradient_norms(means2d_grad, visible, width, height)
     rows, slots = gaussians.rows, gaussians.slots
     anchors.grad_sum.index_put_((rows, slots), norms.to(anchors.grad_sum), accumulate=True)
     anchors.grad_count.index_put_((rows, slots), visible.to(rows.dtype), accumulate=True)
+
+
+def accumulate_drawn(anchors: AnchorMap, gaussians: DrawnGaussianSet, means2d_grad: torch.Tensor | None,
+                     visible: torch.Tensor, width: int, height: int) -> None:
+    """``accumulate`` for a view decoded with static shapes (``static_gaussians``): Gaussian i is slot
+    i % n of buffer row i // n, so the sums go straight into the buffers, counting the drawn Gaussians only."""
+    observations, max_opacity = anchors.buffer("observations"), anchors.buffer("max_opacity")
+    observations += gaussians.in_view
+    torch.maximum(max_opacity, torch.where(gaussians.in_view, gaussians.anchor_opacity, -torch.inf), out=max_opacity)
+    if means2d_grad is None:
+        return
+    counted = visible & gaussians.drawn
+    anchors.buffer("grad_sum").view(-1).add_(_gradient_norms(means2d_grad, counted, width, height))
+    anchors.buffer("grad_count").view(-1).add_(counted)
+
+
+def _gradient_norms(means2d_grad: torch.Tensor, counted: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """Each Gaussian's screen-space gradient norm in NDC units where ``counted``, else 0."""
+    scaled = torch.stack([means2d_grad[:, 0] * (width / 2.0), means2d_grad[:, 1] * (height / 2.0)], dim=-1)
+    return torch.where(counted, scaled.norm(dim=-1), 0.0)
 
 
 @dataclass

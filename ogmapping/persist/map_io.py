@@ -74,7 +74,7 @@ def load(model: MapModel, keyframes: KeyframeSet, state: MapState, training_stat
     try:
         _load_map(model, state)
         if training_state:
-            model.last_gaussians = training.restore(optimisation(model, keyframes), state.tensors) or 0
+            model.drawn.post(training.restore(optimisation(model, keyframes), state.tensors) or 0)
     except (KeyError, RuntimeError, ValueError) as error:
         raise ValueError(f"map state does not match its config: {error}") from error
     model.frames = state.frames

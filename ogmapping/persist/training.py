@@ -20,7 +20,7 @@ from ogmapping.optim.averaging import MapAverage
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet
 from ogmapping.optim.lazy_adam import LazyAdam
 from ogmapping.optim.poses import PoseCorrection
-from ogmapping.structure.anchors import LEARNABLE, AnchorMap
+from ogmapping.structure.anchors import LEARNABLE, MOMENTS, AnchorMap
 
 PREFIX = "training."
 STATISTICS = ("positions", "grad_sum", "grad_count", "max_opacity")
@@ -64,7 +64,9 @@ def capture(mapper: Optimisation) -> dict[str, torch.Tensor]:
     for group in mapper.optimizer.param_groups:
         for position, param in enumerate(group["params"]):
             for key, value in mapper.optimizer.state.get(param, {}).items():
-                tensors[f"adam.{group['name']}.{position}.{key}"] = torch.as_tensor(value)
+                value = torch.as_tensor(value)
+                live = key in MOMENTS and _is_row_buffer(mapper.anchors, param)
+                tensors[f"adam.{group['name']}.{position}.{key}"] = value[: len(mapper.anchors)] if live else value
     if mapper.hash_optimizer is not None:
         tensors["hash_adam.step_count"] = _scalar(mapper.hash_optimizer.step_count, torch.int64)
         tensors["hash_adam.exp_avg"] = mapper.hash_optimizer.exp_avg
@@ -101,6 +103,20 @@ def _shaped(tensors: dict[str, torch.Tensor], name: str, like: torch.Tensor) -> 
     return value.to(like.device, like.dtype)
 
 
+def _is_row_buffer(anchors: AnchorMap, param: torch.Tensor) -> bool:
+    return any(param is anchors.parameter(name) for name in LEARNABLE)
+
+
+def _moment(state: dict[str, torch.Tensor], key: str, param: torch.Tensor, anchors: AnchorMap) -> torch.Tensor:
+    """Adam's moment ``key`` of ``param`` as saved: an anchor buffer's live rows go back into a buffer of
+    its capacity (the rows past the count stay zero)."""
+    if not _is_row_buffer(anchors, param):
+        return _shaped(state, key, param.detach())
+    moment = torch.zeros_like(param.detach())
+    moment[: len(anchors)] = _shaped(state, key, param.detach()[: len(anchors)])
+    return moment
+
+
 def restore(mapper: Optimisation, tensors: dict[str, torch.Tensor]) -> int | None:
     """Put a captured training state into a mapper's parts, which already hold the map it was
     captured with, and return its ``last_gaussians``; a state without any (a snapshot) leaves the
@@ -119,11 +135,9 @@ def restore(mapper: Optimisation, tensors: dict[str, torch.Tensor]) -> int | Non
             state = {name[len(prefix):]: value for name, value in section.items() if name.startswith(prefix)}
             optimizer.state.pop(param, None)
             if state:
-                optimizer.state[param] = {
-                    "step": state["step"],
-                    "exp_avg": _shaped(state, "exp_avg", param.detach()),
-                    "exp_avg_sq": _shaped(state, "exp_avg_sq", param.detach()),
-                }
+                optimizer.state[param] = {"step": state["step"]}
+                for key in MOMENTS:
+                    optimizer.state[param][key] = _moment(state, key, param, anchors)
     if mapper.hash_optimizer is not None:
         adam = mapper.hash_optimizer
         adam.step_count = int(section["hash_adam.step_count"][0])
@@ -141,8 +155,8 @@ def _restore_average(mapper: Optimisation, section: dict[str, torch.Tensor]) -> 
         return
     anchors = mapper.anchors
     anchors.average_steps = _shaped(section, "anchors.average_steps", anchors.average_steps)
-    anchors.averages = {name: _shaped(section, f"anchors.average.{name}", anchors.averages[name])
-                        for name in LEARNABLE}
+    for name, average in anchors.averages.items():
+        average.copy_(_shaped(section, f"anchors.average.{name}", average))
     prefix = "average."
     mapper.average.load({name[len(prefix):]: value.to(mapper.device)
                          for name, value in section.items() if name.startswith(prefix)})

@@ -1,4 +1,5 @@
-"""How a mapper runs, chosen once: device, rasterizer backend, precision, torch threads, compiled kernels.
+"""How a mapper runs, chosen once: device, rasterizer backend, precision, torch threads, compiled kernels,
+static shapes.
 
 Every choice that depends on where the map lives is made here, when the mapper is built, and
 passed down as flags: the modules the mapper calls never look at a tensor's device to pick a code
@@ -30,18 +31,26 @@ class ExecutionProfile:
     # Decoders run once per step's window, not once per view: fewer, larger kernels on a GPU. On the
     # CPU it is no faster (bench/RESULTS.md "Batched windows") and would change every CPU map's rounding.
     shared_decode: bool = False
+    # Every view decodes every row of the anchor buffers, the ones not drawn inert (``static_gaussians``):
+    # no selection makes the host wait for the device, and a step's shapes stay put between capacity
+    # doublings. On the CPU it decodes rows it would not draw, for nothing to wait on.
+    static_shapes: bool = False
 
 
-def execution_profile(device: str | torch.device, backend: str, encoding: str) -> ExecutionProfile:
-    """The profile of a mapper on ``device`` with ``config.backend`` and ``config.model.encoding``."""
+def execution_profile(device: str | torch.device, backend: str, encoding: str,
+                      shapes: str = "auto") -> ExecutionProfile:
+    """The profile of a mapper on ``device`` with ``config.backend``, ``config.model.encoding`` and
+    ``config.shapes``. Static shapes run the decode in torch ops (as on CUDA), so not the Numba kernels."""
     device = torch.device(device)
     concrete = resolve_backend(backend, device)
+    static = shapes == "static" or (shapes == "auto" and device.type == "cuda")
     return ExecutionProfile(
         device=device,
         backend=concrete,
-        compiled=device.type == "cpu" and concrete == "cpu",
+        compiled=device.type == "cpu" and concrete == "cpu" and not static,
         threads=_mapping_threads(device, encoding),
-        shared_decode=device.type == "cuda",
+        shared_decode=device.type == "cuda" or static,
+        static_shapes=static,
     )
 
 
