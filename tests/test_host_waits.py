@@ -82,7 +82,7 @@ def test_a_steady_step_waits_only_at_the_listed_sites(preset: str) -> None:
     assert per_step == STEADY[preset], f"{preset}: host waits per steady step by site: {per_step}"
 
 
-@pytest.mark.parametrize("preset", ["sparse", "sparse-fast"])
+@pytest.mark.parametrize("preset", STEADY)
 def test_a_steady_step_with_static_shapes_never_waits(preset: str) -> None:
     per_step = waits_per_steady_step(preset, static_shapes=True)
     assert not per_step, f"{preset}: host waits per steady step with static shapes: {per_step}"

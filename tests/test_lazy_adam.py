@@ -23,14 +23,15 @@ def test_gather_matches_indexing_and_deposits_its_gradient_rows():
     assert torch.allclose(summed[2], weights[1] + weights[2])
 
 
-@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "torch-ops"])
-def test_steps_equal_torch_adam_when_every_row_is_touched(compiled):
+@pytest.mark.parametrize(("compiled", "static_shapes"), [(True, False), (False, False), (False, True)],
+                         ids=["compiled", "torch-ops", "static-shapes"])
+def test_steps_equal_torch_adam_when_every_row_is_touched(compiled, static_shapes):
     torch.manual_seed(0)
     start = torch.randn(2, 4, 3)
     lazy_table = torch.nn.Parameter(start.clone())
     dense_table = torch.nn.Parameter(start.clone())
     sink = RowGradients()
-    lazy = LazyAdam(lazy_table, sink, lr=0.01, compiled=compiled)
+    lazy = LazyAdam(lazy_table, sink, lr=0.01, compiled=compiled, static_shapes=static_shapes)
     dense = torch.optim.Adam([dense_table], lr=0.01, eps=1e-15)
     every_row = torch.arange(8).repeat(2)
     for _ in range(5):
@@ -109,6 +110,29 @@ def test_compiled_step_over_lookups_equals_the_torch_step_and_leaves_the_buffer_
     torch.testing.assert_close(compiled_table, torch_table)
     torch.testing.assert_close(compiled.exp_avg_sq, reference.exp_avg_sq)
     assert compiled.step_count == reference.step_count == 4
+
+
+def test_the_static_shape_step_over_the_whole_table_equals_the_step_over_the_touched_rows():
+    shape = torch.Size((3, 256, 2))
+    start = torch.randn(shape)
+    masked_table, torch_table = torch.nn.Parameter(start.clone()), torch.nn.Parameter(start.clone())
+    masked_sink, sink = RowGradients(), RowGradients()
+    masked = LazyAdam(masked_table, masked_sink, lr=0.01, compiled=False, static_shapes=True)
+    reference = LazyAdam(torch_table, sink, lr=0.01, compiled=False)
+    for seed in range(4):
+        masked.zero_grad()
+        reference.zero_grad()
+        for view in range(2):  # two views' backward passes into one step, a few rows in both
+            pairs = _as_pairs(*_lookups(3, 256, 3, 10 * seed + view))
+            masked_sink.add(*pairs)
+            sink.add(*pairs)
+        masked.step()
+        reference.step()
+    torch.testing.assert_close(masked_table, torch_table)
+    torch.testing.assert_close(masked.exp_avg, reference.exp_avg)
+    torch.testing.assert_close(masked.exp_avg_sq, reference.exp_avg_sq)
+    untouched = reference.exp_avg.view(-1, 2).eq(0).all(1)
+    assert untouched.any() and torch.equal(masked_table.detach().view(-1, 2)[untouched], start.view(-1, 2)[untouched])
 
 
 def test_a_buffer_is_for_one_table_shape():

@@ -68,7 +68,7 @@ class MapModel:
         self.optimizer = self._make_optimizer()
         self.average = MapAverage(self.anchors, self.decoders, config.optim.average_decay, config.optim.average_growth)
         self.hash_optimizer = (LazyAdam(self.encoding.table, self.encoding.gradients, config.optim.hash_lr,
-                                        compiled=self.profile.compiled)
+                                        compiled=self.profile.compiled, static_shapes=self.profile.static_shapes)
                                if self.encoding is not None else None)
 
     def restart_average(self) -> None:

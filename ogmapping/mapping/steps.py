@@ -20,6 +20,7 @@ from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
 from ogmapping.optim.losses import mapping_loss
 from ogmapping.optim.poses import PoseCorrection
 from ogmapping.render import rasterize_batch
+from ogmapping.render.output import RenderOutput
 from ogmapping.runtime.time_budget import Budget, Stop
 
 
@@ -67,6 +68,33 @@ class MappingSteps:
         model.optimizer.zero_grad(set_to_none=True)
         if model.hash_optimizer is not None:
             model.hash_optimizer.zero_grad()
+        total, renders, corrections = self.objective(view, keyframes)
+        with model.timed("backward"):
+            if total.requires_grad:
+                total.backward()
+        static = model.profile.static_shapes
+        with model.timed("statistics"):
+            accumulate = refine.accumulate_drawn if static else refine.accumulate
+            for gaussians, output, drawn in renders:
+                grad = output.means2d.grad if output.means2d.requires_grad else None
+                accumulate(model.anchors, gaussians, grad, output.visible, drawn.intrinsics.width,
+                           drawn.intrinsics.height)
+        with model.timed("optimizer"):
+            model.optimizer.step()
+            if model.hash_optimizer is not None:
+                model.hash_optimizer.step()
+            model.average.update()
+            for correction in corrections:
+                correction.step(config.poses)
+        first = renders[0][0]
+        model.drawn.post(first.drawn_count() if static else len(first))
+        return total.detach()
+
+    def objective(self, view: View, keyframes: list[Keyframe]) -> tuple[
+            torch.Tensor, list[tuple[GaussianSet, RenderOutput, View]], list[PoseCorrection]]:
+        """A step's loss over ``view`` and ``keyframes``, its renders (Gaussians, output, view) and the
+        pose corrections it moves."""
+        model, config = self.model, self.model.config
         with model.timed("window"):
             window = [view, *(self.drawn(keyframe) for keyframe in keyframes)]
             moving = [(drawn, self.moves(drawn.correction, view)) for drawn in window]
@@ -82,33 +110,16 @@ class MappingSteps:
         total = torch.zeros((), device=model.device)
         weights = self.window_weights(keyframes)
         weight_sum = sum(weights)
+        static = model.profile.static_shapes
         with model.timed("loss"):
             for (gaussians, output, drawn), weight in zip(renders, weights, strict=True):
                 loss, _ = mapping_loss(output.color, output.depth, drawn.rgb, drawn.depth,
                                        gaussians.scales, config.loss, drawn.ssim_reference,
-                                       compiled=model.profile.compiled)
+                                       compiled=model.profile.compiled, drawn=gaussians.drawn if static else None)
                 total = total + loss * weight / weight_sum
             for correction in corrections:
                 total = total + correction.prior(config.poses)
-        with model.timed("backward"):
-            if total.requires_grad:
-                total.backward()
-        with model.timed("statistics"):
-            accumulate = refine.accumulate_drawn if model.profile.static_shapes else refine.accumulate
-            for gaussians, output, drawn in renders:
-                grad = output.means2d.grad if output.means2d.requires_grad else None
-                accumulate(model.anchors, gaussians, grad, output.visible, drawn.intrinsics.width,
-                           drawn.intrinsics.height)
-        with model.timed("optimizer"):
-            model.optimizer.step()
-            if model.hash_optimizer is not None:
-                model.hash_optimizer.step()
-            model.average.update()
-            for correction in corrections:
-                correction.step(config.poses)
-        first = window_gaussians[0]
-        model.drawn.post(first.drawn_count() if model.profile.static_shapes else len(first))
-        return total.detach()
+        return total, renders, corrections
 
     def decode(self, views: list[tuple[torch.Tensor, View]]) -> list[GaussianSet]:
         """The Gaussians of each (pose, view): of the anchors in view, or with static shapes of every

@@ -19,13 +19,16 @@ from ogmapping.model.row_gradients import SCAN_BLOCK, RowGradients
 class LazyAdam:
     """Adam (as ``torch.optim.Adam``, no weight decay) applied to the rows ``gradients`` holds.
 
-    ``compiled`` steps with one Numba pass over the touched rows (a float32 CPU table) instead of torch ops.
+    ``compiled`` steps with one Numba pass over the touched rows (a float32 CPU table) instead of torch ops;
+    ``static_shapes`` with torch ops over the whole table, the rows not touched left as they are, instead of
+    over the touched rows (whose number the host would wait for).
     """
 
     def __init__(self, table: torch.nn.Parameter, gradients: RowGradients, lr: float, *, compiled: bool,
-                 betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15) -> None:
+                 static_shapes: bool = False, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15) -> None:
         self.table = table
         self.compiled = compiled
+        self.static_shapes = static_shapes
         self.gradients = gradients
         self.lr = lr
         self.betas = betas
@@ -41,6 +44,9 @@ class LazyAdam:
     def step(self) -> None:
         if self.compiled:
             self._compiled_step()
+            return
+        if self.static_shapes:
+            self._masked_step()
             return
         summed = self.gradients.summed()
         if summed is None:
@@ -66,6 +72,25 @@ class LazyAdam:
         _adam_touched(table.numpy(), exp_avg.numpy(), exp_avg_sq.numpy(), touched.values, touched.flags,
                       get_num_threads(), self.lr / correction1, correction2, *self.betas, self.eps)
         touched.counts[:] = 0
+
+    def _masked_step(self) -> None:
+        """The same update as elementwise ops over the whole table, masked to the rows touched."""
+        if not self.gradients.rows:
+            return
+        table, exp_avg, exp_avg_sq = self._flat()
+        grad = torch.zeros_like(table)
+        touched = torch.zeros(table.shape[0], 1, dtype=torch.bool, device=table.device)
+        for rows, values in zip(self.gradients.rows, self.gradients.values, strict=True):
+            grad.index_add_(0, rows, values.to(grad.dtype))
+            touched.index_fill_(0, rows, True)
+        correction1, correction2 = self._advance()
+        beta1, beta2 = self.betas
+        first = torch.where(touched, exp_avg.mul(beta1).add_(grad, alpha=1 - beta1), exp_avg)
+        second = torch.where(touched, exp_avg_sq.mul(beta2).addcmul_(grad, grad, value=1 - beta2), exp_avg_sq)
+        exp_avg.copy_(first)
+        exp_avg_sq.copy_(second)
+        step = first.div_((second / correction2).sqrt_().add_(self.eps))
+        table.add_(torch.where(touched, step, 0.0), alpha=-self.lr / correction1)
 
     def _advance(self) -> tuple[float, float]:
         """Count a step; Adam's bias corrections 1 - beta1^t and 1 - beta2^t for it."""

@@ -30,6 +30,13 @@ def depth_l1(render_depth: torch.Tensor, gt_depth: torch.Tensor, mask: torch.Ten
     return total / valid.sum().clamp_min(1)
 
 
+def mean_volume(scales: torch.Tensor, drawn: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean product of the scales (the volume regulariser) over the Gaussians drawn; 0 if none."""
+    if drawn is not None:
+        return torch.where(drawn, scales.prod(dim=-1), 0.0).sum() / drawn.sum().clamp_min(1)
+    return scales.prod(dim=-1).mean() if scales.numel() else scales.sum() * 0.0
+
+
 def mapping_loss(
     render_color: torch.Tensor,
     render_depth: torch.Tensor,
@@ -40,6 +47,7 @@ def mapping_loss(
     gt_statistics: ReferenceStatistics | None = None,
     *,
     compiled: bool,
+    drawn: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Weighted sum of the four terms for one view.
 
@@ -47,6 +55,7 @@ def mapping_loss(
     measurement), ``scales`` (N, 3) of the Gaussians that were rendered; ``gt_statistics`` is the
     cached SSIM side of ``gt_color`` when the caller has it. ``compiled`` takes the image terms from
     ``fused_loss`` (CPU tensors) instead of autograd; both give the same values and gradients.
+    ``drawn`` (N,) marks the Gaussians drawn where ``scales`` holds inert ones too (static shapes).
     """
     if compiled:
         color, ssim, depth = image_terms(render_color, render_depth, gt_color, gt_depth, gt_statistics)
@@ -58,7 +67,7 @@ def mapping_loss(
         "color": color,
         "ssim": ssim,
         "depth": depth,
-        "scale": scales.prod(dim=-1).mean() if scales.numel() else scales.sum() * 0.0,
+        "scale": mean_volume(scales, drawn),
     }
     total = (
         weights.color * parts["color"]
