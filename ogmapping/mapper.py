@@ -69,7 +69,7 @@ class Mapper:
     def __init__(self, config: MapperConfig, device: str | torch.device = "cpu") -> None:
         # A copy: the first frame may resolve values that depend on its resolution (``_fit_to``).
         config = copy.deepcopy(config)
-        profile = execution_profile(device, config.backend, config.model.encoding, config.shapes)
+        profile = execution_profile(device, config.backend, config.model.encoding, config.step)
         self.stream = session_stream(profile.device)
         self.lock = threading.RLock()
         self.timer = StageTimer.for_device(profile.device)

@@ -17,17 +17,17 @@ MAPPED = 4  # frames mapped before the counted step, two of them keyframes at le
 
 
 def mapped(preset: str, overrides: dict[str, str], shared_decode: bool = False,
-           static_shapes: bool = False) -> tuple[Mapper, View, list[Keyframe]]:
+           step: str = "dynamic") -> tuple[Mapper, View, list[Keyframe]]:
     """A ``preset`` mapper (two steps on its first keyframe, one on each later) after MAPPED frames, the next
-    frame as a view, and the two newest keyframes as its window (three views a step). ``static_shapes``
-    maps as on a GPU (``ExecutionProfile.static_shapes``, the decoders once per window, torch ops around the
-    rasterizer), with the CPU's rasterizer in gsplat's place."""
+    frame as a view, and the two newest keyframes as its window (three views a step). ``step`` "static" or
+    "compiled" (config ``step``) maps as on a GPU, static shapes and torch ops around the rasterizer (as
+    graphs with "compiled"), with the CPU's rasterizer in gsplat's place."""
     frames = open_frames("synthetic", "synthetic", f"0:{MAPPED + 2}", scale=0.25)
     config = resolve(preset, overrides={"keyframes.first_iterations": "2", "keyframes.iterations": "1", **overrides})
     mapper = Mapper(config, "cpu")
-    if static_shapes:
+    if step != "dynamic":
         mapper.model.profile = dataclasses.replace(mapper.profile, shared_decode=True, static_shapes=True,
-                                                   compiled=False)
+                                                   graphs=step == "compiled", compiled=False)
         mapper.model.build(mapper.config)
     else:
         mapper.model.profile = dataclasses.replace(mapper.profile, shared_decode=shared_decode)

@@ -64,9 +64,9 @@ def _engine_site() -> str:
     return "outside the engine"
 
 
-def waits_per_steady_step(preset: str, static_shapes: bool, steps: int = 3) -> dict[tuple[str, str], float]:
+def waits_per_steady_step(preset: str, step: str, steps: int = 3) -> dict[tuple[str, str], float]:
     """Host waits per step by site, over ``steps`` steps that neither grow nor prune, after one uncounted."""
-    mapper, view, window = mapped(preset, {"refine.interval": "10000"}, static_shapes=static_shapes)
+    mapper, view, window = mapped(preset, {"refine.interval": "10000"}, step=step)
     waits = HostWaits()
     with torch_threads(mapper.profile.threads):
         mapper.steps.step(view, window)
@@ -78,13 +78,13 @@ def waits_per_steady_step(preset: str, static_shapes: bool, steps: int = 3) -> d
 
 @pytest.mark.parametrize("preset", STEADY)
 def test_a_steady_step_waits_only_at_the_listed_sites(preset: str) -> None:
-    per_step = waits_per_steady_step(preset, static_shapes=False)
+    per_step = waits_per_steady_step(preset, "dynamic")
     assert per_step == STEADY[preset], f"{preset}: host waits per steady step by site: {per_step}"
 
 
 @pytest.mark.parametrize("preset", STEADY)
 def test_a_steady_step_with_static_shapes_never_waits(preset: str) -> None:
-    per_step = waits_per_steady_step(preset, static_shapes=True)
+    per_step = waits_per_steady_step(preset, "static")
     assert not per_step, f"{preset}: host waits per steady step with static shapes: {per_step}"
 
 

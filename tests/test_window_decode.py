@@ -38,7 +38,7 @@ def window(with_colours: bool, shared_decode: bool, compiled: bool, static: bool
     centers = [torch.randn(3, generator=generator) * 2 for _ in rows]
     if static:
         masks = [torch.zeros(CAPACITY, dtype=torch.bool).index_fill_(0, view_rows, True) for view_rows in rows]
-        views = [drawn_only(view) for view in generate_drawn(anchors, lambda: anchors.parameter("features"), decoders,
+        views = [drawn_only(view) for view in generate_drawn(anchors, anchors.parameter("features"), decoders,
                                                                centers, masks)]
     else:
         views = generate_window(anchors, lambda r: anchors.parameter("features").index_select(0, r), decoders,

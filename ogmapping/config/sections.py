@@ -20,8 +20,10 @@ from ogmapping.config.retired import retire
 Encoding = Literal["hash", "anchor"]  # the dense version's hash grid, or the sparse version's feature per anchor
 AnchorColourStart = Literal["zero", "cell"]
 Backend = Literal["auto", RasterizerBackend]
-# How a mapping step decodes (``ExecutionProfile.static_shapes``): ``auto`` is static on CUDA, dynamic on the CPU.
-Shapes = Literal["auto", "dynamic", "static"]
+# How a mapping step runs (``ogmapping.runtime.profile``): ``dynamic`` selects what it draws (on the CPU with
+# the Numba kernels), ``static`` decodes every anchor row with shapes that do not depend on the map's values,
+# ``compiled`` runs those as compiled graphs; ``auto`` is ``compiled`` on CUDA and ``dynamic`` on the CPU.
+StepMode = Literal["auto", "dynamic", "static", "compiled"]
 # The ablation switches (paper section 4); the first value of each is the paper's method.
 Allocation = Literal["octree", "unique", "projection"]  # map densification: the paper's, naive, SplaTAM's
 Window = Literal["dynamic", "random", "overlap", "coverage"]  # the paper's, or a fixed window (random: ESLAM's)
@@ -208,7 +210,7 @@ class MapperConfig:
     # How settings follow the first frame's size (``ogmapping.config.resolution``), resolved then.
     resolution: ResolutionConfig = field(default_factory=ResolutionConfig)
     backend: Backend = "auto"  # on the CPU only "cpu" runs the compiled kernels
-    shapes: Shapes = "auto"
+    step: StepMode = "auto"
     seed: int = ranged(0, *SEED_RANGE)
 
     def to_dict(self) -> dict[str, Any]:

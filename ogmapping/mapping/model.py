@@ -20,10 +20,10 @@ from ogmapping.config import MapperConfig
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.geometry import intrinsics_matrix, world_to_camera
+from ogmapping.mapping.graphs import StepGraphs
 from ogmapping.model.decoders import Decoders
 from ogmapping.model.encoding import HashGridEncoding, feature_dim, initial_anchor_features
 from ogmapping.model.gaussians import GaussianSet, anchors_in_view, decoded_logits, generate
-from ogmapping.model.static_gaussians import view_mask
 from ogmapping.optim.averaging import MapAverage
 from ogmapping.optim.lazy_adam import LazyAdam
 from ogmapping.render import Camera, rasterize
@@ -67,6 +67,7 @@ class MapModel:
         self.decoders = self.decoders.to(self.device)
         self.optimizer = self._make_optimizer()
         self.average = MapAverage(self.anchors, self.decoders, config.optim.average_decay, config.optim.average_growth)
+        self.graphs = StepGraphs.build(compiled=self.profile.graphs, device=self.device)
         self.hash_optimizer = (LazyAdam(self.encoding.table, self.encoding.gradients, config.optim.hash_lr,
                                         compiled=self.profile.compiled, static_shapes=self.profile.static_shapes)
                                if self.encoding is not None else None)
@@ -146,13 +147,14 @@ class MapModel:
             return self.encoding(self.anchors.buffer("positions"), compiled=self.profile.compiled)
         return self.anchors.parameter("features")
 
-    def view_mask(self, c2w: torch.Tensor, intrinsics: Intrinsics) -> torch.Tensor:
-        """``rows_in_view`` as a mask over the anchor buffers' rows, for a step with static shapes."""
-        return view_mask(self.anchors, intrinsics, c2w, far=self.config.octree.depth_max * 2)
-
     def rows_in_view(self, c2w: torch.Tensor, intrinsics: Intrinsics) -> torch.Tensor:
         """The anchors a camera at ``c2w`` may see (its frustum out to twice the deepest depth kept)."""
-        return anchors_in_view(self.anchors, intrinsics, c2w, far=self.config.octree.depth_max * 2)
+        return anchors_in_view(self.anchors, intrinsics, c2w, far=self.far)
+
+    @property
+    def far(self) -> float:
+        """How far a camera sees anchors: twice the deepest depth kept."""
+        return self.config.octree.depth_max * 2
 
     def camera(self, c2w: torch.Tensor, intrinsics: Intrinsics, blur: float = COVARIANCE_BLUR) -> Camera:
         return Camera(world_to_camera(c2w), intrinsics_matrix(intrinsics, self.device), intrinsics.width,

@@ -14,7 +14,6 @@ import torch
 
 from ogmapping.mapping.model import MapModel
 from ogmapping.model.gaussians import GaussianSet, generate_window
-from ogmapping.model.static_gaussians import generate_drawn
 from ogmapping.optim import refine
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
 from ogmapping.optim.losses import mapping_loss
@@ -74,7 +73,7 @@ class MappingSteps:
                 total.backward()
         static = model.profile.static_shapes
         with model.timed("statistics"):
-            accumulate = refine.accumulate_drawn if static else refine.accumulate
+            accumulate = model.graphs.statistics if static else refine.accumulate
             for gaussians, output, drawn in renders:
                 grad = output.means2d.grad if output.means2d.requires_grad else None
                 accumulate(model.anchors, gaussians, grad, output.visible, drawn.intrinsics.width,
@@ -83,7 +82,7 @@ class MappingSteps:
             model.optimizer.step()
             if model.hash_optimizer is not None:
                 model.hash_optimizer.step()
-            model.average.update()
+            model.average.update(model.graphs.average if static else None)
             for correction in corrections:
                 correction.step(config.poses)
         first = renders[0][0]
@@ -112,10 +111,11 @@ class MappingSteps:
         weight_sum = sum(weights)
         static = model.profile.static_shapes
         with model.timed("loss"):
+            view_loss = model.graphs.view_loss if static else mapping_loss
             for (gaussians, output, drawn), weight in zip(renders, weights, strict=True):
-                loss, _ = mapping_loss(output.color, output.depth, drawn.rgb, drawn.depth,
-                                       gaussians.scales, config.loss, drawn.ssim_reference,
-                                       compiled=model.profile.compiled, drawn=gaussians.drawn if static else None)
+                loss, _ = view_loss(output.color, output.depth, drawn.rgb, drawn.depth, gaussians.scales, config.loss,
+                                    drawn.ssim_reference, compiled=model.profile.compiled,
+                                    drawn=gaussians.drawn if static else None)
                 total = total + loss * weight / weight_sum
             for correction in corrections:
                 total = total + correction.prior(config.poses)
@@ -125,11 +125,12 @@ class MappingSteps:
         """The Gaussians of each (pose, view): of the anchors in view, or with static shapes of every
         buffer row, the ones not drawn inert."""
         model = self.model
-        centers = [pose.detach()[:3, 3] for pose, _ in views]
         if model.profile.static_shapes:
-            masks = [model.view_mask(pose.detach(), drawn.intrinsics) for pose, drawn in views]
-            return generate_drawn(model.anchors, model.buffer_features, model.decoders, centers, masks)
+            return model.graphs.decode(model.anchors, model.buffer_features(), model.decoders,
+                                       [pose.detach() for pose, _ in views], [drawn.intrinsics for _, drawn in views],
+                                       model.far)
         rows = [model.rows_in_view(pose.detach(), drawn.intrinsics) for pose, drawn in views]
+        centers = [pose.detach()[:3, 3] for pose, _ in views]
         return generate_window(model.anchors, model.window_features(rows), model.decoders, centers, rows,
                                compiled=model.profile.compiled, shared_decode=model.profile.shared_decode)
 

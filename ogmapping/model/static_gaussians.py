@@ -16,7 +16,6 @@ buffers (``refine.accumulate_drawn``).
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -47,15 +46,23 @@ def view_mask(anchors: AnchorMap, intrinsics: Intrinsics, c2w: torch.Tensor, far
     return in_frustum(anchors.buffer("positions"), intrinsics, c2w, near=0.0, far=far, margin=margin) & anchors.live
 
 
+def decode_views(anchors: AnchorMap, features: torch.Tensor, decoders: Decoders, poses: list[torch.Tensor],
+                 intrinsics: list[Intrinsics], far: float) -> list[DrawnGaussianSet]:
+    """The Gaussians of every buffer row as seen from each camera-to-world ``poses[i]`` with ``intrinsics[i]``,
+    those of anchors in its frustum (out to ``far``) drawn: ``view_mask`` and ``generate_drawn``."""
+    masks = [view_mask(anchors, camera, pose, far) for pose, camera in zip(poses, intrinsics, strict=True)]
+    return generate_drawn(anchors, features, decoders, [pose[:3, 3] for pose in poses], masks)
+
+
 def generate_drawn(
     anchors: AnchorMap,
-    features: Callable[[], torch.Tensor],
+    features: torch.Tensor,
     decoders: Decoders,
     camera_centers: list[torch.Tensor],
     in_view: list[torch.Tensor],
 ) -> list[DrawnGaussianSet]:
     """Each view's Gaussians of every buffer row, view i seen from ``camera_centers[i]`` with the anchors
-    of ``in_view[i]`` (``view_mask``) drawn; ``features()`` gives every row's decoder features. The
+    of ``in_view[i]`` (``view_mask``) drawn; ``features`` holds every row's decoder features. The
     decoders run once over all (row, view) pairs."""
     views, capacity = len(camera_centers), anchors.capacity
     positions = anchors.buffer("positions")
@@ -63,7 +70,7 @@ def generate_drawn(
     centers = torch.stack([center.to(positions) for center in camera_centers])
     centers = centers.unsqueeze(1).expand(views, capacity, 3).reshape(-1, 3)
     rows = _all_rows(capacity, views, positions.device)
-    opacity, color, cov = decoded_logits(decoders, features().repeat(views, 1), all_positions, centers)
+    opacity, color, cov = decoded_logits(decoders, features.repeat(views, 1), all_positions, centers)
     if anchors.with_colours:
         color = with_anchor_colours(color, anchors.parameter("colours"), rows)
     n = anchors.n_offsets

@@ -14,7 +14,7 @@ and averaging all of it would cost a pass over the whole table per step.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import torch
@@ -32,6 +32,22 @@ def newest_weight(steps: torch.Tensor, decay: float) -> torch.Tensor:
 
 def _blend(average: torch.Tensor, value: torch.Tensor, weight: torch.Tensor) -> None:
     average.add_((value - average) * weight.view(-1, *([1] * (value.dim() - 1))))
+
+
+@torch.no_grad()
+def fold_in(anchors: AnchorMap, decoders: nn.Module, decoder_values: dict[str, torch.Tensor],
+            decoder_steps: torch.Tensor, decay: float) -> None:
+    """One update of the average with ``decay``: every row of the anchor buffers (their shapes stay put)
+    and every decoder value, each row debiased by its own count, the decoders by their shared one."""
+    steps = anchors.buffer("average_steps")
+    steps += 1
+    weight = newest_weight(steps, decay)
+    for name in LEARNABLE:
+        _blend(anchors.average_rows[name], anchors.parameter(name), weight)
+    decoder_steps += 1
+    weight = newest_weight(decoder_steps, decay)
+    for name, value in decoders.named_parameters():
+        _blend(decoder_values[name], value, weight)
 
 
 class MapAverage:
@@ -62,23 +78,13 @@ class MapAverage:
             return self.decay
         return max(self.decay, 1.0 - 1.0 / (self.growth * step))
 
-    @torch.no_grad()
-    def update(self) -> None:
-        """Fold the live values in, after an optimiser step."""
+    def update(self, fold: Callable | None = None) -> None:
+        """Fold the live values in, after an optimiser step; ``fold`` is ``fold_in`` or its compiled graph."""
         if not self.enabled:
             return
         decay = self.decay_at(self.decoder_steps + 1)
-        anchors = self.anchors
-        steps = anchors.buffer("average_steps")  # every row of the buffers: their shapes stay put
-        steps += 1
-        weight = newest_weight(steps, decay)
-        for name in LEARNABLE:
-            _blend(anchors.average_rows[name], anchors.parameter(name), weight)
+        (fold or fold_in)(self.anchors, self.decoders, self.decoder_values, self._decoder_steps, decay)
         self.decoder_steps += 1
-        self._decoder_steps += 1
-        weight = newest_weight(self._decoder_steps, decay)  # every decoder value shares one count
-        for name, value in self.decoders.named_parameters():
-            _blend(self.decoder_values[name], value, weight)
 
     def _averaged_values(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """(live parameter, its average) pairs; rows never averaged keep their live value."""

@@ -35,15 +35,18 @@ class ExecutionProfile:
     # no selection makes the host wait for the device, and a step's shapes stay put between capacity
     # doublings. On the CPU it decodes rows it would not draw, for nothing to wait on.
     static_shapes: bool = False
+    # The static-shape step's torch work runs as compiled graphs (``ogmapping.mapping.graphs``).
+    graphs: bool = False
 
 
 def execution_profile(device: str | torch.device, backend: str, encoding: str,
-                      shapes: str = "auto") -> ExecutionProfile:
+                      step: str = "auto") -> ExecutionProfile:
     """The profile of a mapper on ``device`` with ``config.backend``, ``config.model.encoding`` and
-    ``config.shapes``. Static shapes run the decode in torch ops (as on CUDA), so not the Numba kernels."""
+    ``config.step``. Static shapes run the decode in torch ops (as on CUDA), so not the Numba kernels."""
     device = torch.device(device)
     concrete = resolve_backend(backend, device)
-    static = shapes == "static" or (shapes == "auto" and device.type == "cuda")
+    step = ("compiled" if device.type == "cuda" else "dynamic") if step == "auto" else step
+    static = step in ("static", "compiled")
     return ExecutionProfile(
         device=device,
         backend=concrete,
@@ -51,6 +54,7 @@ def execution_profile(device: str | torch.device, backend: str, encoding: str,
         threads=_mapping_threads(device, encoding),
         shared_decode=device.type == "cuda" or static,
         static_shapes=static,
+        graphs=step == "compiled",
     )
 
 

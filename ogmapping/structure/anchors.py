@@ -46,7 +46,7 @@ class LiveRows:
             rows.copy_(value)
 
 
-class AnchorMap(nn.Module):
+class AnchorMap:
     """Anchors as rows of parallel buffers; learnable buffers are ``nn.Parameter``s."""
 
     codes = LiveRows()
@@ -65,7 +65,6 @@ class AnchorMap(nn.Module):
 
     def __init__(self, n_offsets: int, feature_dim: int, with_features: bool, device: torch.device,
                  with_colours: bool = False, capacity: int = INITIAL_CAPACITY) -> None:
-        super().__init__()
         self.n_offsets = n_offsets
         self.feature_dim = feature_dim
         self.with_features = with_features
@@ -74,7 +73,7 @@ class AnchorMap(nn.Module):
         self.count = 0
         self.capacity = capacity
         shapes = self._row_shapes()
-        self.learnable = nn.ParameterDict({name: nn.Parameter(self._inert(name, capacity)) for name in LEARNABLE})
+        self.learnable = {name: nn.Parameter(self._inert(name, capacity)) for name in LEARNABLE}
         self.rows = {name: self._inert(name, capacity) for name in shapes if name not in LEARNABLE}
         # The moving average of each learnable row (how many steps each row has been averaged over is
         # the row buffer ``average_steps``).
