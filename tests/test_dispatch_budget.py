@@ -15,6 +15,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 import pytest
+import torch
 from steady_step import mapped
 from torch.utils._python_dispatch import TorchDispatchMode
 
@@ -27,6 +28,11 @@ from ogmapping.runtime.threads import torch_threads
 # with ``torch`` (the reference rasterizer, forward 7752 and most of backward's 14809, loops over the
 # tiles Gaussians reach, so its count also follows the scene).
 BUDGETS = {"cpu": 1400, "cpu-shared-decode": 1180, "torch": 24400}
+# The static-shape step as compiled graphs (config step=compiled), counted by the profiler: each operator
+# called outside a graph and each of the graphs' fused kernels once. 606 on the machine above (backward 244,
+# rasterize 197: the CPU rasterizer's conversions around its Numba kernels, window 73: each keyframe's
+# images and SSIM statistics made on the device, decode 56, loss 15, optimizer 15: fused Adam's two per group).
+COMPILED_BUDGET = 650
 
 
 class DispatchCount(TorchDispatchMode):
@@ -85,3 +91,57 @@ def test_a_step_dispatches_no_more_operators_than_its_budget(case, monkeypatch):
         f"{case}: {count.total} operators per step, budget {BUDGETS[case]}; by stage "
         f"{dict(count.by_stage.most_common())}; most dispatched {count.by_operator.most_common(12)}"
     )
+
+
+def compiled_step_count(preset: str) -> tuple[Counter[str], Counter[str]]:
+    """Operators and fused kernels of one compiled steady step (profiler), by name and by stage."""
+    mapper, view, window = mapped(preset, {"refine.interval": "10000"}, step="compiled")
+    timed = mapper.model.timed
+
+    @contextmanager
+    def stage(name: str) -> Iterator[None]:
+        with torch.profiler.record_function(STAGE + name), timed(name):
+            yield
+
+    mapper.model.timed = stage
+    torch._dynamo.reset()  # compiled afresh here, with each kernel visible to the profiler
+    with torch._inductor.config.patch({"cpp.enable_kernel_profile": True}), torch_threads(mapper.profile.threads):
+        for _ in range(2):
+            mapper.steps.step(view, window)
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as profile:
+            mapper.steps.step(view, window)
+    by_name, by_stage = Counter(), Counter()
+    for event in profile.events():
+        if _dispatched(event) and not any(_dispatched(outer) for outer in _enclosing(event)):
+            by_name[event.name] += 1
+            by_stage[next((outer.name[len(STAGE):] for outer in _enclosing(event) if outer.name.startswith(STAGE)),
+                          "other")] += 1
+    return by_name, by_stage
+
+
+STAGE = "stage "
+
+
+def _dispatched(event) -> bool:
+    """An operator (aten) or one of Inductor's fused CPU kernels."""
+    return event.name.startswith("aten::") or "cpp_fused" in event.name
+
+
+def _enclosing(event):
+    parent = event.cpu_parent
+    while parent is not None:
+        yield parent
+        parent = parent.cpu_parent
+
+
+def test_a_compiled_step_dispatches_within_its_budget_and_never_waits():
+    by_name, by_stage = compiled_step_count("sparse")
+    kernels = sum(count for name, count in by_name.items() if "cpp_fused" in name)
+    total = sum(by_name.values())
+    assert kernels > 0, "the graphs' kernels are counted"
+    assert total <= COMPILED_BUDGET, (f"{total} operators and kernels per compiled step, budget {COMPILED_BUDGET}; "
+                                      f"by stage {dict(by_stage.most_common())}; most {by_name.most_common(12)}")
+    waiting = {name: count for name, count in by_name.items()
+               if name in ("aten::nonzero", "aten::item", "aten::_local_scalar_dense", "aten::unique", "aten::_unique2",
+                           "aten::masked_select")}
+    assert not waiting, f"host waits in a compiled step: {waiting}"

@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from ogmapping.config import LossConfig
-from ogmapping.optim.losses import mapping_loss
+from ogmapping.optim.losses import mapping_loss, mean_volume
+from ogmapping.optim.ssim import _blur, gaussian_window
 
 
 def _scene(seed: int = 0):
@@ -103,3 +104,32 @@ def test_compiled_blur_gives_the_autograd_ssim():
     torch.testing.assert_close(ssim_map(a, b, reference, compiled=False), compiled, rtol=1e-5, atol=1e-5)
     with pytest.raises(ValueError, match="no gradient"):
         ssim_map(a.clone().requires_grad_(), b, compiled=True)
+
+
+def test_the_blur_in_a_compiled_graph_equals_the_convolution():
+    """Inside a compiled graph the SSIM blur is a sum of shifted images (it fuses there); the same values
+    and gradients as the convolutions it replaces."""
+    generator = torch.Generator().manual_seed(0)
+    image = torch.rand(1, 3, 30, 41, generator=generator, requires_grad=True)
+    weights = torch.rand(1, 3, 30, 41, generator=generator)
+    taps = gaussian_window()
+    results = []
+    for blur in (_blur, torch.compile(_blur, fullgraph=True)):
+        image.grad = None
+        blurred = blur(image, taps)
+        (blurred * weights).sum().backward()
+        results.append((blurred.detach(), image.grad.clone()))
+    (expected, expected_grad), (actual, actual_grad) = results
+    torch.testing.assert_close(actual, expected, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(actual_grad, expected_grad, rtol=1e-5, atol=1e-6)
+
+
+def test_the_volume_term_averages_the_drawn_gaussians_only():
+    scales = torch.rand(6, 3, requires_grad=True)
+    drawn = torch.tensor([True, False, True, True, False, False])
+    mean_volume(scales, drawn).backward()
+    subset = scales.detach()[drawn].clone().requires_grad_()
+    mean_volume(subset).backward()
+    torch.testing.assert_close(mean_volume(scales.detach(), drawn), mean_volume(subset.detach()))
+    torch.testing.assert_close(scales.grad[drawn], subset.grad)
+    assert not scales.grad[~drawn].any() and float(mean_volume(scales, torch.zeros(6, dtype=torch.bool))) == 0.0

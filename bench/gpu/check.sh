@@ -10,7 +10,8 @@
 #   REPLICA_DIR       Replica room0, the folder holding results/ and traj.txt: frames 0-19 at 1200x680
 #   A data folder given as - or absent skips the steps that need it, as does one with too few frames.
 # Steps: install (carried wheels, gsplat's kernels; the suite runs on CUDA through the pure-torch fallback
-# meanwhile), pytest -m gpu, ogmap run of sparse-fast / sparse / dense on 7-Scenes 0-299 at 640x480 and on
+# meanwhile), pytest -m gpu, ogmap run of sparse-fast / sparse / dense on 7-Scenes 0-299 at 640x480 (sparse
+# also with step=dynamic, the eager step sized by the data) and on
 # Replica room0 0-19 at 1200x680, sparse with pose refinement from noisy poses on room0 (replica-refine),
 # bench/load.py with 1 / 4 / 8 sparse-fast sessions on one server, the service's sparse run of 0-299
 # (ogserver + ogclient stream/eval), the CPU thread table (sparse at 320x240, 1 / 2 / 4 / 8 / 16 threads),
@@ -130,8 +131,7 @@ install_with_fallback_suite() {
     return $status
 }
 
-# pytest -m gpu; the step test's figures (step-time.json, sync-debug.txt), the decoder-graph probe's
-# (decoder-graphs.json) and the output go to gpu-tests/.
+# pytest -m gpu; the step test's figures (step-time.json, sync-sites.json) and the output go to gpu-tests/.
 gpu_tests() {
     set -o pipefail
     mkdir -p "$RESULTS/gpu-tests"
@@ -210,7 +210,7 @@ export -f pytest_interruptible suite install_with_fallback_suite gpu_tests servi
 log "check: budget ${BUDGET} s, results $STAMP, 7-Scenes '$DATA' ($SEVEN_SCENES_FRAMES frames), Replica '$REPLICA' ($REPLICA_FRAMES frames), only '${ONLY:-all}'"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>&1 | tee -a "$LOGS/check.log"
 
-GPU_STEPS=(gpu-tests 640-sparse-fast 640-sparse 640-dense replica-sparse-fast replica-sparse replica-dense replica-refine load
+GPU_STEPS=(gpu-tests 640-sparse-fast 640-sparse 640-sparse-dynamic 640-dense replica-sparse-fast replica-sparse replica-dense replica-refine load
            service-sparse-640 320-sparse suite-gsplat)
 for name in "${GPU_STEPS[@]}"; do
     if wanted "$name" && [ ! -e "$(marker "$name")" ]; then
@@ -225,6 +225,9 @@ ogmap_run() {
 step gpu-tests 90 gpu gpu_tests
 ogmap_run 640 sparse-fast 60 7scenes:300 7scenes 0:300 1 "$DATA"
 ogmap_run 640 sparse 90 7scenes:300 7scenes 0:300 1 "$DATA"
+# the same map with the step eager and sized by the data, as before compiled graphs: quality and speed side by side
+step 640-sparse-dynamic 90 7scenes:300,gpu env STEP_MODE=dynamic LABEL=sparse-dynamic FORMAT=7scenes FRAMES=0:300 SCALE=1 \
+    bench/gpu/run.sh preset sparse "$DATA" "$RESULTS/640"
 ogmap_run 640 dense 120 7scenes:300 7scenes 0:300 1 "$DATA"
 ogmap_run replica sparse-fast 45 replica:20 replica 0:20 1 "$REPLICA"
 ogmap_run replica sparse 45 replica:20 replica 0:20 1 "$REPLICA"

@@ -16,7 +16,7 @@
 #            only its results.json is kept, as OUT_DIR/LABEL/results.json
 #   table    OUT_DIR/table.md from OUT_DIR/*/results.json
 # environment: FRAMES (0:300), SCALE (1.0), FORMAT (auto), DEVICE (cuda; cpu needs no gsplat),
-#   LABEL (the preset's name), PYTHON (python3).
+#   LABEL (the preset's name), STEP_MODE (config step: auto unless set), PYTHON (python3).
 # .gpu/ (git-ignored) holds the installed packages and gsplat's build, so later steps on the same
 # machine find them without building again.
 set -euo pipefail
@@ -97,7 +97,8 @@ preset() {
     trap 'rm -rf "$scratch"' RETURN
     echo "== ogmap run --preset $name on $device (frames ${FRAMES:-0:300}, scale ${SCALE:-1.0}) as $label"
     "$PY" -m ogmapping.cli run --data "$data" --format "${FORMAT:-auto}" --frames "${FRAMES:-0:300}" \
-        --scale "${SCALE:-1.0}" --device "$device" --preset "$name" --out "$scratch" --quiet
+        --scale "${SCALE:-1.0}" --device "$device" --preset "$name" ${STEP_MODE:+--set "step=$STEP_MODE"} \
+        --out "$scratch" --quiet
     mkdir -p "$out/$label"
     cp "$scratch/results.json" "$out/$label/results.json"
     "$PY" bench/gpu/table.py "$out/$label"

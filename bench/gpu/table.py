@@ -3,7 +3,7 @@
 Usage: ``python bench/gpu/table.py OUT/dense OUT/sparse OUT/sparse-fast`` (folders or results.json): one
 table; ``python bench/gpu/table.py --tree RESULTS`` (a folder that ``check.sh`` filled): the machine, one
 table of every results.json below it, labelled by its folder, then the load tables (``load/load.md``), the
-mapping step's figures (``gpu-tests/step-time.json``, ``gpu-tests/sync-debug.txt``) and the GPU tests'
+mapping step's figures (``gpu-tests/step-time.json``, ``gpu-tests/sync-sites.json``) and the GPU tests'
 summary (``gpu-tests/pytest.txt``).
 The paper's processing FPS were measured on Replica at 1200x680 with an RTX 4090 (its Table "key
 performance metrics on Replica"); beside other data, resolutions or GPUs they are context only.
@@ -124,10 +124,10 @@ def step_figures(report: Path) -> list[str]:
         lines += ["## One mapping step in steady state (tests/test_gpu_step.py)", ""]
         lines += [f"- {key}: {described(value)}" for key, value in json.loads(timing.read_text()).items()]
         lines.append("")
-    sync = report / "sync-debug.txt"
+    sync = report / "sync-sites.json"
     if sync.exists():
-        lines += ["First host synchronisation under `torch.cuda.set_sync_debug_mode(\"error\")`:", "", "```",
-                  sync.read_text().rstrip(), "```", ""]
+        lines += ["Host synchronisations per step under `torch.cuda.set_sync_debug_mode(\"warn\")`, by site:", "",
+                  "```", sync.read_text().rstrip(), "```", ""]
     output = report / "pytest.txt"
     if output.exists():
         summary = [line for line in output.read_text().splitlines() if SUMMARY_LINE.search(line)]

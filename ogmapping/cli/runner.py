@@ -159,6 +159,7 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
         "device": str(device),
         "machine": machine(device).to_dict(),
         "backend": stats.backend,
+        "step": mapper.profile.step_mode,
         "preset": options.preset,
         "resolution": [sample.color_intrinsics.width, sample.color_intrinsics.height],
         "frames": {"streamed": len(selection.streamed), "heldout": len(selection.heldout),

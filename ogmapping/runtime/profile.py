@@ -39,6 +39,12 @@ class ExecutionProfile:
     graphs: bool = False
 
 
+    @property
+    def step_mode(self) -> str:
+        """What ``config.step`` resolved to: ``compiled``, ``static`` or ``dynamic``."""
+        return "compiled" if self.graphs else "static" if self.static_shapes else "dynamic"
+
+
 def execution_profile(device: str | torch.device, backend: str, encoding: str,
                       step: str = "auto") -> ExecutionProfile:
     """The profile of a mapper on ``device`` with ``config.backend``, ``config.model.encoding`` and
