@@ -38,8 +38,9 @@ def window(with_colours: bool, shared_decode: bool, compiled: bool, static: bool
     centers = [torch.randn(3, generator=generator) * 2 for _ in rows]
     if static:
         masks = [torch.zeros(CAPACITY, dtype=torch.bool).index_fill_(0, view_rows, True) for view_rows in rows]
-        views = [drawn_only(view) for view in generate_drawn(anchors, anchors.parameter("features"), decoders,
-                                                               centers, masks)]
+        drawn = generate_drawn(anchors, anchors.parameter("features"), decoders, torch.stack(centers),
+                               torch.stack(masks))
+        views = [drawn_only(view) for view in drawn.views()]
     else:
         views = generate_window(anchors, lambda r: anchors.parameter("features").index_select(0, r), decoders,
                                 centers, rows, compiled=compiled, shared_decode=shared_decode)

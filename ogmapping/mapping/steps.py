@@ -14,6 +14,7 @@ import torch
 
 from ogmapping.mapping.model import MapModel
 from ogmapping.model.gaussians import GaussianSet, generate_window
+from ogmapping.model.static_gaussians import frustum_camera
 from ogmapping.optim import refine
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
 from ogmapping.optim.losses import mapping_loss
@@ -126,9 +127,11 @@ class MappingSteps:
         buffer row, the ones not drawn inert."""
         model = self.model
         if model.profile.static_shapes:
-            return model.graphs.decode(model.anchors, model.buffer_features(), model.decoders,
-                                       [pose.detach() for pose, _ in views], [drawn.intrinsics for _, drawn in views],
-                                       model.far)
+            poses = torch.stack([pose.detach() for pose, _ in views])
+            cameras = torch.stack([frustum_camera(drawn.intrinsics, model.device) for _, drawn in views])
+            window = model.graphs.decode(model.anchors, model.buffer_features(), model.decoders, poses, cameras,
+                                         model.far)
+            return window.views()
         rows = [model.rows_in_view(pose.detach(), drawn.intrinsics) for pose, drawn in views]
         centers = [pose.detach()[:3, 3] for pose, _ in views]
         return generate_window(model.anchors, model.window_features(rows), model.decoders, centers, rows,

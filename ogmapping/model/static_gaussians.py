@@ -16,12 +16,13 @@ buffers (``refine.accumulate_drawn``).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
 
 from ogmapping.frames.camera import Intrinsics
-from ogmapping.frames.geometry import in_frustum
+from ogmapping.frames.geometry import world_to_camera
 from ogmapping.model.decoders import Decoders, activate
 from ogmapping.model.gaussians import FRUSTUM_MARGIN, GaussianSet, decoded_logits
 from ogmapping.structure.anchor_colour import with_anchor_colours
@@ -40,36 +41,71 @@ class DrawnGaussianSet(GaussianSet):
         return self.drawn.sum()
 
 
-def view_mask(anchors: AnchorMap, intrinsics: Intrinsics, c2w: torch.Tensor, far: float) -> torch.Tensor:
-    """(capacity,) live anchors whose centres fall in the (slightly widened) view frustum."""
+@dataclass
+class DrawnWindow:
+    """Every view's Gaussians stacked, view first (V, G, ...): what the decode returns as one graph."""
+
+    means: torch.Tensor  # (V, G, 3)
+    quats: torch.Tensor  # (V, G, 4)
+    scales: torch.Tensor  # (V, G, 3)
+    opacities: torch.Tensor  # (V, G)
+    colors: torch.Tensor  # (V, G, 3)
+    drawn: torch.Tensor  # (V, G)
+    anchor_opacity: torch.Tensor  # (V, capacity)
+    in_view: torch.Tensor  # (V, capacity)
+    rows: torch.Tensor  # (G,) buffer row of each Gaussian
+    slots: torch.Tensor  # (G,)
+
+    def views(self) -> list[DrawnGaussianSet]:
+        stacked = ("means", "quats", "scales", "opacities", "colors", "drawn", "anchor_opacity", "in_view")
+        per_view = zip(*(getattr(self, name).unbind(0) for name in stacked), strict=True)
+        anchor_rows = self.rows[:: self.rows.shape[0] // self.in_view.shape[1]]
+        return [DrawnGaussianSet(**dict(zip(stacked, parts, strict=True)), rows=self.rows, slots=self.slots,
+                                 anchor_rows=anchor_rows) for parts in per_view]
+
+
+@functools.lru_cache(maxsize=64)
+def frustum_camera(intrinsics: Intrinsics, device: torch.device) -> torch.Tensor:
+    """(7,) fx, fy, cx, cy and the frustum's pixel bounds (``FRUSTUM_MARGIN`` beyond the image: low, right,
+    bottom) of ``intrinsics`` on ``device``, made once: shared, never modify it."""
     margin = FRUSTUM_MARGIN * max(intrinsics.width, intrinsics.height)
-    return in_frustum(anchors.buffer("positions"), intrinsics, c2w, near=0.0, far=far, margin=margin) & anchors.live
+    values = [intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, -margin, intrinsics.width + margin,
+              intrinsics.height + margin]
+    return torch.tensor(values, dtype=torch.float32, device=device)
 
 
-def decode_views(anchors: AnchorMap, features: torch.Tensor, decoders: Decoders, poses: list[torch.Tensor],
-                 intrinsics: list[Intrinsics], far: float) -> list[DrawnGaussianSet]:
-    """The Gaussians of every buffer row as seen from each camera-to-world ``poses[i]`` with ``intrinsics[i]``,
-    those of anchors in its frustum (out to ``far``) drawn: ``view_mask`` and ``generate_drawn``."""
-    masks = [view_mask(anchors, camera, pose, far) for pose, camera in zip(poses, intrinsics, strict=True)]
-    return generate_drawn(anchors, features, decoders, [pose[:3, 3] for pose in poses], masks)
+def frustum_masks(anchors: AnchorMap, poses: torch.Tensor, cameras: torch.Tensor, far: float) -> torch.Tensor:
+    """(V, capacity): the live anchors whose centres fall in each view's widened frustum (``in_frustum``),
+    for camera-to-world ``poses`` (V, 4, 4) and ``cameras`` (V, 7) of ``frustum_camera``."""
+    positions = anchors.buffer("positions")
+    w2c = world_to_camera(poses.to(positions))
+    camera = positions @ w2c[:, :3, :3].transpose(-1, -2) + w2c[:, None, :3, 3]  # (V, C, 3)
+    z = camera[..., 2]
+    safe_z = torch.where(z.abs() > 1e-9, z, torch.full_like(z, 1e-9))
+    fx, fy, cx, cy, low, right, bottom = (value.unsqueeze(1) for value in cameras.unbind(1))
+    u = fx * camera[..., 0] / safe_z + cx
+    v = fy * camera[..., 1] / safe_z + cy
+    inside = (z > 0.0) & (z < far) & (u >= low) & (u <= right) & (v >= low) & (v <= bottom)
+    return inside & anchors.live
 
 
-def generate_drawn(
-    anchors: AnchorMap,
-    features: torch.Tensor,
-    decoders: Decoders,
-    camera_centers: list[torch.Tensor],
-    in_view: list[torch.Tensor],
-) -> list[DrawnGaussianSet]:
-    """Each view's Gaussians of every buffer row, view i seen from ``camera_centers[i]`` with the anchors
-    of ``in_view[i]`` (``view_mask``) drawn; ``features`` holds every row's decoder features. The
+def decode_views(anchors: AnchorMap, features: torch.Tensor, decoders: Decoders, poses: torch.Tensor,
+                 cameras: torch.Tensor, far: float) -> DrawnWindow:
+    """The Gaussians of every buffer row as seen from each camera-to-world ``poses[i]`` with ``cameras[i]``
+    (``frustum_camera``), those of anchors in its frustum (out to ``far``) drawn."""
+    return generate_drawn(anchors, features, decoders, poses[:, :3, 3], frustum_masks(anchors, poses, cameras, far))
+
+
+def generate_drawn(anchors: AnchorMap, features: torch.Tensor, decoders: Decoders, camera_centers: torch.Tensor,
+                   in_view: torch.Tensor) -> DrawnWindow:
+    """Each view's Gaussians of every buffer row, view i seen from ``camera_centers[i]`` (V, 3) with the
+    anchors of ``in_view[i]`` (V, capacity) drawn; ``features`` holds every row's decoder features. The
     decoders run once over all (row, view) pairs."""
-    views, capacity = len(camera_centers), anchors.capacity
+    views, capacity = camera_centers.shape[0], anchors.capacity
     positions = anchors.buffer("positions")
     all_positions = positions.repeat(views, 1)
-    centers = torch.stack([center.to(positions) for center in camera_centers])
-    centers = centers.unsqueeze(1).expand(views, capacity, 3).reshape(-1, 3)
-    rows = _all_rows(capacity, views, positions.device)
+    centers = camera_centers.to(positions).unsqueeze(1).expand(views, capacity, 3).reshape(-1, 3)
+    rows = torch.arange(capacity, device=positions.device).repeat(views)
     opacity, color, cov = decoded_logits(decoders, features.repeat(views, 1), all_positions, centers)
     if anchors.with_colours:
         color = with_anchor_colours(color, anchors.parameter("colours"), rows)
@@ -78,25 +114,15 @@ def generate_drawn(
     anchor_scale = torch.exp(anchors.parameter("log_scales")).repeat(views, 1)  # (V * C, 3)
     means = all_positions.unsqueeze(1) + anchors.parameter("offsets").repeat(views, 1, 1) * anchor_scale.unsqueeze(1)
     scales = anchor_scale.unsqueeze(1) * decoded.scale_factor
-    seen = torch.stack(in_view).reshape(-1)  # (V * C,)
-    drawn = (opacity > 0) & seen.unsqueeze(1)
+    drawn = (opacity > 0) & in_view.reshape(-1, 1)
     # where, not a product: a Gaussian not drawn passes no gradient back, as one left out would not
     opacities = torch.where(drawn, decoded.opacity, 0.0)
-    anchor_opacity = decoded.opacity.detach().amax(dim=1)
     per_view = capacity * n
     index = torch.arange(per_view, device=positions.device)
-    own_rows, slots = index // n, index % n
-    parts = {
-        "means": means.reshape(views, per_view, 3), "quats": decoded.quat.reshape(views, per_view, 4),
-        "scales": scales.reshape(views, per_view, 3), "opacities": opacities.reshape(views, per_view),
-        "colors": decoded.color.reshape(views, per_view, 3), "drawn": drawn.reshape(views, per_view),
-        "anchor_opacity": anchor_opacity.view(views, capacity),
-    }
-    return [DrawnGaussianSet(**{name: part[view] for name, part in parts.items()}, rows=own_rows, slots=slots,
-                             anchor_rows=rows[:capacity], in_view=in_view[view])
-            for view in range(views)]
-
-
-def _all_rows(capacity: int, views: int, device: torch.device) -> torch.Tensor:
-    """0..capacity-1, once per view."""
-    return torch.arange(capacity, device=device).repeat(views)
+    return DrawnWindow(
+        means=means.reshape(views, per_view, 3), quats=decoded.quat.reshape(views, per_view, 4),
+        scales=scales.reshape(views, per_view, 3), opacities=opacities.reshape(views, per_view),
+        colors=decoded.color.reshape(views, per_view, 3), drawn=drawn.reshape(views, per_view),
+        anchor_opacity=decoded.opacity.detach().amax(dim=1).view(views, capacity), in_view=in_view,
+        rows=index // n, slots=index % n,
+    )
