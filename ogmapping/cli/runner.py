@@ -95,7 +95,7 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
     frames = dataclasses.replace(frames, poses=mapped_poses)
     out = Path(options.out)
     out.mkdir(parents=True, exist_ok=True)
-    warm_up_seconds = warm_up(device, config.backend)  # kernel loads, CUDA context: not mapping time
+    warm_up_seconds = warm_up(device, config.backend, config.step)  # kernel loads, CUDA, graphs: not mapping time
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     mapper = Mapper(config, device)
