@@ -68,6 +68,13 @@ class Decoders(nn.Module):
         self.opacity[-1].bias -= torch.quantile(opacity_logits, 1 - share, dim=0)
 
 
+def _identity_quat(like: torch.Tensor) -> torch.Tensor:
+    """(1, 0, 0, 0) on ``like``'s device: copied there once, or a graph's own constant when compiled."""
+    if torch.compiler.is_compiling():
+        return IDENTITY_QUAT.to(like)
+    return on_device(IDENTITY_QUAT, like.device, like.dtype)
+
+
 def activate(opacity: torch.Tensor, color: torch.Tensor, cov: torch.Tensor, n: int) -> DecodedAttributes:
     """tanh opacity, sigmoid colour and scale factor, identity-offset quaternion."""
     count = opacity.shape[0]
@@ -76,5 +83,5 @@ def activate(opacity: torch.Tensor, color: torch.Tensor, cov: torch.Tensor, n: i
         opacity=torch.tanh(opacity),
         color=torch.sigmoid(color.view(count, n, 3)),
         scale_factor=torch.sigmoid(cov[..., :3]),
-        quat=cov[..., 3:] + on_device(IDENTITY_QUAT, cov.device, cov.dtype),
+        quat=cov[..., 3:] + _identity_quat(cov),
     )
