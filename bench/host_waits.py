@@ -7,6 +7,7 @@ them), then spreads them over the steps those frames took: per-frame work includ
 engine.
 
     .venv/bin/python bench/host_waits.py --data ../shared/data/7scenes-redkitchen --frames 0:30 --scale 0.5
+    .venv/bin/python bench/host_waits.py --data ../shared/data/7scenes-redkitchen --frames 0:30 --step static
 """
 
 from __future__ import annotations
@@ -56,9 +57,12 @@ def main() -> None:
     parser.add_argument("--scale", type=float, default=0.5, help="image scale (default 0.5)")
     parser.add_argument("--preset", default="sparse", choices=PRESETS)
     parser.add_argument("--warm", type=int, default=10, help="frames mapped before counting (default 10)")
+    parser.add_argument("--step", default="dynamic", choices=["dynamic", "static"],
+                        help="config step (default dynamic, the CPU's; compiled graphs run eagerly under the count, "
+                        "so static counts what they run)")
     args = parser.parse_args()
     frames = open_frames(args.data, args.format, args.frames, 1, args.scale)
-    mapper = Mapper(resolve(args.preset), "cpu")
+    mapper = Mapper(resolve(args.preset, overrides={"step": args.step}), "cpu")
     streamed = frames.selection.streamed
     for position in streamed[:args.warm]:
         mapper.process(frames.load(position))
