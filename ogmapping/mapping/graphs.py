@@ -1,16 +1,16 @@
 """A static-shape step's torch work as compiled graphs (``torch.compile``), the rasterizer between them.
 
-With static shapes (``model.static_gaussians``) nothing in a step's decode, loss, statistics or
-average depends on the map's values for its shapes, so each part compiles into a graph of a few fused
-kernels (Inductor; on CUDA replayed as a CUDA graph, ``mode="reduce-overhead"``) instead of hundreds
-of operators dispatched one by one from Python. The rasterizer (gsplat's CUDA kernels, the CPU's
+With static shapes (``model.static_gaussians``) nothing in a step's decode, loss, statistics, average
+or window keyframes' images depends on the map's values for its shapes, so each part compiles into a
+graph of a few fused kernels (Inductor; on CUDA replayed as a CUDA graph, ``mode="reduce-overhead"``)
+instead of hundreds of operators dispatched one by one from Python. The rasterizer (gsplat's CUDA kernels, the CPU's
 Numba kernels) runs between the graphs, as it cannot be traced; so do the dense version's hash grid
 encoding, whose backward hands its rows to lazy Adam's sink, and the optimisers (Adam fused).
 
 Each part is the engine's eager definition, compiled: ``StepGraphs(compiled=False)`` hands back the
-definitions themselves, so the two can be held equal (tests/test_step_graphs.py). Shapes change only
-when the anchor buffers' capacity doubles: torch then compiles once more with the capacity as a
-symbol, and not again for it.
+definitions themselves, so the two can be held equal (tests/test_step_graphs.py). A size that changes
+(the anchor buffers' capacity when it doubles, the window's views, an image's) makes torch compile once
+more with that size as a symbol, and not again for it.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ import torch
 from ogmapping.model.static_gaussians import decode_views
 from ogmapping.optim import refine
 from ogmapping.optim.averaging import fold_in
+from ogmapping.optim.keyframes import view_images
 from ogmapping.optim.losses import mapping_loss
 
 
@@ -35,11 +36,12 @@ class StepGraphs:
     view_loss: Callable  # losses.mapping_loss
     statistics: Callable  # refine.accumulate_drawn
     average: Callable  # averaging.fold_in
+    keyframe_images: Callable  # keyframes.view_images
 
     @classmethod
     def build(cls, *, compiled: bool, device: torch.device) -> StepGraphs:
         parts = {"decode": decode_views, "view_loss": mapping_loss, "statistics": refine.accumulate_drawn,
-                 "average": fold_in}
+                 "average": fold_in, "keyframe_images": view_images}
         if compiled:
             mode = "reduce-overhead" if device.type == "cuda" else None
             parts = {name: _compiled(part, mode) for name, part in parts.items()}

@@ -155,7 +155,9 @@ class MappingSteps:
         """A drawn keyframe as a view on the device: full size if it is local, else downscaled."""
         if not self.keyframes.is_local(keyframe):
             keyframe = keyframe.downscaled(self.window_scale(keyframe.intrinsics.width))
-        return keyframe.view(self.model.device, compiled=self.model.profile.compiled)
+        model = self.model
+        images = model.graphs.keyframe_images if model.profile.static_shapes else None
+        return keyframe.view(model.device, compiled=model.profile.compiled, images=images)
 
     def window_scale(self, width: int) -> float:
         """Scale for a global window keyframe: ``window_scale``, but not below ``window_min_width``

@@ -81,10 +81,15 @@ class Keyframe:
         return cls(index, _host(colour, pinned), _host(depth.detach().to("cpu", torch.float16), pinned),
                    intrinsics, c2w, codes, pinned, correction)
 
-    def view(self, device: torch.device, *, compiled: bool) -> View:
-        """This keyframe as float32 images on ``device`` (copied there now), with SSIM statistics."""
-        rgb = self.rgb.to(device, non_blocking=self.pinned).to(torch.float32) / 255.0
-        depth = self.depth.to(device, non_blocking=self.pinned).to(torch.float32)
+    def view(self, device: torch.device, *, compiled: bool, images: Callable | None = None) -> View:
+        """This keyframe as float32 images on ``device`` (copied there now), with SSIM statistics;
+        ``images`` is ``view_images`` or its compiled graph (which ``compiled`` then does not apply to)."""
+        rgb = self.rgb.to(device, non_blocking=self.pinned)
+        depth = self.depth.to(device, non_blocking=self.pinned)
+        if images is not None:
+            rgb, depth, statistics = images(rgb, depth)
+            return View(rgb, depth, self.intrinsics, self.c2w, statistics, self.correction)
+        rgb, depth = rgb.to(torch.float32) / 255.0, depth.to(torch.float32)
         return View.of(rgb, depth, self.intrinsics, self.c2w, compiled=compiled, correction=self.correction)
 
     def downscaled(self, scale: float) -> Keyframe:
@@ -100,6 +105,13 @@ class Keyframe:
                                                        self.c2w, self.codes, pinned=self.pinned,
                                                        correction=self.correction)
         return self._downscaled[scale]
+
+
+def view_images(rgb: torch.Tensor, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, ReferenceStatistics]:
+    """A stored keyframe's uint8 colour and float16 depth (on the device) as float32 images, and the
+    colour's SSIM statistics (torch's blur)."""
+    rgb = rgb.to(torch.float32) / 255.0
+    return rgb, depth.to(torch.float32), reference_statistics(rgb, compiled=False)
 
 
 def _host(tensor: torch.Tensor, pinned: bool) -> torch.Tensor:
