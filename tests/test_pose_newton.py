@@ -113,3 +113,18 @@ def test_a_newton_step_past_the_bound_is_clamped_and_reported(tracked):
         newton_track(mapper.tracker.residuals(frame), correction, settings, 2, lambda: False)
     assert correction.clamped
     assert float(correction.translation.detach().norm()) == pytest.approx(0.001, rel=1e-5)
+
+
+@pytest.mark.parametrize("residual", [1.0, float("nan")], ids=["unobservable", "not-finite"])
+def test_a_singular_system_skips_the_step_and_fails_nothing(residual):
+    """A pose the residuals do not depend on (a view of nothing), with no prior, gives a singular normal
+    matrix; residuals that are not finite give one of NaNs. Either way the correction stays put."""
+    mask = tracking_mask(torch.ones(4, 5), torch.ones(4, 5), 0.5)
+
+    def residuals_at(delta, given):
+        return torch.full((40,), residual), given if given is not None else mask
+
+    correction = PoseCorrection("cpu")
+    settings = PosesConfig(max_translation=1e6, max_rotation=180.0, prior=0.0, translation_lr=1.0, rotation_lr=1.0)
+    done = newton_track(residuals_at, correction, settings, 3, lambda: False)
+    assert done.steps == 0 and not correction.delta.detach().any()

@@ -9,7 +9,9 @@ whose right-hand side is then exactly the L1's gradient. The Jacobian of the res
 the six correction coordinates comes from finite differences of renders, so it needs no backward pass
 and works on every backend: a step costs seven forward renders. Levenberg-Marquardt damping keeps a
 step that would raise the loss (prior included) from being taken: it is retried with more damping,
-and the correction stays where it was if none of ``TRIES`` lowers the loss.
+and the correction stays where it was if none of ``TRIES`` lowers the loss. A system with no solution
+(a coordinate the residuals do not depend on and no prior to hold it, or residuals that are not
+finite) counts as such a try: the step is skipped, the frame goes on.
 """
 
 from __future__ import annotations
@@ -96,7 +98,11 @@ def newton_track(residuals_at: Residuals, correction: PoseCorrection, settings: 
         moved = False
         for _ in range(TRIES):
             damped = normal + damping * torch.diag(torch.diag(normal))
-            candidate = delta - torch.linalg.solve(damped, gradient).to(delta.dtype)
+            solution, info = torch.linalg.solve_ex(damped, gradient)
+            if int(info) != 0 or not bool(torch.isfinite(solution).all()):  # singular: a coordinate unseen
+                damping = max(damping * DAMPING_RISE, DAMPING_FLOOR)
+                continue
+            candidate = delta - solution.to(delta.dtype)
             candidate_residuals, candidate_mask = residuals_at(candidate, None)
             done.renders += 1
             candidate_loss = objective(candidate_residuals, candidate, prior_weights)
