@@ -74,13 +74,17 @@ def replay(path: Path, device: str, progress: Callable[[str], None]) -> Mapper:
 
 
 def open_map(path: Path, device: str, progress: Callable[[str], None]) -> StillMap:
-    """The map at ``path``: a snapshot (.safetensors) or a recording (.mcap)."""
+    """The map at ``path``: a snapshot (.safetensors) or a recording (.mcap). A snapshot is held to a server's
+    default config bounds, as RestoreSession holds one, before anything is built for it (ValueError): a shared
+    file may name any model."""
     device = str(resolve_device(device))
+    bounds = Settings().config_bounds
     if path.suffix == ".mcap":
         beside = path.with_suffix(".safetensors")
-        mapper = Mapper.restore(beside.read_bytes(), device) if beside.is_file() else replay(path, device, progress)
+        mapper = (Mapper.restore(beside.read_bytes(), device, bounds) if beside.is_file()
+                  else replay(path, device, progress))
     else:
-        mapper = Mapper.restore(path.read_bytes(), device)
+        mapper = Mapper.restore(path.read_bytes(), device, bounds)
     return StillMap(path.stem.split(".")[0] or "map", path.name, mapper)
 
 
