@@ -66,9 +66,12 @@ class FrameResult:
 class Mapper:
     """One session's map and the optimisation that builds it."""
 
-    def __init__(self, config: MapperConfig, device: str | torch.device = "cpu") -> None:
+    def __init__(self, config: MapperConfig, device: str | torch.device = "cpu",
+                 bounds: ConfigBounds | None = None) -> None:
+        """``bounds`` (a server's) also hold what the first frame's resolution rules make of the config."""
         # A copy: the first frame may resolve values that depend on its resolution (``_fit_to``).
         config = copy.deepcopy(config)
+        self.bounds = bounds
         profile = execution_profile(device, config.backend, config.model.encoding, config.step)
         self.stream = session_stream(profile.device)
         self.lock = threading.RLock()
@@ -162,7 +165,7 @@ class Mapper:
             return
         multiple = resolution.step_multiple(self.config.resolution.reference_pixels, intrinsics.width,
                                             intrinsics.height)
-        resolved = resolution.resolve(self.config, multiple)
+        resolved = resolution.resolve(self.config, multiple, self.bounds.caps(self.config) if self.bounds else None)
         model = self.model
         self.keyframes.config = resolved.config.keyframes
         with self.lock:
@@ -243,11 +246,12 @@ class Mapper:
         return state
 
     @classmethod
-    def from_state(cls, state: MapState, device: str | torch.device = "cpu", training_state: bool = False) -> Mapper:
+    def from_state(cls, state: MapState, device: str | torch.device = "cpu", training_state: bool = False,
+                   bounds: ConfigBounds | None = None) -> Mapper:
         """A mapper holding ``state``'s map; mapping can continue from it, with ``training_state``
         from the optimisation state it holds (a server's own checkpoint: never a snapshot from
         outside). ValueError when the tensors do not fit the config (states may come from outside)."""
-        mapper = cls(state.config, device)
+        mapper = cls(state.config, device, bounds)
         handed_in(mapper.stream, state.tensors.values())
         with on_stream(mapper.stream):
             map_io.load(mapper.model, mapper.keyframes, state, training_state)
@@ -261,4 +265,4 @@ class Mapper:
     def restore(cls, data: bytes, device: str | torch.device = "cpu", bounds: ConfigBounds | None = None) -> Mapper:
         """A mapper from snapshot bytes; mapping can continue from it. A config beyond ``bounds``
         (a server's) raises ValueError before anything is allocated for it."""
-        return cls.from_state(snapshot.decode(data, bounds), device)
+        return cls.from_state(snapshot.decode(data, bounds), device, bounds=bounds)

@@ -93,6 +93,7 @@ def map_stats(model: MapModel, keyframes: KeyframeSet) -> MapStats:
         backend=model.backend,
         timings=model.timer.totals(),
         poses=pose_summary(keyframes) if model.config.poses.refine else None,
+        config=model.config.to_dict(),
     )
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 
@@ -35,9 +35,12 @@ class MapStats:
     backend: str
     timings: dict[str, float]
     poses: PoseSummary | None = None  # with ``poses.refine``
+    # The config the map is built with: after its first frame, what the resolution rules made of it.
+    config: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON shape of the server's ``engine_json`` and the runner's results (lists, in field order;
-        ``poses`` only where refinement runs, so other sessions' stats read as they always have)."""
+        ``poses`` only where refinement runs, so other sessions' stats read as they always have; the config
+        apart, where those record it)."""
         return {name: list(value) if isinstance(value, tuple) else value for name, value in asdict(self).items()
-                if not (name == "poses" and value is None)}
+                if not (name == "poses" and value is None) and name != "config"}

@@ -30,6 +30,14 @@ class ConfigBounds:
     min_voxel_size: float = ranged(0.01, 0, open_low=True)
     max_new_anchors: int = ranged(100000, 1)  # refine.max_new_anchors
 
+    def caps(self, config: MapperConfig) -> dict[str, float]:
+        """What a resolution rule may make of each follower (``resolution.FOLLOWERS``) under these bounds: a
+        frame's step counts times the step multiple stay within ``max_iterations``. ``check`` holds the
+        others at the most their rules can make."""
+        keyframes = config.keyframes
+        most = max(keyframes.first_iterations, keyframes.iterations, keyframes.frame_iterations, 1)
+        return {"steps": max(1, self.max_iterations // most)}
+
     def check(self, config: MapperConfig) -> None:
         """Raise ValueError naming the first config key beyond these bounds."""
         model, keyframes = config.model, config.keyframes

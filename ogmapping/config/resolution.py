@@ -21,6 +21,7 @@ import copy
 import dataclasses
 import math
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Generic, Protocol, TypeVar
 
@@ -126,9 +127,10 @@ def reshape_pending(config: Resolvable) -> bool:
                for name, follower in FOLLOWERS.items())
 
 
-def resolve(config: Config, multiple: int) -> Resolution[Config]:
+def resolve(config: Config, multiple: int, caps: Mapping[str, float] | None = None) -> Resolution[Config]:
     """``config`` with every follower at its value for a first frame of step ``multiple`` and every rule
-    ``none``; ``config`` itself is left as it is."""
+    ``none``; ``config`` itself is left as it is. ``caps`` (a server's, ``ConfigBounds.caps``) bound what a
+    rule makes of a follower, by its name, besides the follower's own cap."""
     resolved = copy.deepcopy(config)
     changed = []
     for name, follower in FOLLOWERS.items():
@@ -136,7 +138,8 @@ def resolve(config: Config, multiple: int) -> Resolution[Config]:
         setattr(resolved.resolution, name, "none")
         section, field = _place(resolved, follower.key)
         value = getattr(section, field)
-        new = follow(rule, value, multiple, _cap(section, field, follower))
+        cap = min(_cap(section, field, follower), (caps or {}).get(name, math.inf))
+        new = follow(rule, value, multiple, cap)
         if new != value:
             setattr(section, field, new)
             changed.append(name)
@@ -154,7 +157,10 @@ def follow(rule: str, value: Any, multiple: int, cap: float = math.inf) -> Any:
     fixed = FIXED.fullmatch(rule)
     if fixed is None:
         raise ValueError(f"unknown resolution rule {rule!r}")
-    return _parsed(fixed["value"], value) if multiple >= int(fixed["multiple"]) else value
+    if multiple < int(fixed["multiple"]):
+        return value
+    fixed_value = _parsed(fixed["value"], value)
+    return fixed_value if isinstance(fixed_value, bool) else min(fixed_value, max(value, cap))
 
 
 def highest(config: Resolvable, name: str) -> Any:

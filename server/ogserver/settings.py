@@ -136,6 +136,9 @@ class Settings:
     access: Access = field(default_factory=Access)
     # --- input: what one session's config and one frame may cost
     config_bounds: ConfigBounds = field(default_factory=ConfigBounds)  # on CreateSession's and snapshots' configs
+    # the image size (pixels) a session's step multiple counts from (config resolution.reference_pixels, which a
+    # client may not set otherwise): sqrt(frame pixels / this), rounded; 0 keeps every session at 1
+    resolution_reference_pixels: int = ranged(204000, 0)
     # a frame's optimisation stops after this long, or at once on close; 0 = no limit
     frame_seconds: float = ranged(60.0, 0)
     # --- crashes: a checkpoint of each session's map every this many recorded frames (0: only the one

@@ -105,7 +105,8 @@ def stats(config: pb.SessionConfig, engine: MapStats, counters: SessionCounters)
         queue_depth=counters.pending, processing_fps=counters.processing_fps, uptime_seconds=counters.uptime_seconds,
         keyframes=engine.keyframes, anchors=engine.anchors, anchors_per_level=engine.anchors_per_level,
         gaussians=engine.gaussians, iterations=engine.iterations, timings=engine.timings,
-        engine_json=json.dumps(engine.to_dict()), config_json=config.config_json,
+        engine_json=json.dumps(engine.to_dict()),
+        config_json=json.dumps(engine.config) if engine.config else config.config_json,
         last_sequence=counters.last_sequence, last_index=counters.last_index, mapped_sequence=counters.mapped_sequence,
     )
     if engine.poses is not None:

@@ -64,9 +64,17 @@ def requested_config(request: pb.CreateSessionRequest, settings: Settings) -> tu
         raise invalid("preset", f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
     overrides = dict(request.overrides)
     try:
-        return preset, overrides, resolve(preset, overrides=overrides, bounds=settings.config_bounds)
+        asked = resolve(preset, overrides=overrides, bounds=settings.config_bounds).resolution.reference_pixels
     except ValueError as error:
         raise invalid("overrides", error) from None
+    # The image size the step multiple counts from is the operator's: a client's small one would scale
+    # every frame's steps and Gaussians far past what its size asks for.
+    server = settings.resolution_reference_pixels
+    if asked not in (server, resolve(preset).resolution.reference_pixels):
+        raise invalid("overrides", f"resolution.reference_pixels is this server's setting "
+                                   f"(resolution_reference_pixels: {server}), not a session's")
+    overrides["resolution.reference_pixels"] = str(server)
+    return preset, overrides, resolve(preset, overrides=overrides, bounds=settings.config_bounds)
 
 
 @dataclass
@@ -122,7 +130,7 @@ class Registry:
         """A new session; ``session_id`` is chosen here unless given (cluster mode names the actor first)."""
         preset, overrides, config = requested_config(request, self.settings)
         with self._reserve(owner):
-            mapper = Mapper(config, device=self.device)
+            mapper = Mapper(config, device=self.device, bounds=self.settings.config_bounds)
             return self._open(mapper, preset, overrides, request.label, "", owner, request.realtime, session_id)
 
     def restore(self, owner: str, receive: Callable[[], Upload], session_id: str = "") -> Opened:
@@ -196,7 +204,8 @@ class Registry:
         backlog = after.backlog()
         with self._reserve(saved.identity.owner):
             try:
-                mapper = Mapper.from_state(saved.state, device=self.device, training_state=True)
+                mapper = Mapper.from_state(saved.state, device=self.device, training_state=True,
+                                           bounds=self.settings.config_bounds)
             except ValueError as error:
                 raise CheckpointError(f"its map cannot be rebuilt: {error}") from None
             recorder = Recorder.resume(recording, self._parts(recording.name))
