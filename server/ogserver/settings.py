@@ -81,6 +81,9 @@ class Access:
     max_auth_failures_total: int = ranged(200, 0)
     # the longest wait for a unary call's request message once its headers came
     request_seconds: float = ranged(10.0, 0)
+    # the longest a response message may wait for its client to take it (an unread GetSnapshot would hold its
+    # call slot for as long as the connection stays open); the call then ends
+    response_seconds: float = ranged(30.0, 0)
     max_streams_per_connection: int = ranged(256, 1)  # HTTP/2 streams (calls) one connection may have open at once
     max_metrics_connections: int = ranged(16, 1)  # /metrics connections served at once; more are closed at once
 

@@ -1,6 +1,6 @@
 """Every call passes here. ogapi.v1.Mapping calls are held to ``max_concurrent_calls``, their status
 observed, and served from the event loop (``sync_calls.py``); every unary call must send its request
-within ``request_seconds``.
+within ``request_seconds``, and a response stream's client take each message within ``response_seconds``.
 
 The server is grpc.aio: a call waiting for its client costs no thread. Synchronous mapping calls run
 in a thread pool with ``HEADROOM`` threads beyond the limit, for refusing calls over it; health
@@ -42,11 +42,12 @@ class _Recorded:
 
 
 class CallGate(aio.ServerInterceptor):
-    def __init__(self, limit: int, observe: Observer, request_seconds: float, pool: Executor) -> None:
+    def __init__(self, limit: int, observe: Observer, request_seconds: float, pool: Executor,
+                 response_seconds: float = 0.0) -> None:
         self.limit = limit
         self._slots = threading.BoundedSemaphore(limit)
         self._observe = observe
-        self._sync = SyncCalls(request_seconds, pool)
+        self._sync = SyncCalls(request_seconds, pool, response_seconds)
 
     async def intercept_service(
         self, continuation: Callable[[grpc.HandlerCallDetails], Awaitable[grpc.RpcMethodHandler]],

@@ -6,7 +6,10 @@ and the call's slot with it. So the mapping methods are served here as coroutine
 reads its request in the event loop (no thread waits for a client that sends nothing), within
 ``request_seconds`` of its headers (DEADLINE_EXCEEDED past it, one throttled WARNING line in the
 log); the method then runs in the pool; a response stream is taken from it one message at a
-time, and closed when the call ends early, so its ``finally`` blocks run.
+time, and closed when the call ends early, so its ``finally`` blocks run. Each response message must be
+taken by the client (HTTP/2 flow control) within ``response_seconds``, else the call ends
+DEADLINE_EXCEEDED: a client that opens response streams and reads nothing would otherwise hold their
+call slots for as long as its connection stays open.
 """
 
 from __future__ import annotations
@@ -47,8 +50,9 @@ class BlockingContext:
 class SyncCalls:
     """One per server, so that each server's log is throttled on its own."""
 
-    def __init__(self, request_seconds: float, pool: Executor) -> None:
+    def __init__(self, request_seconds: float, pool: Executor, response_seconds: float = 0.0) -> None:
         self.request_seconds = request_seconds
+        self.response_seconds = response_seconds
         self._pool = pool
         self._log = ThrottledLog(log, 10.0)
 
@@ -68,11 +72,11 @@ class SyncCalls:
             request, blocking = await arguments(context)
             return await asyncio.get_running_loop().run_in_executor(self._pool, behaviour, request, blocking)
 
-        async def streaming(_: Any, context: aio.ServicerContext) -> AsyncIterator[Any]:
+        async def streaming(_: Any, context: aio.ServicerContext) -> None:
             request, blocking = await arguments(context)
             responses = await asyncio.get_running_loop().run_in_executor(self._pool, behaviour, request, blocking)
             async for response in self._stepped(responses):
-                yield response
+                await self._write(context, response, method)
 
         factory = grpc.stream_stream_rpc_method_handler if handler.response_streaming \
             else grpc.stream_unary_rpc_method_handler
@@ -101,6 +105,16 @@ class SyncCalls:
         if request is aio.EOF:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "the call ended without a request message")
         return request
+
+    async def _write(self, context: aio.ServicerContext, response: Any, method: str) -> None:
+        try:
+            await asyncio.wait_for(context.write(response), self.response_seconds or None)
+        except TimeoutError:
+            self._log.warning(f"{method} to {context.peer()}: the client took no response message within "
+                              f"{self.response_seconds:g} s; ended")
+            await context.abort(grpc.StatusCode.DEADLINE_EXCEEDED,
+                                f"no response message taken within {self.response_seconds:g} s "
+                                f"(the server's response_seconds)")
 
     async def _stepped(self, responses: Iterator[Any]) -> AsyncIterator[Any]:
         """``responses`` one at a time in the pool; closed once the step in flight returns if the call ends."""
