@@ -19,6 +19,7 @@ import mimetypes
 import re
 import socket
 import ssl
+import sys
 import threading
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -40,6 +41,9 @@ MAX_CONNECTIONS = 64
 REQUEST_SECONDS = 10.0  # TLS handshake, request line and headers, and each read or write after
 LOOPBACK_HOSTS = re.compile(r"(127(\.\d{1,3}){3}|localhost|\[::1\])(:\d+)?")
 MAP_PATH = re.compile(r"/(map|api/map)/([A-Za-z0-9_-]{1,64})(/[a-z.]+)?")
+# A file under static/ or vendor/ as the page names it: short plain segments, none hidden. Anything else
+# (a NUL, a name the file system refuses as too long) is not looked up at all.
+FILE_NAME = re.compile(r"(?:[A-Za-z0-9_-][A-Za-z0-9_.-]{0,99}/){0,7}[A-Za-z0-9_-][A-Za-z0-9_.-]{0,99}")
 _refusals = ThrottledLog(log, 10.0)
 _failures = ThrottledLog(log, 10.0)
 
@@ -82,6 +86,12 @@ class WebServer(ThreadingHTTPServer):
             return
         super().process_request(request, client_address)
 
+    def handle_error(self, request: socket.socket | tuple[bytes, socket.socket], client_address: tuple) -> None:
+        """What escaped a request's handler: one throttled log line, not socketserver's traceback on stderr per
+        request, which any client could repeat to fill the log."""
+        error = sys.exc_info()[1]
+        _failures.log(logging.ERROR, f"web view: a request from {client_address[0]} failed: {error!r}")
+
     def process_request_thread(self, request: socket.socket, client_address: tuple) -> None:  # type: ignore[override]
         try:
             request.settimeout(REQUEST_SECONDS)
@@ -107,31 +117,30 @@ class Handler(BaseHTTPRequestHandler):
             self._answer()
 
     def _answer(self) -> None:
-        url = urlsplit(self.path)
         if self.server.loopback and not LOOPBACK_HOSTS.fullmatch(self.headers.get("Host", "")):
             self._send(HTTPStatus.FORBIDDEN, b"this server answers only requests for a loopback host\n")
             return
-        if url.path == "/favicon.ico":
-            self._send(HTTPStatus.NO_CONTENT, b"")
-            return
-        folder, _, name = url.path.lstrip("/").partition("/")
-        if folder in FOLDERS:
-            self._file(FOLDERS[folder], name)
-            return
-        credential = self._credential(parse_qs(url.query))
+        path = self.path[:100]  # for the log, however the target parses
         try:
-            if url.path == "/":
-                self._index(credential)
+            url = urlsplit(self.path)  # a ValueError for some targets ("//[x"): a 400 as any other
+            path, query = url.path[:100], parse_qs(url.query)
+            folder, _, name = url.path.lstrip("/").partition("/")
+            if url.path == "/favicon.ico":
+                self._send(HTTPStatus.NO_CONTENT, b"")
+            elif folder in FOLDERS:
+                self._file(FOLDERS[folder], name)
+            elif url.path == "/":
+                self._index(self._credential(query))
             elif match := MAP_PATH.fullmatch(url.path):
-                self._map(match.group(1), match.group(2), match.group(3) or "", credential, parse_qs(url.query))
+                self._map(match.group(1), match.group(2), match.group(3) or "", self._credential(query), query)
             else:
                 self._send(HTTPStatus.NOT_FOUND, b"not found\n")
         except ServiceError as refusal:
-            self._refused(refusal, url.path.startswith("/api/"))
-        except ValueError as error:
-            self._send(HTTPStatus.BAD_REQUEST, f"{error}\n".encode())
+            self._refused(refusal, path.startswith("/api/"))
+        except ValueError as error:  # a query or a request target that does not parse
+            self._send(HTTPStatus.BAD_REQUEST, f"{str(error)[:200]}\n".encode())
         except Exception as error:  # a map that fails to decode or render: the page gets 500, the log says why
-            _failures.log(logging.ERROR, f"web view: {url.path} failed: {error!r}")
+            _failures.log(logging.ERROR, f"web view: {path!r} failed: {error!r}")
             self._send(HTTPStatus.INTERNAL_SERVER_ERROR, b"the server failed; its log says why\n")
 
     def _credential(self, query: dict[str, list[str]]) -> Credential:
@@ -196,8 +205,8 @@ class Handler(BaseHTTPRequestHandler):
             self._send(HTTPStatus.NOT_FOUND, b"not found\n")
 
     def _file(self, folder: Path, name: str) -> None:
-        path = (folder / name).resolve()
-        if not name or not path.is_relative_to(folder.resolve()) or not path.is_file() or path.name.startswith("."):
+        """A file of ``folder``: 404 for a name the page never asks for, before the file system sees it."""
+        if not FILE_NAME.fullmatch(name) or not (path := contained(folder, name)):
             self._send(HTTPStatus.NOT_FOUND, b"not found\n")
             return
         kind = "text/javascript" if path.suffix == ".js" else mimetypes.guess_type(path.name)[0] or "text/plain"
@@ -212,6 +221,16 @@ class Handler(BaseHTTPRequestHandler):
             self.send_header(name, value)
         self.end_headers()
         self.wfile.write(body)
+
+
+def contained(folder: Path, name: str) -> Path | None:
+    """``folder/name`` where that is a file inside ``folder`` (links followed), else None; never raises for a
+    name the file system cannot take."""
+    try:
+        path = (folder / name).resolve()
+        return path if path.is_relative_to(folder.resolve()) and path.is_file() else None
+    except (OSError, ValueError):
+        return None
 
 
 def is_loopback(host: str) -> bool:
