@@ -93,3 +93,22 @@ def test_what_escapes_a_handler_is_one_throttled_log_line(monkeypatch, capfd, ca
     assert capfd.readouterr().err == ""
     failures = [record.getMessage() for record in caplog.records if "a handler's own bug" in record.getMessage()]
     assert len(failures) <= 1 and not any(record.exc_info for record in caplog.records)
+
+
+def headers(answer: bytes) -> dict[str, str]:
+    lines = answer.split(b"\r\n\r\n", 1)[0].decode("latin-1").split("\r\n")[1:]
+    return {name.lower(): value.strip() for name, _, value in (line.partition(":") for line in lines)}
+
+
+def test_a_page_reached_with_a_credential_is_not_cached_and_static_files_are() -> None:
+    with web_server() as server:
+        def get(target: str) -> bytes:
+            return exchange(server.port, f"GET {target} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n"
+                            .encode())
+
+        for query in (f"?token={TOKEN}", f"?key={TOKEN}"):
+            page = get(f"/map/{MAP_ID}{query}")
+            assert status(page) == 200 and b"<html" in page.lower()
+            assert headers(page)["cache-control"] == "no-store"
+        style = get("/static/style.css")
+        assert status(style) == 200 and headers(style)["cache-control"].startswith("max-age=")

@@ -176,7 +176,7 @@ class Handler(BaseHTTPRequestHandler):
         if view is None:
             self._send(HTTPStatus.NOT_FOUND, b"no such map, or not one you may see\n")
         elif kind == "map" and not part:
-            self._file(FOLDERS["static"], "map.html")
+            self._file(FOLDERS["static"], "map.html", cached=False)  # its URL holds the credential
         elif kind == "api/map":
             self._data(view, part, query)
         else:
@@ -204,13 +204,14 @@ class Handler(BaseHTTPRequestHandler):
         else:
             self._send(HTTPStatus.NOT_FOUND, b"not found\n")
 
-    def _file(self, folder: Path, name: str) -> None:
-        """A file of ``folder``: 404 for a name the page never asks for, before the file system sees it."""
+    def _file(self, folder: Path, name: str, cached: bool = True) -> None:
+        """A file of ``folder``: 404 for a name the page never asks for, before the file system sees it. Not
+        ``cached`` where the URL it answers carries a credential: no cache keeps the key beside the page."""
         if not FILE_NAME.fullmatch(name) or not (path := contained(folder, name)):
             self._send(HTTPStatus.NOT_FOUND, b"not found\n")
             return
         kind = "text/javascript" if path.suffix == ".js" else mimetypes.guess_type(path.name)[0] or "text/plain"
-        self._send(HTTPStatus.OK, path.read_bytes(), kind, {"Cache-Control": "max-age=3600"})
+        self._send(HTTPStatus.OK, path.read_bytes(), kind, {"Cache-Control": "max-age=3600"} if cached else {})
 
     def _send(self, status: HTTPStatus, body: bytes, kind: str = "text/plain",
               headers: dict[str, str] | None = None) -> None:
