@@ -11,6 +11,7 @@ from types import SimpleNamespace
 
 import pytest
 from ogserver.web.catalogue import Credential
+from ogserver.web.hosts import HostPolicy
 from ogserver.web.http_server import Handler, WebServer
 from ogserver.web.maps import Busy
 
@@ -112,3 +113,46 @@ def test_a_page_reached_with_a_credential_is_not_cached_and_static_files_are() -
             assert headers(page)["cache-control"] == "no-store"
         style = get("/static/style.css")
         assert status(style) == 200 and headers(style)["cache-control"].startswith("max-age=")
+
+
+def test_the_host_policy_of_a_server_on_every_address_answers_only_its_own_names() -> None:
+    machine = lambda: ("MapHost", "maphost.lan.")  # noqa: E731
+    policy = HostPolicy.serving("0.0.0.0", ["maps.example.org", ".lab.example.net"], machine)
+    for host in ("localhost", "localhost:8080", "LOCALHOST.", "app.localhost:1", "127.0.0.1", "127.0.0.1:80",
+                 "[::1]:8080", "[::1]", "10.1.2.3:8080", "[fe80::1]", "0.0.0.0:80", "maphost", "maphost.lan:8080",
+                 "maps.example.org", "Maps.Example.Org.:443", "lab.example.net", "a.b.lab.example.net:9"):
+        assert policy.allows(host), host
+    for host in ("", " ", "evil.example", "evil.example:8080", "localhost.evil.example", "maps.example.org.evil",
+                 "evilmaps.example.org", "example.org", "notlab.example.net", "maphost.evil", "10.1.2.3.evil",
+                 "[::1", "[evil]:80", "a b", "maps.example.org:port", "user@maps.example.org", "127.0.0.1/x"):
+        assert not policy.allows(host), host
+
+
+def test_a_server_on_loopback_answers_loopback_and_listed_names_and_does_not_look_up_its_own() -> None:
+    def machine() -> tuple[str, ...]:
+        raise AssertionError("a loopback server needs no host names of the machine's")
+
+    policy = HostPolicy.serving("127.0.0.1", ["maps.example.org"], machine)
+    assert policy.allows("127.0.0.1:8080") and policy.allows("localhost") and policy.allows("maps.example.org")
+    assert not policy.allows("evil.example")
+    assert HostPolicy.serving("[::1]", (), machine).allows("[::1]:1")
+    assert not HostPolicy.serving("10.0.0.5", (), lambda: ["maphost"]).allows("evil.example")
+
+
+def test_a_request_for_a_host_not_allowed_gets_403_and_no_data() -> None:
+    with web_server(hosts=["maps.example.org"]) as server:
+        def get(host: str) -> bytes:
+            return exchange(server.port, f"GET /?token={TOKEN} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n"
+                            .encode())
+
+        for host in ("maps.example.org", "maps.example.org:8080", "localhost", f"127.0.0.1:{server.port}"):
+            answer = get(host)
+            assert status(answer) == 200 and MAP_ID.encode() in answer, host
+        for host in ("evil.example", "maphost.example.org"):
+            answer = get(host)
+            assert status(answer) == 403 and MAP_ID.encode() not in answer and len(answer) < 600, host
+        missing = exchange(server.port, f"GET /?token={TOKEN} HTTP/1.0\r\n\r\n".encode())
+        assert status(missing) == 403 and MAP_ID.encode() not in missing
+        page = exchange(server.port, f"GET /map/{MAP_ID}?token={TOKEN} HTTP/1.1\r\nHost: evil.example\r\n"
+                                     f"Connection: close\r\n\r\n".encode())
+        assert status(page) == 403

@@ -5,14 +5,13 @@ The page and the browser libraries are files in this package (``static/``, ``ven
 they are: nothing is fetched from elsewhere at run time. Credentials travel in the URL's query
 (``?key=`` an API key, ``?token=`` a session token) so a link or a test can carry one, or in the
 ``X-Api-Key`` / ``X-Session-Token`` headers; pages are sent with ``Referrer-Policy: no-referrer`` so
-the query never leaves in a Referer. Connections are bounded in number and time, and a server bound
-to a loopback address answers only requests that name a loopback host (no DNS rebinding).
+the query never leaves in a Referer. Connections are bounded in number and time, and the server
+answers only requests whose Host names it (``hosts.HostPolicy``: no DNS rebinding), on every address.
 """
 
 from __future__ import annotations
 
 import html
-import ipaddress
 import json
 import logging
 import mimetypes
@@ -21,6 +20,7 @@ import socket
 import ssl
 import sys
 import threading
+from collections.abc import Iterable
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
@@ -32,6 +32,7 @@ import numpy as np
 from ogserver.errors import ServiceError
 from ogserver.throttled_log import ThrottledLog
 from ogserver.web.catalogue import Catalogue, Credential
+from ogserver.web.hosts import HostPolicy, is_loopback
 from ogserver.web.maps import MapView
 
 log = logging.getLogger(__name__)
@@ -39,7 +40,6 @@ PACKAGE = Path(__file__).parent
 FOLDERS = {"static": PACKAGE / "static", "vendor": PACKAGE / "vendor"}
 MAX_CONNECTIONS = 64
 REQUEST_SECONDS = 10.0  # TLS handshake, request line and headers, and each read or write after
-LOOPBACK_HOSTS = re.compile(r"(127(\.\d{1,3}){3}|localhost|\[::1\])(:\d+)?")
 MAP_PATH = re.compile(r"/(map|api/map)/([A-Za-z0-9_-]{1,64})(/[a-z.]+)?")
 # A file under static/ or vendor/ as the page names it: short plain segments, none hidden. Anything else
 # (a NUL, a name the file system refuses as too long) is not looked up at all.
@@ -49,16 +49,19 @@ _failures = ThrottledLog(log, 10.0)
 
 
 class WebServer(ThreadingHTTPServer):
-    """Serves ``catalogue``'s maps on ``host:port`` (0: any free port) on threads of its own."""
+    """Serves ``catalogue``'s maps on ``host:port`` (0: any free port) on threads of its own, to requests that
+    name ``host``, a loopback name, an IP address, or one of the ``hosts`` (``HostPolicy``)."""
 
     daemon_threads = True
     block_on_close = False
 
-    def __init__(self, host: str, port: int, catalogue: Catalogue, tls: ssl.SSLContext | None = None) -> None:
+    def __init__(self, host: str, port: int, catalogue: Catalogue, tls: ssl.SSLContext | None = None,
+                 hosts: Iterable[str] = ()) -> None:
         self.address_family = socket.AF_INET6 if ":" in host else socket.AF_INET
         self.catalogue = catalogue
         self.tls = tls
         self.loopback = is_loopback(host)
+        self.hosts = HostPolicy.serving(host, hosts)
         self._slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
         super().__init__((host.strip("[]"), port), Handler)
         self.port: int = self.server_address[1]
@@ -117,8 +120,10 @@ class Handler(BaseHTTPRequestHandler):
             self._answer()
 
     def _answer(self) -> None:
-        if self.server.loopback and not LOOPBACK_HOSTS.fullmatch(self.headers.get("Host", "")):
-            self._send(HTTPStatus.FORBIDDEN, b"this server answers only requests for a loopback host\n")
+        host = self.headers.get("Host", "")
+        if not self.server.hosts.allows(host):
+            _refusals.warning(f"web view: refused a request for host {host[:100]!r}, not one of this server's names")
+            self._send(HTTPStatus.FORBIDDEN, b"this server answers only requests that name one of its hosts\n")
             return
         path = self.path[:100]  # for the log, however the target parses
         try:
@@ -232,15 +237,6 @@ def contained(folder: Path, name: str) -> Path | None:
         return path if path.is_relative_to(folder.resolve()) and path.is_file() else None
     except (OSError, ValueError):
         return None
-
-
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host.strip("[]")).is_loopback
-    except ValueError:
-        return False
 
 
 def center(text: str) -> np.ndarray | None:
