@@ -132,6 +132,10 @@ def parser() -> argparse.ArgumentParser:
                           "port (0 = any free port; default off); the same API keys and tokens as gRPC")
     web.add_argument("--web-seconds", dest="web_seconds", type=float,
                      help="decode a map's Gaussians for the web view at most this often, seconds (0.5)")
+    web.add_argument("--web-host", dest="web_hosts", action="append", metavar="NAME",
+                     help="a host name the web view answers for beside localhost, IP addresses and this machine's "
+                          "names, e.g. maps.example.org, or .example.org for the names under it (repeatable); "
+                          "requests naming any other host get 403")
     p.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING (default INFO)")
     return p
 

@@ -94,6 +94,9 @@ class Access:
 
 
 ORIGIN = re.compile(r"null|[a-z][a-z0-9+.-]*://[^/\s]*")  # what browsers send: scheme://host[:port], or null
+# A DNS name: labels of letters, digits and inner hyphens; a leading dot stands for a domain and every name under it.
+HOST_LABEL = r"[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
+HOST_NAME = re.compile(rf"\.?{HOST_LABEL}(?:\.{HOST_LABEL})*\.?")
 
 
 @dataclass
@@ -116,6 +119,10 @@ class Live:
     web_port: int = ranged(-1, -1, PORT)  # -1: off; 0: any free port (the log names it)
     # a map's Gaussians are decoded for the web view at most this often
     web_seconds: float = ranged(0.5, 0, open_low=True)
+    # host names the web view answers for beside localhost, IP addresses and the machine's own names (a request
+    # naming any other host is refused: DNS rebinding); ".example.org" allows that domain and the names under it
+    web_hosts: list[str] = formed(list, HOST_NAME, "a host name such as maps.example.org, or .example.org for "
+                                                   "a domain and the names under it")
 
     @property
     def foxglove(self) -> bool:

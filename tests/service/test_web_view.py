@@ -28,7 +28,7 @@ from ogclient.streaming import stream_frames
 from ogserver import apikeys, view
 from ogserver.settings import load
 from ogserver.web import still
-from ogserver.web.http_server import is_loopback
+from ogserver.web.hosts import is_loopback
 
 from ogmapping.frames.camera import Intrinsics
 
@@ -141,13 +141,20 @@ def test_loopback_addresses() -> None:
     assert not any(map(is_loopback, ("0.0.0.0", "::", "10.0.0.1", "example.org")))
 
 
-def test_a_server_on_a_loopback_address_answers_only_loopback_hosts(tmp_path) -> None:
-    with serving(web_settings(tmp_path)) as running:
-        request = urllib.request.Request(f"http://127.0.0.1:{running.server.web.port}/",
-                                         headers={"Host": "attacker.example:80"})
-        with pytest.raises(urllib.error.HTTPError) as refused:
-            urllib.request.urlopen(request, timeout=30)
-        assert refused.value.code == 403
+def test_the_web_view_answers_only_requests_naming_its_hosts(tmp_path) -> None:
+    configured = web_settings(tmp_path)
+    configured.live.web_hosts = ["maps.example.org"]
+    with serving(configured) as running:
+        session = running.stub.CreateSession(create_request(FROZEN)).session_id
+        url = f"http://127.0.0.1:{running.server.web.port}/"
+        for host in ("maps.example.org:80", "localhost", "127.0.0.1"):
+            with urllib.request.urlopen(urllib.request.Request(url, headers={"Host": host}), timeout=30) as response:
+                assert session.encode() in response.read(), host
+        for path in ("", f"api/map/{session}/state"):
+            request = urllib.request.Request(url + path, headers={"Host": "attacker.example:80"})
+            with pytest.raises(urllib.error.HTTPError) as refused:
+                urllib.request.urlopen(request, timeout=30)
+            assert refused.value.code == 403 and session.encode() not in refused.value.read()
 
 
 @dataclass(frozen=True)
@@ -286,6 +293,8 @@ def test_with_mutual_tls_a_client_certificate_names_the_caller(tmp_path) -> None
     ({"web_port": 70000}, r"live.web_port is out of range: must be in \[-1, 65535\]"),
     ({"web_seconds": 0.0}, "live.web_seconds is out of range: must be > 0 and finite"),
     ({"web_port": 0, "cluster": "auto"}, "live.web_port: the web view is not available in cluster mode"),
+    ({"web_hosts": ["maps.example.org:8080"]}, "live.web_hosts"),
+    ({"web_hosts": ["evil example"]}, "live.web_hosts"),
 ])
 def test_web_settings_are_checked(flags, problem) -> None:
     with pytest.raises(ValueError, match=problem):

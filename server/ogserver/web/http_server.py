@@ -5,21 +5,22 @@ The page and the browser libraries are files in this package (``static/``, ``ven
 they are: nothing is fetched from elsewhere at run time. Credentials travel in the URL's query
 (``?key=`` an API key, ``?token=`` a session token) so a link or a test can carry one, or in the
 ``X-Api-Key`` / ``X-Session-Token`` headers; pages are sent with ``Referrer-Policy: no-referrer`` so
-the query never leaves in a Referer. Connections are bounded in number and time, and a server bound
-to a loopback address answers only requests that name a loopback host (no DNS rebinding).
+the query never leaves in a Referer. Connections are bounded in number and time, and the server
+answers only requests whose Host names it (``hosts.HostPolicy``: no DNS rebinding), on every address.
 """
 
 from __future__ import annotations
 
 import html
-import ipaddress
 import json
 import logging
 import mimetypes
 import re
 import socket
 import ssl
+import sys
 import threading
+from collections.abc import Iterable
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
@@ -31,6 +32,7 @@ import numpy as np
 from ogserver.errors import ServiceError
 from ogserver.throttled_log import ThrottledLog
 from ogserver.web.catalogue import Catalogue, Credential
+from ogserver.web.hosts import HostPolicy, is_loopback
 from ogserver.web.maps import MapView
 
 log = logging.getLogger(__name__)
@@ -38,23 +40,28 @@ PACKAGE = Path(__file__).parent
 FOLDERS = {"static": PACKAGE / "static", "vendor": PACKAGE / "vendor"}
 MAX_CONNECTIONS = 64
 REQUEST_SECONDS = 10.0  # TLS handshake, request line and headers, and each read or write after
-LOOPBACK_HOSTS = re.compile(r"(127(\.\d{1,3}){3}|localhost|\[::1\])(:\d+)?")
 MAP_PATH = re.compile(r"/(map|api/map)/([A-Za-z0-9_-]{1,64})(/[a-z.]+)?")
+# A file under static/ or vendor/ as the page names it: short plain segments, none hidden. Anything else
+# (a NUL, a name the file system refuses as too long) is not looked up at all.
+FILE_NAME = re.compile(r"(?:[A-Za-z0-9_-][A-Za-z0-9_.-]{0,99}/){0,7}[A-Za-z0-9_-][A-Za-z0-9_.-]{0,99}")
 _refusals = ThrottledLog(log, 10.0)
 _failures = ThrottledLog(log, 10.0)
 
 
 class WebServer(ThreadingHTTPServer):
-    """Serves ``catalogue``'s maps on ``host:port`` (0: any free port) on threads of its own."""
+    """Serves ``catalogue``'s maps on ``host:port`` (0: any free port) on threads of its own, to requests that
+    name ``host``, a loopback name, an IP address, or one of the ``hosts`` (``HostPolicy``)."""
 
     daemon_threads = True
     block_on_close = False
 
-    def __init__(self, host: str, port: int, catalogue: Catalogue, tls: ssl.SSLContext | None = None) -> None:
+    def __init__(self, host: str, port: int, catalogue: Catalogue, tls: ssl.SSLContext | None = None,
+                 hosts: Iterable[str] = ()) -> None:
         self.address_family = socket.AF_INET6 if ":" in host else socket.AF_INET
         self.catalogue = catalogue
         self.tls = tls
         self.loopback = is_loopback(host)
+        self.hosts = HostPolicy.serving(host, hosts)
         self._slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
         super().__init__((host.strip("[]"), port), Handler)
         self.port: int = self.server_address[1]
@@ -82,6 +89,12 @@ class WebServer(ThreadingHTTPServer):
             return
         super().process_request(request, client_address)
 
+    def handle_error(self, request: socket.socket | tuple[bytes, socket.socket], client_address: tuple) -> None:
+        """What escaped a request's handler: one throttled log line, not socketserver's traceback on stderr per
+        request, which any client could repeat to fill the log."""
+        error = sys.exc_info()[1]
+        _failures.log(logging.ERROR, f"web view: a request from {client_address[0]} failed: {error!r}")
+
     def process_request_thread(self, request: socket.socket, client_address: tuple) -> None:  # type: ignore[override]
         try:
             request.settimeout(REQUEST_SECONDS)
@@ -107,31 +120,32 @@ class Handler(BaseHTTPRequestHandler):
             self._answer()
 
     def _answer(self) -> None:
-        url = urlsplit(self.path)
-        if self.server.loopback and not LOOPBACK_HOSTS.fullmatch(self.headers.get("Host", "")):
-            self._send(HTTPStatus.FORBIDDEN, b"this server answers only requests for a loopback host\n")
+        host = self.headers.get("Host", "")
+        if not self.server.hosts.allows(host):
+            _refusals.warning(f"web view: refused a request for host {host[:100]!r}, not one of this server's names")
+            self._send(HTTPStatus.FORBIDDEN, b"this server answers only requests that name one of its hosts\n")
             return
-        if url.path == "/favicon.ico":
-            self._send(HTTPStatus.NO_CONTENT, b"")
-            return
-        folder, _, name = url.path.lstrip("/").partition("/")
-        if folder in FOLDERS:
-            self._file(FOLDERS[folder], name)
-            return
-        credential = self._credential(parse_qs(url.query))
+        path = self.path[:100]  # for the log, however the target parses
         try:
-            if url.path == "/":
-                self._index(credential)
+            url = urlsplit(self.path)  # a ValueError for some targets ("//[x"): a 400 as any other
+            path, query = url.path[:100], parse_qs(url.query)
+            folder, _, name = url.path.lstrip("/").partition("/")
+            if url.path == "/favicon.ico":
+                self._send(HTTPStatus.NO_CONTENT, b"")
+            elif folder in FOLDERS:
+                self._file(FOLDERS[folder], name)
+            elif url.path == "/":
+                self._index(self._credential(query))
             elif match := MAP_PATH.fullmatch(url.path):
-                self._map(match.group(1), match.group(2), match.group(3) or "", credential, parse_qs(url.query))
+                self._map(match.group(1), match.group(2), match.group(3) or "", self._credential(query), query)
             else:
                 self._send(HTTPStatus.NOT_FOUND, b"not found\n")
         except ServiceError as refusal:
-            self._refused(refusal, url.path.startswith("/api/"))
-        except ValueError as error:
-            self._send(HTTPStatus.BAD_REQUEST, f"{error}\n".encode())
+            self._refused(refusal, path.startswith("/api/"))
+        except ValueError as error:  # a query or a request target that does not parse
+            self._send(HTTPStatus.BAD_REQUEST, f"{str(error)[:200]}\n".encode())
         except Exception as error:  # a map that fails to decode or render: the page gets 500, the log says why
-            _failures.log(logging.ERROR, f"web view: {url.path} failed: {error!r}")
+            _failures.log(logging.ERROR, f"web view: {path!r} failed: {error!r}")
             self._send(HTTPStatus.INTERNAL_SERVER_ERROR, b"the server failed; its log says why\n")
 
     def _credential(self, query: dict[str, list[str]]) -> Credential:
@@ -167,7 +181,7 @@ class Handler(BaseHTTPRequestHandler):
         if view is None:
             self._send(HTTPStatus.NOT_FOUND, b"no such map, or not one you may see\n")
         elif kind == "map" and not part:
-            self._file(FOLDERS["static"], "map.html")
+            self._file(FOLDERS["static"], "map.html", cached=False)  # its URL holds the credential
         elif kind == "api/map":
             self._data(view, part, query)
         else:
@@ -195,13 +209,14 @@ class Handler(BaseHTTPRequestHandler):
         else:
             self._send(HTTPStatus.NOT_FOUND, b"not found\n")
 
-    def _file(self, folder: Path, name: str) -> None:
-        path = (folder / name).resolve()
-        if not name or not path.is_relative_to(folder.resolve()) or not path.is_file() or path.name.startswith("."):
+    def _file(self, folder: Path, name: str, cached: bool = True) -> None:
+        """A file of ``folder``: 404 for a name the page never asks for, before the file system sees it. Not
+        ``cached`` where the URL it answers carries a credential: no cache keeps the key beside the page."""
+        if not FILE_NAME.fullmatch(name) or not (path := contained(folder, name)):
             self._send(HTTPStatus.NOT_FOUND, b"not found\n")
             return
         kind = "text/javascript" if path.suffix == ".js" else mimetypes.guess_type(path.name)[0] or "text/plain"
-        self._send(HTTPStatus.OK, path.read_bytes(), kind, {"Cache-Control": "max-age=3600"})
+        self._send(HTTPStatus.OK, path.read_bytes(), kind, {"Cache-Control": "max-age=3600"} if cached else {})
 
     def _send(self, status: HTTPStatus, body: bytes, kind: str = "text/plain",
               headers: dict[str, str] | None = None) -> None:
@@ -214,13 +229,14 @@ class Handler(BaseHTTPRequestHandler):
         self.wfile.write(body)
 
 
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
+def contained(folder: Path, name: str) -> Path | None:
+    """``folder/name`` where that is a file inside ``folder`` (links followed), else None; never raises for a
+    name the file system cannot take."""
     try:
-        return ipaddress.ip_address(host.strip("[]")).is_loopback
-    except ValueError:
-        return False
+        path = (folder / name).resolve()
+        return path if path.is_relative_to(folder.resolve()) and path.is_file() else None
+    except (OSError, ValueError):
+        return None
 
 
 def center(text: str) -> np.ndarray | None:

@@ -40,8 +40,8 @@ def start_web(settings: Settings, registry: Registry, callers: Callers) -> WebSe
                                      access.max_auth_failures_total)
     host = settings.address.rsplit(":", 1)[0]
     try:
-        server = WebServer(host, settings.live.web_port, Sessions(registry, callers, failures,
-                                                                  settings.live.web_seconds), tls_context(access))
+        sessions = Sessions(registry, callers, failures, settings.live.web_seconds)
+        server = WebServer(host, settings.live.web_port, sessions, tls_context(access), settings.live.web_hosts)
     except OSError as error:
         raise ValueError(f"live.web_port: cannot serve on {host}:{settings.live.web_port}: {error}") from None
     if callers.open:
