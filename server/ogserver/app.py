@@ -113,7 +113,8 @@ def build(settings: Settings) -> Server:
     registry = _host(settings, device)
     metrics = Metrics(registry)
     loop = EventLoop("grpc-loop")
-    gate = CallGate(access.max_concurrent_calls, metrics.call, access.request_seconds, pool, access.response_seconds)
+    gate = CallGate(access.max_concurrent_calls, metrics.call, access.request_seconds, pool, access.response_seconds,
+                    access.max_calls_per_caller)
     try:
         server, health_servicer, port = loop.run(_grpc_server(settings, options, gate, pool, credentials))
     except RuntimeError:  # grpc.aio's "Failed to bind to address"

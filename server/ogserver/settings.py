@@ -67,6 +67,8 @@ class Access:
     max_sessions_per_client: int = ranged(0, 0)  # sessions one caller identity may hold; 0 = only max_sessions
     max_label_chars: int = ranged(256, 0)
     max_concurrent_calls: int = ranged(32, 1)  # mapping calls at once; health checks are served beside them
+    # of those, the most one caller (API key, else client certificate, else address) may hold; 0 = no share
+    max_calls_per_caller: int = ranged(16, 0)
     # a session without calls, stream or queued frames this long is closed
     session_idle_seconds: float = ranged(3600.0, 0)
     stream_idle_seconds: float = ranged(300.0, 0)  # a frame stream whose client sends nothing this long is ended

@@ -1,6 +1,8 @@
 """Every call passes here. ogapi.v1.Mapping calls are held to ``max_concurrent_calls``, their status
 observed, and served from the event loop (``sync_calls.py``); every unary call must send its request
 within ``request_seconds``, and a response stream's client take each message within ``response_seconds``.
+One caller (its API key, else its client certificate, else its address) holds at most
+``max_calls_per_caller`` of the slots, so one tenant's calls cannot refuse every other tenant's.
 
 The server is grpc.aio: a call waiting for its client costs no thread. Synchronous mapping calls run
 in a thread pool with ``HEADROOM`` threads beyond the limit, for refusing calls over it; health
@@ -10,7 +12,9 @@ and the clients that send nothing hold.
 
 from __future__ import annotations
 
+import hashlib
 import threading
+from collections import Counter
 from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import Executor
 from contextlib import contextmanager
@@ -18,7 +22,7 @@ from typing import Any
 
 import grpc
 from grpc import aio
-from ogapi import SERVICE_NAME
+from ogapi import API_KEY_METADATA_KEY, SERVICE_NAME
 
 from ogserver.access.sync_calls import SyncCalls
 
@@ -43,9 +47,12 @@ class _Recorded:
 
 class CallGate(aio.ServerInterceptor):
     def __init__(self, limit: int, observe: Observer, request_seconds: float, pool: Executor,
-                 response_seconds: float = 0.0) -> None:
+                 response_seconds: float = 0.0, per_caller: int = 0) -> None:
         self.limit = limit
+        self.per_caller = per_caller  # 0: no share, only the limit
         self._slots = threading.BoundedSemaphore(limit)
+        self._held: Counter[str] = Counter()  # slots held per caller
+        self._lock = threading.Lock()
         self._observe = observe
         self._sync = SyncCalls(request_seconds, pool, response_seconds)
 
@@ -85,6 +92,27 @@ class CallGate(aio.ServerInterceptor):
 
     @contextmanager
     def _admitted(self, method: str, context: _Recorded) -> Iterator[None]:
+        caller = caller_of(context)
+        with self._lock:
+            shared_out = self.per_caller and self._held[caller] >= self.per_caller
+            if not shared_out:
+                self._held[caller] += 1
+        if shared_out:
+            self._observe(method, grpc.StatusCode.RESOURCE_EXHAUSTED)
+            context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED,
+                          f"this caller holds its share of {self.per_caller} concurrent calls (the server's "
+                          f"max_calls_per_caller); retry when one ends")
+        try:
+            with self._slot(method, context):
+                yield
+        finally:
+            with self._lock:
+                self._held[caller] -= 1
+                if not self._held[caller]:
+                    del self._held[caller]
+
+    @contextmanager
+    def _slot(self, method: str, context: _Recorded) -> Iterator[None]:
         if not self._slots.acquire(blocking=False):
             self._observe(method, grpc.StatusCode.RESOURCE_EXHAUSTED)
             context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED,
@@ -101,3 +129,16 @@ class CallGate(aio.ServerInterceptor):
         finally:
             self._slots.release()
             self._observe(method, code)
+
+
+def caller_of(context: Any) -> str:
+    """Who a call's slot counts against: its API key (hashed; unchecked here, a wrong one is refused later and
+    counts only against itself), else its client certificate's name, else its address without the port."""
+    for key, value in context.invocation_metadata() or ():
+        if key == API_KEY_METADATA_KEY:
+            return "key:" + hashlib.sha256(str(value).encode()).hexdigest()[:16]
+    names = (context.auth_context() or {}).get("x509_common_name")
+    if names:
+        return "cert:" + names[0].decode(errors="replace")
+    peer = context.peer() or ""
+    return "address:" + peer.rsplit(":", 1)[0]
