@@ -5,7 +5,8 @@ The page and the browser libraries are files in this package (``static/``, ``ven
 they are: nothing is fetched from elsewhere at run time. Credentials travel in the URL's query
 (``?key=`` an API key, ``?token=`` a session token) so a link or a test can carry one, or in the
 ``X-Api-Key`` / ``X-Session-Token`` headers; pages are sent with ``Referrer-Policy: no-referrer`` so
-the query never leaves in a Referer. Connections are bounded in number and time, and the server
+the query never leaves in a Referer. Connections are bounded in number, per client address and in time
+(each request's head within a deadline, ``deadlines.py``), and the server
 answers only requests whose Host names it (``hosts.HostPolicy``: no DNS rebinding), on every address.
 """
 
@@ -32,6 +33,7 @@ import numpy as np
 from ogserver.errors import ServiceError
 from ogserver.throttled_log import ThrottledLog
 from ogserver.web.catalogue import Catalogue, Credential
+from ogserver.web.deadlines import HEAD_SECONDS, AddressShares, HeadDeadline
 from ogserver.web.hosts import HostPolicy, is_loopback
 from ogserver.web.maps import MapView
 
@@ -39,13 +41,14 @@ log = logging.getLogger(__name__)
 PACKAGE = Path(__file__).parent
 FOLDERS = {"static": PACKAGE / "static", "vendor": PACKAGE / "vendor"}
 MAX_CONNECTIONS = 64
-REQUEST_SECONDS = 10.0  # TLS handshake, request line and headers, and each read or write after
+REQUEST_SECONDS = 10.0  # each read or write; a request's head has HEAD_SECONDS in all (deadlines.py)
 MAP_PATH = re.compile(r"/(map|api/map)/([A-Za-z0-9_-]{1,64})(/[a-z.]+)?")
 # A file under static/ or vendor/ as the page names it: short plain segments, none hidden. Anything else
 # (a NUL, a name the file system refuses as too long) is not looked up at all.
 FILE_NAME = re.compile(r"(?:[A-Za-z0-9_-][A-Za-z0-9_.-]{0,99}/){0,7}[A-Za-z0-9_-][A-Za-z0-9_.-]{0,99}")
 _refusals = ThrottledLog(log, 10.0)
 _failures = ThrottledLog(log, 10.0)
+_heads = threading.local()  # the head deadline of the connection a thread serves
 
 
 class WebServer(ThreadingHTTPServer):
@@ -63,6 +66,8 @@ class WebServer(ThreadingHTTPServer):
         self.loopback = is_loopback(host)
         self.hosts = HostPolicy.serving(host, hosts)
         self._slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
+        self._shares = AddressShares()
+        self.head_seconds = HEAD_SECONDS
         super().__init__((host.strip("[]"), port), Handler)
         self.port: int = self.server_address[1]
         self._thread = threading.Thread(target=self.serve_forever, kwargs={"poll_interval": 0.2},
@@ -83,7 +88,13 @@ class WebServer(ThreadingHTTPServer):
         return f"{'https' if self.tls else 'http'}://{host}:{self.port}/"
 
     def process_request(self, request: socket.socket, client_address: tuple) -> None:  # type: ignore[override]
+        if not self._shares.take(client_address[0]):
+            _refusals.warning(f"web view: refused a connection from {client_address[0]}, which has "
+                              f"{self._shares.limit} open")
+            self.shutdown_request(request)
+            return
         if not self._slots.acquire(blocking=False):
+            self._shares.give_back(client_address[0])
             _refusals.warning(f"web view: refused a connection, {MAX_CONNECTIONS} are open")
             self.shutdown_request(request)
             return
@@ -96,7 +107,9 @@ class WebServer(ThreadingHTTPServer):
         _failures.log(logging.ERROR, f"web view: a request from {client_address[0]} failed: {error!r}")
 
     def process_request_thread(self, request: socket.socket, client_address: tuple) -> None:  # type: ignore[override]
+        deadline = _heads.deadline = HeadDeadline(request, self.head_seconds)
         try:
+            deadline.arm()  # the TLS handshake and the first request's head
             request.settimeout(REQUEST_SECONDS)
             if self.tls is not None:
                 request = self.tls.wrap_socket(request, server_side=True)
@@ -104,13 +117,24 @@ class WebServer(ThreadingHTTPServer):
         except (OSError, ssl.SSLError):  # a client gone, or one that does not speak TLS
             self.shutdown_request(request)
         finally:
+            deadline.met()
             self._slots.release()
+            self._shares.give_back(client_address[0])
 
 
 class Handler(BaseHTTPRequestHandler):
     server: WebServer
     protocol_version = "HTTP/1.1"
     timeout = REQUEST_SECONDS
+
+    def handle_one_request(self) -> None:
+        _heads.deadline.arm()  # each request of a kept-alive connection: its head in HEAD_SECONDS
+        super().handle_one_request()
+
+    def parse_request(self) -> bool:
+        parsed = super().parse_request()  # the request line read before, the headers read here
+        _heads.deadline.met()
+        return parsed
 
     def log_message(self, format: str, *args: object) -> None:
         log.debug("web view: %s %s", self.address_string(), format % args)
