@@ -17,7 +17,6 @@ from ogmapping.model.gaussians import GaussianSet, generate_window
 from ogmapping.model.static_gaussians import frustum_camera
 from ogmapping.optim import refine
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
-from ogmapping.optim.losses import mapping_loss
 from ogmapping.optim.poses import PoseCorrection
 from ogmapping.render import rasterize_batch
 from ogmapping.render.output import RenderOutput
@@ -83,11 +82,10 @@ class MappingSteps:
             model.optimizer.step()
             if model.hash_optimizer is not None:
                 model.hash_optimizer.step()
-            model.average.update(model.graphs.average if static else None)
+            model.average.update(model.graphs.average)
             for correction in corrections:
                 correction.step(config.poses)
-        first = renders[0][0]
-        model.drawn.post(first.drawn_count() if static else len(first))
+        model.drawn.post(renders[0][0].drawn_count())
         return total.detach()
 
     def objective(self, view: View, keyframes: list[Keyframe]) -> tuple[
@@ -112,11 +110,10 @@ class MappingSteps:
         weight_sum = sum(weights)
         static = model.profile.static_shapes
         with model.timed("loss"):
-            view_loss = model.graphs.view_loss if static else mapping_loss
             for (gaussians, output, drawn), weight in zip(renders, weights, strict=True):
-                loss, _ = view_loss(output.color, output.depth, drawn.rgb, drawn.depth, gaussians.scales, config.loss,
-                                    drawn.ssim_reference, compiled=model.profile.compiled,
-                                    drawn=gaussians.drawn if static else None)
+                loss, _ = model.graphs.view_loss(output.color, output.depth, drawn.rgb, drawn.depth, gaussians.scales,
+                                                 config.loss, drawn.ssim_reference, compiled=model.profile.compiled,
+                                                 drawn=gaussians.drawn if static else None)
                 total = total + loss * weight / weight_sum
             for correction in corrections:
                 total = total + correction.prior(config.poses)

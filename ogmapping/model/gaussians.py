@@ -9,7 +9,7 @@ import torch
 
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.geometry import in_frustum
-from ogmapping.model.decoders import Decoders, activate
+from ogmapping.model.decoders import DecodedAttributes, Decoders, activate
 from ogmapping.model.gaussians_cpu import AssembleGaussians
 from ogmapping.structure.anchor_colour import with_anchor_colours
 from ogmapping.structure.anchors import AnchorMap
@@ -31,6 +31,10 @@ class GaussianSet:
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
+
+    def drawn_count(self) -> torch.Tensor | int:
+        """How many Gaussians the view draws: all of them here (``static_gaussians`` marks some inert)."""
+        return len(self)
 
 
 def anchors_in_view(anchors: AnchorMap, intrinsics: Intrinsics, c2w: torch.Tensor, far: float) -> torch.Tensor:
@@ -122,14 +126,23 @@ def _assemble(anchors: AnchorMap, rows: torch.Tensor, positions: torch.Tensor, o
     return _assemble_torch(anchors, rows, positions, opacity_logits, color_logits, cov)
 
 
+def gaussian_values(
+    anchors: AnchorMap, rows: torch.Tensor, positions: torch.Tensor, opacity_logits: torch.Tensor,
+    color_logits: torch.Tensor, cov: torch.Tensor,
+) -> tuple[DecodedAttributes, torch.Tensor, torch.Tensor]:
+    """The activated decoder outputs and the means and scales (R, n, 3) of the Gaussians of anchor ``rows``
+    (R,) at ``positions`` (R, 3), before any of them is left out."""
+    decoded = activate(opacity_logits, color_logits, cov, anchors.n_offsets)
+    anchor_scale = torch.exp(anchors.parameter("log_scales")[rows])  # (R, 3)
+    means = positions.unsqueeze(1) + anchors.parameter("offsets")[rows] * anchor_scale.unsqueeze(1)
+    return decoded, means, anchor_scale.unsqueeze(1) * decoded.scale_factor
+
+
 def _assemble_torch(anchors: AnchorMap, rows: torch.Tensor, positions: torch.Tensor, opacity_logits: torch.Tensor,
                     color_logits: torch.Tensor, cov: torch.Tensor) -> GaussianSet:
     """``positions``: the anchors' centres, ``anchors.positions[rows]``."""
     n = anchors.n_offsets
-    decoded = activate(opacity_logits, color_logits, cov, n)
-    anchor_scale = torch.exp(anchors.parameter("log_scales")[rows])  # (V, 3)
-    means = positions.unsqueeze(1) + anchors.parameter("offsets")[rows] * anchor_scale.unsqueeze(1)
-    scales = anchor_scale.unsqueeze(1) * decoded.scale_factor
+    decoded, means, scales = gaussian_values(anchors, rows, positions, opacity_logits, color_logits, cov)
     keep = torch.nonzero(decoded.opacity.reshape(-1) > 0).squeeze(-1)  # one nonzero, shared by every gather
     return GaussianSet(
         means=means.reshape(-1, 3)[keep],

@@ -23,8 +23,8 @@ import torch
 
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.geometry import world_to_camera
-from ogmapping.model.decoders import Decoders, activate
-from ogmapping.model.gaussians import FRUSTUM_MARGIN, GaussianSet, decoded_logits
+from ogmapping.model.decoders import Decoders
+from ogmapping.model.gaussians import FRUSTUM_MARGIN, GaussianSet, decoded_logits, gaussian_values
 from ogmapping.structure.anchor_colour import with_anchor_colours
 from ogmapping.structure.anchors import AnchorMap
 
@@ -36,7 +36,7 @@ class DrawnGaussianSet(GaussianSet):
     drawn: torch.Tensor  # (G,) bool: live anchor in view and positive opacity
     in_view: torch.Tensor  # (capacity,) bool: live anchors in the view's frustum
 
-    def drawn_count(self) -> torch.Tensor:
+    def drawn_count(self) -> torch.Tensor:  # type: ignore[override]
         """How many Gaussians the view draws, on the device (reading it makes the host wait)."""
         return self.drawn.sum()
 
@@ -55,13 +55,13 @@ class DrawnWindow:
     in_view: torch.Tensor  # (V, capacity)
     rows: torch.Tensor  # (G,) buffer row of each Gaussian
     slots: torch.Tensor  # (G,)
+    anchor_rows: torch.Tensor  # (capacity,) every buffer row
 
     def views(self) -> list[DrawnGaussianSet]:
         stacked = ("means", "quats", "scales", "opacities", "colors", "drawn", "anchor_opacity", "in_view")
         per_view = zip(*(getattr(self, name).unbind(0) for name in stacked), strict=True)
-        anchor_rows = self.rows[:: self.rows.shape[0] // self.in_view.shape[1]]
         return [DrawnGaussianSet(**dict(zip(stacked, parts, strict=True)), rows=self.rows, slots=self.slots,
-                                 anchor_rows=anchor_rows) for parts in per_view]
+                                 anchor_rows=self.anchor_rows) for parts in per_view]
 
 
 @functools.lru_cache(maxsize=64)
@@ -110,10 +110,7 @@ def generate_drawn(anchors: AnchorMap, features: torch.Tensor, decoders: Decoder
     if anchors.with_colours:
         color = with_anchor_colours(color, anchors.parameter("colours"), rows)
     n = anchors.n_offsets
-    decoded = activate(opacity, color, cov, n)
-    anchor_scale = torch.exp(anchors.parameter("log_scales")).repeat(views, 1)  # (V * C, 3)
-    means = all_positions.unsqueeze(1) + anchors.parameter("offsets").repeat(views, 1, 1) * anchor_scale.unsqueeze(1)
-    scales = anchor_scale.unsqueeze(1) * decoded.scale_factor
+    decoded, means, scales = gaussian_values(anchors, rows, all_positions, opacity, color, cov)
     drawn = (opacity > 0) & in_view.reshape(-1, 1)
     # where, not a product: a Gaussian not drawn passes no gradient back, as one left out would not
     opacities = torch.where(drawn, decoded.opacity, 0.0)
@@ -124,5 +121,5 @@ def generate_drawn(anchors: AnchorMap, features: torch.Tensor, decoders: Decoder
         scales=scales.reshape(views, per_view, 3), opacities=opacities.reshape(views, per_view),
         colors=decoded.color.reshape(views, per_view, 3), drawn=drawn.reshape(views, per_view),
         anchor_opacity=decoded.opacity.detach().amax(dim=1).view(views, capacity), in_view=in_view,
-        rows=index // n, slots=index % n,
+        rows=index // n, slots=index % n, anchor_rows=rows[:capacity],
     )

@@ -78,12 +78,12 @@ class MapAverage:
             return self.decay
         return max(self.decay, 1.0 - 1.0 / (self.growth * step))
 
-    def update(self, fold: Callable | None = None) -> None:
+    def update(self, fold: Callable = fold_in) -> None:
         """Fold the live values in, after an optimiser step; ``fold`` is ``fold_in`` or its compiled graph."""
         if not self.enabled:
             return
         decay = self.decay_at(self.decoder_steps + 1)
-        (fold or fold_in)(self.anchors, self.decoders, self.decoder_values, self._decoder_steps, decay)
+        fold(self.anchors, self.decoders, self.decoder_values, self._decoder_steps, decay)
         self.decoder_steps += 1
 
     def _averaged_values(self) -> list[tuple[torch.Tensor, torch.Tensor]]:

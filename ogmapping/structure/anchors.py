@@ -19,18 +19,31 @@ learnable buffer, the tensor the optimiser steps.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 from torch import nn
 
 LEARNABLE = ("log_scales", "offsets", "features", "colours")
+# Every row buffer, learnable or not.
+ROWS = ("codes", "levels", "positions", *LEARNABLE, "grad_sum", "grad_count", "spawned", "max_opacity", "observations",
+        "average_steps")
 INITIAL_CAPACITY = 1024
 MOMENTS = ("exp_avg", "exp_avg_sq")
+
+
+class RowSpec(NamedTuple):
+    """One row buffer's row shape, dtype and the value of its inert rows."""
+
+    shape: tuple[int, ...]
+    dtype: torch.dtype
+    inert: float | bool
 
 
 class LiveRows:
     """The live rows of one buffer of an ``AnchorMap``; assigning copies into them (same shape)."""
 
-    def __set_name__(self, owner: type, name: str) -> None:
+    def __init__(self, name: str) -> None:
         self.name = name
 
     def __get__(self, anchors: AnchorMap | None, owner: type | None = None):
@@ -47,21 +60,8 @@ class LiveRows:
 
 
 class AnchorMap:
-    """Anchors as rows of parallel buffers; learnable buffers are ``nn.Parameter``s."""
-
-    codes = LiveRows()
-    levels = LiveRows()
-    positions = LiveRows()
-    log_scales = LiveRows()
-    offsets = LiveRows()
-    features = LiveRows()
-    colours = LiveRows()
-    grad_sum = LiveRows()
-    grad_count = LiveRows()
-    spawned = LiveRows()
-    max_opacity = LiveRows()
-    observations = LiveRows()
-    average_steps = LiveRows()
+    """Anchors as rows of parallel buffers; learnable buffers are ``nn.Parameter``s. Each name of ``ROWS``
+    is an attribute (``anchors.offsets``): the live rows of its buffer, ``LiveRows``."""
 
     def __init__(self, n_offsets: int, feature_dim: int, with_features: bool, device: torch.device,
                  with_colours: bool = False, capacity: int = INITIAL_CAPACITY) -> None:
@@ -72,30 +72,33 @@ class AnchorMap:
         self.device = device
         self.count = 0
         self.capacity = capacity
-        shapes = self._row_shapes()
+        self.specs = self._row_specs()
         self.learnable = {name: nn.Parameter(self._inert(name, capacity)) for name in LEARNABLE}
-        self.rows = {name: self._inert(name, capacity) for name in shapes if name not in LEARNABLE}
+        self.rows = {name: self._inert(name, capacity) for name in ROWS if name not in LEARNABLE}
         # The moving average of each learnable row (how many steps each row has been averaged over is
         # the row buffer ``average_steps``).
         self.average_rows = {name: torch.zeros_like(self.learnable[name].detach()) for name in LEARNABLE}
         self.live = torch.zeros(capacity, dtype=torch.bool, device=device)
 
-    def _row_shapes(self) -> dict[str, tuple[tuple[int, ...], torch.dtype, float]]:
-        """Each buffer's row shape, dtype and inert value."""
+    def _row_specs(self) -> dict[str, RowSpec]:
+        """Each buffer's ``RowSpec``, by the names of ``ROWS``."""
         n, f32, i64 = self.n_offsets, torch.float32, torch.int64
-        return {
-            "codes": ((), i64, 0), "levels": ((), i64, 0), "positions": ((3,), f32, 0.0),
-            "log_scales": ((3,), f32, 0.0), "offsets": ((n, 3), f32, 0.0),
-            "features": ((self.feature_dim if self.with_features else 0,), f32, 0.0),
-            "colours": ((3 if self.with_colours else 0,), f32, 0.0),
-            "grad_sum": ((n,), f32, 0.0), "grad_count": ((n,), i64, 0), "spawned": ((n,), torch.bool, False),
+        specs = {
+            "codes": RowSpec((), i64, 0), "levels": RowSpec((), i64, 0), "positions": RowSpec((3,), f32, 0.0),
+            "log_scales": RowSpec((3,), f32, 0.0), "offsets": RowSpec((n, 3), f32, 0.0),
+            "features": RowSpec((self.feature_dim if self.with_features else 0,), f32, 0.0),
+            "colours": RowSpec((3 if self.with_colours else 0,), f32, 0.0),
+            "grad_sum": RowSpec((n,), f32, 0.0), "grad_count": RowSpec((n,), i64, 0),
+            "spawned": RowSpec((n,), torch.bool, False),
             # Largest decoded opacity per anchor in this interval; -inf where it was not rendered at all.
-            "max_opacity": ((), f32, -torch.inf), "observations": ((), i64, 0), "average_steps": ((), i64, 0),
+            "max_opacity": RowSpec((), f32, -torch.inf), "observations": RowSpec((), i64, 0),
+            "average_steps": RowSpec((), i64, 0),
         }
+        return {name: specs[name] for name in ROWS}
 
     def _inert(self, name: str, rows: int) -> torch.Tensor:
-        shape, dtype, value = self._row_shapes()[name]
-        return torch.full((rows, *shape), value, dtype=dtype, device=self.device)
+        spec = self.specs[name]
+        return torch.full((rows, *spec.shape), spec.inert, dtype=spec.dtype, device=self.device)
 
     def __len__(self) -> int:
         return self.count
@@ -116,7 +119,7 @@ class AnchorMap:
     def reset_statistics(self) -> None:
         """Zero the per-interval refinement statistics (``spawned`` persists: growth is once-only)."""
         for name in ("grad_sum", "grad_count", "max_opacity"):
-            self.rows[name].fill_(self._row_shapes()[name][2])
+            self.rows[name].fill_(self.specs[name].inert)
 
     def add(
         self,
@@ -144,12 +147,12 @@ class AnchorMap:
         if colours is not None and self.with_colours:
             values["colours"] = colours
         with torch.no_grad():
-            for name in self._row_shapes():
+            for name, spec in self.specs.items():
                 rows = self.buffer(name)[start:end]
                 if name in values:
                     rows.copy_(values[name])
                 else:
-                    rows.fill_(self._row_shapes()[name][2])
+                    rows.fill_(spec.inert)
             for average in self.average_rows.values():
                 average[start:end] = 0
             for state in _moments(optimizer, self.learnable.values()):
@@ -185,7 +188,7 @@ class AnchorMap:
         kept = torch.nonzero(mask).squeeze(-1)
         total = int(kept.numel())
         with torch.no_grad():
-            buffers = [(self.buffer(name), self._row_shapes()[name][2]) for name in self._row_shapes()]
+            buffers = [(self.buffer(name), spec.inert) for name, spec in self.specs.items()]
             buffers += [(average, 0) for average in self.average_rows.values()]
             buffers += [(state, 0) for state in _moments(optimizer, self.learnable.values())]
             for tensor, inert in buffers:
@@ -200,6 +203,10 @@ class AnchorMap:
 
     def level_counts(self, max_level: int) -> list[int]:
         return [int((self.levels == level).sum()) for level in range(max_level + 1)]
+
+
+for _name in ROWS:
+    setattr(AnchorMap, _name, LiveRows(_name))
 
 
 def _moments(optimizer: torch.optim.Optimizer | None, params) -> list[torch.Tensor]:
