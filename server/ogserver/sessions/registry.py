@@ -25,6 +25,7 @@ from ogapi import recording as layout
 from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.config import PRESETS, MapperConfig, resolve
+from ogmapping.config.resolution import ResolutionConfig
 from ogmapping.mapper import Mapper
 from ogserver import __version__
 from ogserver.access import tokens
@@ -64,17 +65,18 @@ def requested_config(request: pb.CreateSessionRequest, settings: Settings) -> tu
         raise invalid("preset", f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
     overrides = dict(request.overrides)
     try:
-        asked = resolve(preset, overrides=overrides, bounds=settings.config_bounds).resolution.reference_pixels
+        config = resolve(preset, overrides=overrides, bounds=settings.config_bounds)
     except ValueError as error:
         raise invalid("overrides", error) from None
     # The image size the step multiple counts from is the operator's: a client's small one would scale
-    # every frame's steps and Gaussians far past what its size asks for.
+    # every frame's steps and Gaussians far past what its size asks for. A replay pins the server's value.
     server = settings.resolution_reference_pixels
-    if asked not in (server, resolve(preset).resolution.reference_pixels):
+    if config.resolution.reference_pixels not in (server, ResolutionConfig().reference_pixels):
         raise invalid("overrides", f"resolution.reference_pixels is this server's setting "
                                    f"(resolution_reference_pixels: {server}), not a session's")
+    config.resolution.reference_pixels = server
     overrides["resolution.reference_pixels"] = str(server)
-    return preset, overrides, resolve(preset, overrides=overrides, bounds=settings.config_bounds)
+    return preset, overrides, config
 
 
 @dataclass
