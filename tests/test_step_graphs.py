@@ -17,6 +17,7 @@ from ogmapping.runtime.threads import torch_threads
 def test_the_compiled_step_equals_the_eager_one(preset: str) -> None:
     mapper, view, window = mapped(preset, {}, step="static")
     model = mapper.model
+    torch._dynamo.reset()  # compiled here for these shapes, whatever other tests compiled before
     with torch_threads(mapper.profile.threads):
         loss, grads, statistics, renders = step_without_update(mapper, view, window, static_shapes=True)
         model.graphs = StepGraphs.build(compiled=True, device=model.device)

@@ -23,8 +23,8 @@ import torch
 
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.geometry import world_to_camera
-from ogmapping.model.decoders import Decoders
-from ogmapping.model.gaussians import FRUSTUM_MARGIN, GaussianSet, decoded_logits, gaussian_values
+from ogmapping.model.decoders import Decoders, activate
+from ogmapping.model.gaussians import FRUSTUM_MARGIN, GaussianSet, decoded_logits
 from ogmapping.structure.anchor_colour import with_anchor_colours
 from ogmapping.structure.anchors import AnchorMap
 
@@ -110,7 +110,12 @@ def generate_drawn(anchors: AnchorMap, features: torch.Tensor, decoders: Decoder
     if anchors.with_colours:
         color = with_anchor_colours(color, anchors.parameter("colours"), rows)
     n = anchors.n_offsets
-    decoded, means, scales = gaussian_values(anchors, rows, all_positions, opacity, color, cov)
+    decoded = activate(opacity, color, cov, n)
+    # repeated rather than gathered by ``rows`` (as gaussians.gaussian_values does): the same values, and the
+    # compiled graph's rounding that tests/test_step_graphs.py holds equal to the eager one
+    anchor_scale = torch.exp(anchors.parameter("log_scales")).repeat(views, 1)  # (V * C, 3)
+    means = all_positions.unsqueeze(1) + anchors.parameter("offsets").repeat(views, 1, 1) * anchor_scale.unsqueeze(1)
+    scales = anchor_scale.unsqueeze(1) * decoded.scale_factor
     drawn = (opacity > 0) & in_view.reshape(-1, 1)
     # where, not a product: a Gaussian not drawn passes no gradient back, as one left out would not
     opacities = torch.where(drawn, decoded.opacity, 0.0)
