@@ -119,3 +119,24 @@ def test_a_batch_needs_one_camera_per_scene() -> None:
     scenes, cameras = views(torch.float32)
     with pytest.raises(ValueError, match="one camera per scene"):
         rasterize_batch(scenes, cameras[:2], backend="cpu")
+
+
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+def test_views_stacked_render_as_a_list_of_them_does(backend: str) -> None:
+    """A static-shape decode stacks its views (V, N, ...): the same images and gradients as the views
+    given one by one (the cpu backend takes the stack's rows as they are, the others unbind it)."""
+    sizes = [(64, 48, 0.3), (64, 48, 0.075), (53, 37, 0.3)]
+    stacked = {k: torch.stack([mixed_scene(seed, 300, 64, 48)[k] for seed in range(len(sizes))]) for k in PARAMS}
+    cameras = [Camera(pose(seed), intrinsics(w, h), w, h, blur) for seed, (w, h, blur) in enumerate(sizes)]
+    results = []
+    for as_stack in (True, False):
+        leaves = {k: v.clone().requires_grad_(True) for k, v in stacked.items()}
+        scenes = (SplatSet(*(leaves[k] for k in PARAMS)) if as_stack else
+                  [SplatSet(*(leaves[k][v] for k in PARAMS)) for v in range(len(sizes))])
+        outputs = rasterize_batch(scenes, cameras, backend=backend)
+        weighted_loss(outputs).backward()
+        images = [image for out in outputs for image in (out.color, out.depth, out.alpha, out.visible)]
+        results.append((images, [out.means2d.grad for out in outputs], [leaves[k].grad for k in PARAMS]))
+    for got, expected in zip(*results, strict=True):
+        for a, b in zip(got, expected, strict=True):
+            assert torch.equal(a, b)

@@ -14,7 +14,7 @@ import torch
 
 from ogmapping.mapping.model import MapModel
 from ogmapping.model.gaussians import GaussianSet, generate_window
-from ogmapping.model.static_gaussians import frustum_camera
+from ogmapping.model.static_gaussians import DrawnWindow, frustum_camera
 from ogmapping.optim import refine
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
 from ogmapping.optim.poses import PoseCorrection
@@ -98,17 +98,20 @@ class MappingSteps:
             moving = [(drawn, self.moves(drawn.correction, view)) for drawn in window]
             poses = [drawn.pose() if moves else drawn.pose().detach() for drawn, moves in moving]
             corrections = list({id(drawn.correction): drawn.correction for drawn, moves in moving if moves}.values())
+        static = model.profile.static_shapes
         with model.timed("decode"):
             views = list(zip(poses, window, strict=True))
-            window_gaussians = self.decode(views)
+            decoded = self.decode_static(views) if static else self.decode(views)
+            window_gaussians = decoded.views() if static else decoded
         with model.timed("rasterize"):
-            cameras = [model.camera(pose, drawn.intrinsics) for pose, drawn in views]
-            outputs = rasterize_batch(window_gaussians, cameras, backend=model.backend)
+            intrinsics = [drawn.intrinsics for drawn in window]
+            cameras = model.cameras(torch.stack(poses), intrinsics) if static else [
+                model.camera(pose, drawn.intrinsics) for pose, drawn in views]
+            outputs = rasterize_batch(decoded, cameras, backend=model.backend)
         renders = list(zip(window_gaussians, outputs, window, strict=True))
         total = torch.zeros((), device=model.device)
         weights = self.window_weights(keyframes)
         weight_sum = sum(weights)
-        static = model.profile.static_shapes
         with model.timed("loss"):
             for (gaussians, output, drawn), weight in zip(renders, weights, strict=True):
                 loss, _ = model.graphs.view_loss(output.color, output.depth, drawn.rgb, drawn.depth, gaussians.scales,
@@ -119,16 +122,16 @@ class MappingSteps:
                 total = total + correction.prior(config.poses)
         return total, renders, corrections
 
-    def decode(self, views: list[tuple[torch.Tensor, View]]) -> list[GaussianSet]:
-        """The Gaussians of each (pose, view): of the anchors in view, or with static shapes of every
-        buffer row, the ones not drawn inert."""
+    def decode_static(self, views: list[tuple[torch.Tensor, View]]) -> DrawnWindow:
+        """The Gaussians of every buffer row seen from each (pose, view), stacked, the ones not drawn inert."""
         model = self.model
-        if model.profile.static_shapes:
-            poses = torch.stack([pose.detach() for pose, _ in views])
-            cameras = torch.stack([frustum_camera(drawn.intrinsics, model.device) for _, drawn in views])
-            window = model.graphs.decode(model.anchors, model.buffer_features(), model.decoders, poses, cameras,
-                                         model.far)
-            return window.views()
+        poses = torch.stack([pose.detach() for pose, _ in views])
+        cameras = torch.stack([frustum_camera(drawn.intrinsics, model.device) for _, drawn in views])
+        return model.graphs.decode(model.anchors, model.buffer_features(), model.decoders, poses, cameras, model.far)
+
+    def decode(self, views: list[tuple[torch.Tensor, View]]) -> list[GaussianSet]:
+        """The Gaussians of the anchors in view of each (pose, view)."""
+        model = self.model
         rows = [model.rows_in_view(pose.detach(), drawn.intrinsics) for pose, drawn in views]
         centers = [pose.detach()[:3, 3] for pose, _ in views]
         return generate_window(model.anchors, model.window_features(rows), model.decoders, centers, rows,

@@ -21,7 +21,7 @@ import torch
 from ogmapping.backends import BACKENDS
 from ogmapping.render import gsplat_backend
 from ogmapping.render.output import RenderOutput
-from ogmapping.render.views import Camera, Splats, SplatSet
+from ogmapping.render.views import Camera, Splats, SplatSet, per_view
 
 __all__ = ["Camera", "RenderOutput", "SplatSet", "Splats", "rasterize", "rasterize_batch", "resolve_backend"]
 
@@ -67,18 +67,26 @@ def rasterize(
 
 
 def rasterize_batch(
-    scenes: list[Splats],
+    scenes: list[Splats] | Splats,
     cameras: list[Camera],
     background: torch.Tensor | None = None,
     backend: str = "auto",
 ) -> list[RenderOutput]:
     """Render scene i (its own Gaussians, as ``rasterize`` takes them) into camera i, for every i.
 
+    ``scenes`` is a list, or one ``Splats`` whose tensors are stacked view first ((V, N, ...), every
+    view the same count, as a static-shape decode makes them): the ``cpu`` backend takes those as
+    one batch without concatenating (nor, in backward, splitting) them; the others per view.
+
     The same images and gradients as one ``rasterize`` per view (the reference backend is exactly
     that loop), in as few backend calls as the backend can: ``cpu`` one projection and one
     compositing node for the whole batch, ``gsplat`` one call per image size. Each output's
     ``means2d.grad`` holds its own view's screen-space gradient after ``backward``.
     """
-    name = resolve_backend(backend, scenes[0].means.device if scenes else torch.device("cpu"))
+    stacked = not isinstance(scenes, list | tuple)
+    device = scenes.means.device if stacked else scenes[0].means.device if scenes else torch.device("cpu")
+    name = resolve_backend(backend, device)
     module = importlib.import_module(f"ogmapping.render.{name}_backend")
-    return module.rasterize_batch(list(scenes), list(cameras), background)
+    if stacked and name == "cpu":
+        return module.rasterize_stacked(scenes, list(cameras), background)
+    return module.rasterize_batch(per_view(scenes), list(cameras), background)

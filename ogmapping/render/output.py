@@ -6,8 +6,6 @@ from dataclasses import dataclass
 
 import torch
 
-from ogmapping.render.projection import Projection
-
 
 @dataclass
 class RenderOutput:
@@ -28,10 +26,11 @@ class RenderOutput:
 
 
 def finish_output(
-    color: torch.Tensor, accum_depth: torch.Tensor, alpha: torch.Tensor, proj: Projection
+    color: torch.Tensor, accum_depth: torch.Tensor, alpha: torch.Tensor, means2d: torch.Tensor, radii: torch.Tensor
 ) -> RenderOutput:
-    """Assemble the shared output; expected depth is accumulated depth over alpha, in torch."""
+    """Assemble the shared output from a view's images, projected centres and radii; expected depth is
+    accumulated depth over alpha, in torch."""
     covered = alpha > 0
     depth = torch.where(covered, accum_depth / torch.where(covered, alpha, torch.ones_like(alpha)), 0.0)
-    return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=proj.means2d, visible=proj.radii > 0)
+    return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=means2d, visible=radii > 0)
 

@@ -112,7 +112,7 @@ def rasterize(splats: Splats, camera: Camera, background: torch.Tensor | None = 
         color[y0:y1, x0:x1] = (c_sum + t_final.unsqueeze(-1) * bg).reshape(*shape, 3)
         accum_depth[y0:y1, x0:x1] = d_sum.reshape(shape)
         transmittance_final[y0:y1, x0:x1] = t_final.reshape(shape)
-    return finish_output(color, accum_depth, 1.0 - transmittance_final, proj)
+    return finish_output(color, accum_depth, 1.0 - transmittance_final, proj.means2d, proj.radii)
 
 
 

@@ -57,6 +57,14 @@ def parameters(splats: Splats) -> tuple[torch.Tensor, ...]:
     return splats.means, splats.quats, splats.scales, splats.opacities, splats.colors
 
 
+def per_view(scenes: list[Splats] | Splats) -> list[Splats]:
+    """A batch's scenes one per view: a list as it is, a stacked ``Splats`` (every tensor view first,
+    (V, N, ...)) unbound into its views."""
+    if isinstance(scenes, list | tuple):
+        return list(scenes)
+    return [SplatSet(*parts) for parts in zip(*(t.unbind(0) for t in parameters(scenes)), strict=True)]
+
+
 def check_batch(scenes: list[Splats], cameras: list[Camera]) -> None:
     """One camera per scene, at least one view."""
     if len(scenes) != len(cameras):
