@@ -49,6 +49,18 @@ from ogmapping.stats import MapStats
 from ogmapping.structure import allocation
 
 
+@dataclass(frozen=True)
+class PreparedFrame:
+    """A frame made ready to map (``Mapper.prepare``): depth registered onto the colour grid and clipped,
+    colour and depth as host tensors at the mapper's precision (pinned on CUDA, so they upload without
+    blocking). Preparing is the per-frame work that needs no map, so it can run ahead of the mapping."""
+
+    frame: Frame
+    rgb: torch.Tensor
+    depth: torch.Tensor
+    seconds: float  # host time spent preparing it
+
+
 @dataclass
 class FrameResult:
     index: int
@@ -104,18 +116,37 @@ class Mapper:
 
     # ------------------------------------------------------------------ mapping
 
-    def process(self, frame: Frame, budget: Budget | None = None) -> FrameResult:
-        """Map one frame; returns what happened to it. Optimisation ends early once ``budget`` says stop."""
+    def prepare(self, frame: Frame) -> PreparedFrame:
+        """``frame`` made ready to map. Touches no map state, so any thread may run it while this
+        mapper maps the previous frame (``process`` takes the result): its time then goes to the stage
+        ``preprocess_ahead``, off the mapping thread; ``process`` of a plain frame prepares it itself,
+        in the stage ``preprocess``."""
+        start = time.perf_counter()
+        ready = prepare(frame, self.config.octree.depth_min, self.config.octree.depth_max)
+        rgb, depth = (torch.as_tensor(array, dtype=self.profile.precision) for array in (ready.rgb, ready.depth))
+        if self.device.type == "cuda":
+            rgb, depth = rgb.pin_memory(), depth.pin_memory()
+        return PreparedFrame(ready, rgb, depth, time.perf_counter() - start)
+
+    def process(self, frame: Frame | PreparedFrame, budget: Budget | None = None) -> FrameResult:
+        """Map one frame (plain, or from ``prepare``); returns what happened to it. Optimisation ends early
+        once ``budget`` says stop."""
         with on_stream(self.stream), torch_threads(self.profile.threads):
             return self._process(frame, budget or Budget())
 
-    def _process(self, frame: Frame, budget: Budget) -> FrameResult:
+    def _process(self, frame: Frame | PreparedFrame, budget: Budget) -> FrameResult:
         start = time.perf_counter()
         model = self.model
-        with model.timed("preprocess"):
-            frame = prepare(frame, self.config.octree.depth_min, self.config.octree.depth_max)
+        if isinstance(frame, PreparedFrame):
+            model.timer.add("preprocess_ahead", frame.seconds)
+            prepared = frame
+        else:
+            with model.timed("preprocess"):
+                prepared = self.prepare(frame)
+        frame = prepared.frame
+        with model.timed("upload"):
             self._fit_to(frame.color_intrinsics)
-            rgb, depth, c2w = model.tensors(frame)
+            rgb, depth, c2w = model.upload(prepared.rgb, prepared.depth, frame.c2w)
         # With ``poses.refine`` every frame but the first keyframe's carries a correction of its client pose
         # (the first keeps it: the map stays in the client's frame), tracked against the map before this
         # frame adds to it; the frame is placed at the tracked pose, and its steps refine it further.

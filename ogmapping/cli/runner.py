@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 
 import torch
 from tqdm import tqdm
@@ -23,7 +24,6 @@ from tqdm import tqdm
 from ogmapping.cli.pose_log import PoseLog
 from ogmapping.cli.trajectory import check_covers
 from ogmapping.config import MapperConfig
-from ogmapping.frames.frame import Frame
 from ogmapping.frames.trajectory import read_tum
 from ogmapping.mapper import Mapper
 from ogmapping.quality.evaluation import evaluate_views, open_frames
@@ -69,10 +69,14 @@ def memory_snapshot(frames: int, anchors: int, device: torch.device) -> dict:
     }
 
 
-def prefetched(load: Callable[[int], Frame], positions: Iterable[int], depth: int = 4) -> Iterator[Frame]:
-    """Frames in order, decoded by a background thread (image decoding releases the GIL)."""
+T = TypeVar("T")
+
+
+def prefetched(load: Callable[[int], T], positions: Iterable[int], depth: int = 4) -> Iterator[T]:
+    """``load`` of each position in order, run ``depth`` ahead on a background thread (image decoding and
+    numpy's array work release the GIL)."""
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="prefetch") as pool:
-        pending: deque[Future[Frame]] = deque()
+        pending: deque[Future[T]] = deque()
         for position in positions:
             pending.append(pool.submit(load, position))
             if len(pending) > depth:
@@ -105,11 +109,13 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
     start = time.perf_counter()
     memory_log = []
     progress = tqdm(total=len(selection.streamed), desc="mapping", unit="frame", disable=not options.progress)
-    for count, frame in enumerate(prefetched(frames.load, selection.streamed), start=1):
-        result = mapper.process(frame)
+    # Frames are read and prepared (``Mapper.prepare``) on the prefetch thread while the previous ones map.
+    for count, prepared in enumerate(prefetched(lambda position: mapper.prepare(frames.load(position)),
+                                                selection.streamed), start=1):
+        result = mapper.process(prepared)
         keyframes += result.keyframe
         if pose_log is not None:
-            pose_log.add(frame, result)
+            pose_log.add(prepared.frame, result)
         progress.set_postfix(anchors=result.anchors, keyframes=keyframes, refresh=False)
         progress.update()
         if count % MEMORY_LOG_INTERVAL == 0:

@@ -103,6 +103,11 @@ class StageTimer:
             while len(self._pending) > self._max_pending:
                 self._read(self._pending.popleft(), wait=True)
 
+    def add(self, name: str, seconds: float) -> None:
+        """Count ``seconds`` the host measured itself (work done on another thread) to stage ``name``."""
+        with self._lock:
+            self._totals[name] += seconds
+
     def totals(self) -> dict[str, float]:
         """Seconds per stage so far; on the device path this waits for every pair still pending."""
         with self._lock:

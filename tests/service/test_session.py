@@ -143,3 +143,22 @@ def test_a_defect_while_reading_a_stream_ends_it_with_internal_not_silently() ->
     done = sink.get_nowait()
     assert isinstance(done, ReaderDone) and done.error is not None
     assert done.error.code == grpc.StatusCode.INTERNAL
+
+
+def test_queued_frames_are_prepared_ahead_and_map_in_order(tmp_path: Path) -> None:
+    """While the worker maps a frame, the next queued one is prepared on the session's second thread:
+    every frame is acknowledged in order, and the stage timers count that work off the mapping path."""
+    session = make_session(tmp_path, Limits(queue_depth=8), TINY)
+    sink: queue.SimpleQueue = queue.SimpleQueue()
+    try:
+        with session.mapper.lock:  # the first frame waits to map while the others queue up behind it
+            for position in range(4):
+                submit(session, position, sink)
+        acks = [sink.get(timeout=120) for _ in range(4)]
+        assert [event.ack.index for event in acks] == [scene("0:8").load(p).index for p in range(4)]
+        assert all(event.ack.accepted for event in acks)
+        timings = session.map_stats().timings
+        assert timings.get("preprocess_ahead", 0.0) > 0, timings
+    finally:
+        session.close()
+        session.recorder.close()

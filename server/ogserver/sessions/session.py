@@ -2,7 +2,9 @@
 
 Frames are mapped strictly in arrival order by the session's own thread, so sessions map in
 parallel while renders, stats and snapshots (other threads) are served by the mapper between
-optimisation iterations. The worker records each frame as it takes it up, before mapping it, so
+optimisation iterations. A second thread prepares the next queued frame (depth registration,
+``Mapper.prepare``) while the worker maps the one before it, so that work is off the mapping path.
+The worker records each frame as it takes it up, before mapping it, so
 the recording holds exactly the frames the session mapped (or tried to): frames still queued when
 the session closes are dropped unrecorded, and a replay maps what the original did. Every
 ``checkpoints.interval`` recorded frames the worker, once the ack of the first frame it maps at or past
@@ -29,6 +31,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,7 +41,7 @@ from ogapi import SESSION_METADATA_KEY
 from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.frames.frame import Frame
-from ogmapping.mapper import Mapper
+from ogmapping.mapper import Mapper, PreparedFrame
 from ogmapping.queries import Rendered
 from ogmapping.runtime.time_budget import Budget
 from ogmapping.stats import MapStats
@@ -69,6 +72,7 @@ class Job:
     received: float  # time.monotonic() when the frame was read
     sink: queue.SimpleQueue[StreamEvent] | None  # where the stream that sent it waits for its ack
     size: int  # bytes it holds of the session's max_queued_bytes (0 in a realtime session, which holds none)
+    prepared: Future[PreparedFrame] | None = None  # made ready to map while the frame before it mapped
 
 
 class Session:
@@ -116,6 +120,8 @@ class Session:
         self._anchors, self._gaussians = engine.anchors, engine.gaussians  # a restored map starts with them
         self._first_received: float | None = self._started if self._backlog else None
         self._last_mapped: float | None = None
+        # Prepares the next queued frame (``Mapper.prepare``) while the worker maps the one before it.
+        self._preparer = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"prepare-{self.id[:8]}")
         self._worker = threading.Thread(target=self._run, name=f"session-{self.id[:8]}", daemon=True)
         self._worker.start()
 
@@ -324,7 +330,12 @@ class Session:
             while not self._jobs:
                 self._intake.wait()
             job = self._jobs.popleft()
-            return None if job is None else (job, self._record(job))
+            if job is None:
+                return None
+            upcoming = self._jobs[0] if self._jobs else None
+            if upcoming is not None and upcoming.prepared is None:
+                upcoming.prepared = self._preparer.submit(self.mapper.prepare, upcoming.frame)
+            return job, self._record(job)
 
     def _run(self) -> None:
         self._map_backlog()
@@ -344,17 +355,19 @@ class Session:
 
     def _map_recorded(self, job: Job) -> pb.FrameAck:
         """A frame is mapped only once the recording holds it."""
-        ack = self._map(job.frame, job.sequence, job.received, job.record)
+        ack = self._map(job.frame, job.sequence, job.received, job.record, job.prepared)
         with self._lock:
             self._mapped_position = Position(job.sequence, job.frame.index)
         with suppress(StorageError):  # logged by the recorder; the frame is mapped and recorded, its ack is not
             self.recorder.write_ack(ack, job.record.sensor_ns)
         return ack
 
-    def _map(self, frame: Frame, sequence: int, received: float, record: FrameRecord | None = None) -> pb.FrameAck:
-        """Map one frame; a frame taken from a stream (with its ``record``) is offered to the live view."""
+    def _map(self, frame: Frame, sequence: int, received: float, record: FrameRecord | None = None,
+             prepared: Future[PreparedFrame] | None = None) -> pb.FrameAck:
+        """Map one frame (``prepared`` ahead, when it was); a frame taken from a stream (with its ``record``)
+        is offered to the live view."""
         try:
-            result = self.mapper.process(frame, self._time_budget)
+            result = self.mapper.process(frame if prepared is None else prepared.result(), self._time_budget)
         except Exception as error:  # the session survives a failing frame; the client sees why
             log.exception("session %s: mapping frame %d failed", self.id, frame.index)
             return messages.error_ack(frame.index, ServiceError(grpc.StatusCode.INTERNAL, f"mapping failed: {error}"))
@@ -414,6 +427,7 @@ class Session:
             self._jobs.append(None)
             self._intake.notify()
         self._worker.join(timeout)
+        self._preparer.shutdown(wait=False, cancel_futures=True)
         if sink is not None:
             sink.put(SessionClosed())
         if dropped:
