@@ -44,7 +44,7 @@ class Page:
     """A page of the web view, its console's errors and warnings (and uncaught exceptions) collected. Pages
     are closed by the ``pages`` fixture: each one open keeps polling, and the server bounds connections."""
 
-    def __init__(self, chromium, url: str) -> None:
+    def __init__(self, chromium, url: str, ready: bool = True) -> None:
         self.page = chromium.new_page(viewport={"width": 800, "height": 500})
         OPEN.append(self.page)
         self.problems: list[str] = []
@@ -52,6 +52,10 @@ class Page:
                      if message.type in ("error", "warning") else None)
         self.page.on("pageerror", lambda error: self.problems.append(f"exception: {error}"))
         self.page.goto(url)
+        if ready:
+            self.ready()
+
+    def ready(self) -> None:
         self.page.wait_for_function("window.ogmapReady === true || window.ogmapError", timeout=WAIT_MS)
         assert self.page.evaluate("window.ogmapError") is None
 
@@ -191,13 +195,22 @@ def test_the_panel_hides_and_the_help_lists_the_keys(room: Served, chromium, tmp
     assert page.problems == []
 
 
-def test_the_path_grows_while_the_session_maps(tmp_path: Path, chromium) -> None:
+def test_the_page_waits_for_the_first_keyframe_and_its_path_grows_while_the_session_maps(tmp_path: Path,
+                                                                                        chromium) -> None:
     frames = messages(scene("0:30"))
     with serving(web_settings(tmp_path)) as running:
         session = SessionRef.from_credentials(running.stub.CreateSession(create_request(TINY)))
-        stream_frames(running.stub, session, frames[:2], None, False)
         page = Page(chromium, f"http://127.0.0.1:{running.server.web.port}/map/{session.session_id}"
-                              f"?token={session.token}")
+                              f"?token={session.token}", ready=False)
+        loading = page.page.locator("#loading")
+        page.page.wait_for_function("document.getElementById('loading-text').textContent.includes('waiting')",
+                                    timeout=WAIT_MS)
+        assert loading.is_visible() and "waiting for the first keyframe" in loading.inner_text()
+        assert page.page.evaluate("window.ogmapReady") is None
+        page.keep(tmp_path / "live-waiting.png")
+        stream_frames(running.stub, session, frames[:2], None, False)
+        page.ready()
+        assert loading.is_hidden()
         before = page.camera()["pathPoints"]
         stream_frames(running.stub, session, frames[2:], None, False)
         keyframes = stats(running, session).keyframes
