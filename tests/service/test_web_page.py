@@ -21,7 +21,7 @@ from ogserver.web import still
 from ogmapping.quality.evaluation import open_frames
 
 from .browser import PAGE_SECONDS, browser, needs_browser
-from .inprocess import serving
+from .inprocess import Running, serving
 from .scene import TINY, create_request, messages, scene
 from .test_web_view import web_settings
 
@@ -36,7 +36,7 @@ pytestmark = needs_browser
 @dataclass
 class Served:
     url: str  # the map's page, credential included
-    running: object
+    running: Running
     session: SessionRef
 
 

@@ -26,7 +26,8 @@ export class ViewControls {
     this.east = new THREE.Vector3(); // yaw 0
     this.north = new THREE.Vector3(); // yaw 90 degrees: up x east
     this.setUp(new THREE.Vector3(0, -1, 0));
-    this.held = new Set();
+    this.held = new Set(); // the movement and turning keys held down
+    this.fast = false; // Shift held
     this.pointers = new Map();
     element.addEventListener("pointerdown", (event) => this.pointerDown(event));
     element.addEventListener("pointermove", (event) => this.pointerMove(event));
