@@ -12,7 +12,7 @@ from ogmapping.config import PosesConfig, resolve
 from ogmapping.frames.rotation import axis_angle_matrix
 from ogmapping.mapper import Mapper
 from ogmapping.optim.poses import STATE_SIZE, TRACK_CHECK_STEPS, PoseCorrection, settled
-from ogmapping.persist import snapshot
+from ogmapping.persist import map_io, snapshot
 from ogmapping.quality.evaluation import open_frames
 
 TINY = {"keyframes.first_iterations": "6", "keyframes.iterations": "2"}
@@ -108,13 +108,27 @@ def _frames(count: int):
     return [frames.load(position) for position in range(count)]
 
 
-def test_without_refinement_the_frame_reports_the_client_pose_and_snapshots_hold_no_poses():
+def test_without_refinement_the_frame_reports_the_client_pose_and_snapshots_hold_the_keyframes_path():
     mapper = Mapper(resolve("sparse-fast", overrides=TINY))
-    for frame in _frames(2):
+    frames = _frames(2)
+    for frame in frames:
         result = mapper.process(frame)
         assert np.array_equal(result.pose.refined_c2w, frame.c2w) and not result.pose.clamped
-    assert not any(name.startswith("poses.") for name in mapper.state().tensors)
     assert mapper.stats().poses is None and "poses" not in mapper.stats().to_dict()
+    path = map_io.keyframe_path(snapshot.decode(mapper.snapshot()))
+    assert np.array_equal(path, np.array([pose.refined_c2w for pose in mapper.keyframe_poses()]))
+    assert np.allclose(path[0], frames[0].c2w, atol=1e-6)  # kept in float32
+
+
+def test_a_keyframe_path_that_is_not_finite_4x4_poses_is_refused():
+    state = Mapper(resolve("sparse-fast", overrides=TINY)).state()
+    assert map_io.keyframe_path(state).shape == (0, 4, 4)
+    state.tensors.pop("poses.refined_c2w")
+    assert map_io.keyframe_path(state).shape == (0, 4, 4)  # a snapshot written before paths were kept
+    for bad in (torch.zeros(2, 3, 4), torch.full((1, 4, 4), float("nan"))):
+        state.tensors["poses.refined_c2w"] = bad
+        with pytest.raises(ValueError, match=r"poses\.refined_c2w must hold finite 4x4 poses"):
+            map_io.keyframe_path(state)
 
 
 def test_refinement_keeps_the_first_keyframe_and_its_poses_survive_checkpoints_and_snapshots():

@@ -48,8 +48,7 @@ def capture(model: MapModel, keyframes: KeyframeSet, training_state: bool) -> Ma
         tensors.update({f"octree.{name}": value for name, value in model.octree.state_dict().items()})
         tensors["trajectory.camera_position_sum"] = model.camera_position_sum
         tensors["trajectory.camera_positions"] = torch.tensor([model.camera_positions], dtype=torch.int64)
-        if model.config.poses.refine:
-            tensors.update(_keyframe_pose_tensors(keyframes))
+        tensors.update(_keyframe_pose_tensors(keyframes))
         tensors = {name: value.detach().clone() for name, value in tensors.items()}
         if training_state:
             tensors.update(training.capture(optimisation(model, keyframes)))
@@ -57,14 +56,26 @@ def capture(model: MapModel, keyframes: KeyframeSet, training_state: bool) -> Ma
 
 
 def _keyframe_pose_tensors(keyframes: KeyframeSet) -> dict[str, torch.Tensor]:
-    """The keyframes' client and refined poses, so a snapshot keeps what refinement found (a map
-    loaded from it does not read them back: they describe its making, not the map)."""
+    """The keyframes' client and refined poses, so a snapshot keeps what refinement found and the path its
+    camera took (a map loaded from it does not read them back: they describe its making, not the map; a
+    viewer reads them with ``keyframe_path``)."""
     poses = keyframe_poses(keyframes)
     return {
         "poses.keyframe_indices": training.frame_indices_as_int64([pose.index for pose in poses]),
         "poses.client_c2w": torch.from_numpy(np.array([pose.client_c2w for pose in poses]).reshape(-1, 4, 4)),
         "poses.refined_c2w": torch.from_numpy(np.array([pose.refined_c2w for pose in poses]).reshape(-1, 4, 4)),
     }
+
+
+def keyframe_path(state: MapState) -> np.ndarray:
+    """The keyframes' refined camera-to-world poses (n, 4, 4) that ``state`` records, in mapping order: none
+    for a state written before every snapshot kept them. ValueError for poses that are not finite 4x4s."""
+    poses = state.tensors.get("poses.refined_c2w")
+    if poses is None:
+        return np.zeros((0, 4, 4))
+    if poses.dim() != 3 or tuple(poses.shape[1:]) != (4, 4) or not bool(torch.isfinite(poses).all()):
+        raise ValueError(f"poses.refined_c2w must hold finite 4x4 poses, not shape {tuple(poses.shape)}")
+    return poses.double().cpu().numpy()
 
 
 def load(model: MapModel, keyframes: KeyframeSet, state: MapState, training_state: bool) -> None:

@@ -28,7 +28,9 @@ from ogclient.streaming import stream_frames
 from ogserver import apikeys, view
 from ogserver.settings import load
 from ogserver.web import still
+from ogserver.web.catalogue import Credential
 from ogserver.web.hosts import is_loopback
+from ogserver.web.maps import MapView
 
 from ogmapping.frames.camera import Intrinsics
 
@@ -166,6 +168,7 @@ class Room:
     c2w: np.ndarray
     camera: Intrinsics
     expected: np.ndarray
+    path: np.ndarray  # the session's keyframes' positions (n, 3)
 
 
 @pytest.fixture(scope="module")
@@ -177,11 +180,12 @@ def room(tmp_path_factory: pytest.TempPathFactory) -> Room:
         stream_frames(running.stub, session, frames[:4], None, False)
         c2w, camera = pose_and_camera(frames[3])
         expected = render(running.stub, session, c2w, camera).color
+        path = np.array(running.server.web.catalogue.visible(Credential(token=session.token))[0].state()["path"])
         snapshot = tmp_path / "room.safetensors"
         snapshot.write_bytes(snapshot_bytes(running.stub, session))
         closed = running.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id),
                                            metadata=session.metadata())
-        return Room(snapshot, running.record_dir / closed.recording, c2w, camera, expected)
+        return Room(snapshot, running.record_dir / closed.recording, c2w, camera, expected, path)
 
 
 def start(*command: str) -> subprocess.Popen:
@@ -196,6 +200,16 @@ def test_a_recordings_map_is_the_map_a_replay_builds(room: Room) -> None:
                     f"{room.recording.stem}.safetensors, would be read instead)"]
     assert replayed.mapper.stats().frames == 4
     assert psnr(replayed.mapper.render(room.c2w, room.camera).color, room.expected) >= 40
+
+
+def test_a_snapshots_and_a_recordings_page_shows_the_sessions_keyframes_path(room: Room) -> None:
+    assert len(room.path) >= 2
+    for path in (room.snapshot, room.recording):
+        state = MapView(still.open_map(path, "cpu", lambda _: None), 0.0).state()
+        assert state["stats"]["keyframes"] == len(room.path), path.name
+        assert np.allclose(state["path"], room.path, atol=1e-4), path.name
+        assert np.dot(state["up"], [0, 0, 1]) > 0.99, path.name  # the synthetic room's z
+        assert np.allclose(np.reshape(state["start"], (4, 4))[:3, 3], state["path"][-1], atol=1e-4), path.name
 
 
 def test_ogserver_view_serves_the_map_page_on_loopback_until_sigterm(room: Room) -> None:

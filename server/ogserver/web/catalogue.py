@@ -16,6 +16,7 @@ from typing import Protocol
 from urllib.parse import urlencode
 
 import grpc
+import numpy as np
 
 from ogserver.access.callers import Callers
 from ogserver.access.failed_auth import FailedAuthentications
@@ -23,7 +24,7 @@ from ogserver.errors import ServiceError
 from ogserver.live.views import MappedFrame
 from ogserver.sessions.registry import Registry
 from ogserver.sessions.session import Session
-from ogserver.web.maps import Busy, MapView
+from ogserver.web.maps import Busy, MapView, keyframe_path
 
 
 @dataclass(frozen=True)
@@ -77,6 +78,9 @@ class SessionSource:
 
     def version(self) -> int:
         return self.session.latest.keyframes
+
+    def keyframe_path(self) -> np.ndarray:
+        return keyframe_path(self.mapper)
 
     def counters(self) -> dict[str, float]:
         counters = self.session.counters()

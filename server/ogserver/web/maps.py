@@ -23,6 +23,7 @@ from ogapi.v1 import mapping_pb2 as pb
 from ogmapping.mapper import Mapper
 from ogmapping.persist.export import default_viewpoint, ply_bytes
 from ogserver.live.views import RENDER_JPEG_QUALITY, MappedFrame
+from ogserver.web.horizon import world_up
 
 CENTER_DECIMALS = 3  # a viewpoint to the millimetre: pages at one pose share one decode
 
@@ -44,6 +45,10 @@ class Source(Protocol):
 
     def version(self) -> int:
         """Changes when the map has changed enough to be fetched again (each keyframe)."""
+        ...
+
+    def keyframe_path(self) -> np.ndarray:
+        """The keyframes' camera-to-world poses (n, 4, 4), in mapping order: the path the page draws."""
         ...
 
     def counters(self) -> dict[str, Any]:
@@ -145,11 +150,12 @@ class MapView:
             return self._render[1]
 
     def state(self) -> dict[str, Any]:
-        """What the page polls: the map's version, statistics, the keyframes' path and the newest keyframe."""
+        """What the page polls: the map's version, statistics, the keyframes' path, the world's up (which
+        the page keeps its horizon level to) and the newest keyframe."""
         mapper, frame = self.source.mapper, self.source.latest()
         stats = mapper.stats()
         decoded = self._decoded
-        path = [pose.refined_c2w[:3, 3].round(4).tolist() for pose in mapper.keyframe_poses()]
+        poses = self.source.keyframe_path()
         latest = None
         if frame is not None:
             intrinsics = frame.intrinsics
@@ -157,22 +163,27 @@ class MapView:
                       "c2w": np.asarray(frame.c2w if frame.refined is None else frame.refined).ravel().tolist(),
                       "fx": intrinsics.fx, "fy": intrinsics.fy, "cx": intrinsics.cx, "cy": intrinsics.cy,
                       "width": intrinsics.width, "height": intrinsics.height, "format": frame.color.format}
-        start = latest["c2w"] if latest else path_pose(mapper)
+        start = latest["c2w"] if latest else path_pose(mapper, poses)
         return {
             "id": self.source.id, "label": self.source.label, "version": self.source.version(), "start": start,
-            "stats": {"frames": stats.frames, "keyframes": stats.keyframes, "anchors": stats.anchors,
+            "up": world_up(poses),
+            "stats": {"frames": stats.frames, "keyframes": len(poses), "anchors": stats.anchors,
                       "gaussians_drawn": decoded.count if decoded else 0, "device": stats.device,
                       **self.source.counters()},
-            "path": path, "latest": latest,
+            "path": poses[:, :3, 3].round(4).tolist(), "latest": latest,
         }
 
 
-def path_pose(mapper: Mapper) -> list[float]:
+def keyframe_path(mapper: Mapper) -> np.ndarray:
+    """A mapper's keyframes' refined camera-to-world poses (n, 4, 4), in mapping order."""
+    return np.array([pose.refined_c2w for pose in mapper.keyframe_poses()]).reshape(-1, 4, 4)
+
+
+def path_pose(mapper: Mapper, poses: np.ndarray) -> list[float]:
     """Where a page without a keyframe's input starts: the last keyframe's pose, else at the default viewpoint
     looking at the anchors' mean (world +y down in the image, as in OpenCV-style datasets)."""
-    poses = mapper.keyframe_poses()
-    if poses:
-        return poses[-1].refined_c2w.ravel().tolist()
+    if len(poses):
+        return poses[-1].ravel().tolist()
     eye, target = default_viewpoint(mapper).center, mapper.anchor_centroid()
     forward = target - eye if np.linalg.norm(target - eye) > 1e-6 else np.array([0.0, 0.0, 1.0])
     forward = forward / np.linalg.norm(forward)

@@ -14,11 +14,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 from ogapi import recording as layout
 from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.config import pinned
 from ogmapping.mapper import Mapper
+from ogmapping.persist import map_io, snapshot
 from ogmapping.runtime.profile import resolve_device
 from ogserver.api import validation
 from ogserver.errors import ServiceError
@@ -27,7 +29,7 @@ from ogserver.sessions.registry import requested_config
 from ogserver.settings import Settings
 from ogserver.web.catalogue import OneMap
 from ogserver.web.http_server import WebServer
-from ogserver.web.maps import MapView
+from ogserver.web.maps import MapView, keyframe_path
 
 HOST = "127.0.0.1"
 MIN_SECONDS = 0.2
@@ -35,11 +37,13 @@ MIN_SECONDS = 0.2
 
 @dataclass
 class StillMap:
-    """A map that no longer changes, as a ``maps.Source``."""
+    """A map that no longer changes, as a ``maps.Source``: its keyframes' path as its snapshot recorded it, or
+    as the replay that built it went."""
 
     id: str
     label: str
     mapper: Mapper
+    path: np.ndarray  # the keyframes' camera-to-world poses (n, 4, 4)
 
     def latest(self) -> MappedFrame | None:
         return None
@@ -49,6 +53,9 @@ class StillMap:
 
     def version(self) -> int:
         return 0
+
+    def keyframe_path(self) -> np.ndarray:
+        return self.path
 
     def counters(self) -> dict[str, float]:
         return {}
@@ -78,14 +85,15 @@ def open_map(path: Path, device: str, progress: Callable[[str], None]) -> StillM
     default config bounds, as RestoreSession holds one, before anything is built for it (ValueError): a shared
     file may name any model."""
     device = str(resolve_device(device))
-    bounds = Settings().config_bounds
-    if path.suffix == ".mcap":
-        beside = path.with_suffix(".safetensors")
-        mapper = (Mapper.restore(beside.read_bytes(), device, bounds) if beside.is_file()
-                  else replay(path, device, progress))
+    snapshot_path = path.with_suffix(".safetensors") if path.suffix == ".mcap" else path
+    if path.suffix == ".mcap" and not snapshot_path.is_file():
+        mapper = replay(path, device, progress)
+        poses = keyframe_path(mapper)
     else:
-        mapper = Mapper.restore(path.read_bytes(), device, bounds)
-    return StillMap(path.stem.split(".")[0] or "map", path.name, mapper)
+        bounds = Settings().config_bounds
+        state = snapshot.decode(snapshot_path.read_bytes(), bounds)
+        mapper, poses = Mapper.from_state(state, device, bounds=bounds), map_io.keyframe_path(state)
+    return StillMap(path.stem.split(".")[0] or "map", path.name, mapper, poses)
 
 
 def serve(still: StillMap, port: int = 0) -> tuple[WebServer, str]:
