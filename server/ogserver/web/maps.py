@@ -161,7 +161,7 @@ class MapView:
         return {
             "id": self.source.id, "label": self.source.label, "version": self.source.version(), "start": start,
             "stats": {"frames": stats.frames, "keyframes": stats.keyframes, "anchors": stats.anchors,
-                      "gaussians_drawn": decoded.count if decoded else 0, "device": stats.device,
+                      "gaussians_in_map": decoded.count if decoded else 0, "device": stats.device,
                       **self.source.counters()},
             "path": path, "latest": latest,
         }
