@@ -18,6 +18,7 @@ EPILOG = """\
 typical session:
   ogclient --server 127.0.0.1:50051 stream --data ../shared/data/7scenes-redkitchen --frames 0:100 \\
       --scale 0.25 --session-out out/kitchen.json
+  ogclient stream --data ../shared/data/replica-room0 --scale 0.25 --session-out out/replica.json
   ogclient stream --bag robot.bag --scale 0.5 --close        # ROS 1/2 bag: topics, TF, see docs/robots.md
   ogclient eval --session out/kitchen.json --data ../shared/data/7scenes-redkitchen --frames 0:100 --scale 0.25
   ogclient render --session out/kitchen.json --data ../shared/data/7scenes-redkitchen --scale 0.25 --position 55
@@ -157,6 +158,7 @@ def parser() -> argparse.ArgumentParser:
     view.add_argument("--port", type=int, default=0, help="port on 127.0.0.1 (default: any free one)")
     view.add_argument("--device", default="auto", help="where to load and decode the map: auto, cpu, cuda")
     view.add_argument("--open", action="store_true", help="open the page in the default browser")
+    view.add_argument("--quiet", action="store_true", help="no progress bar while a recording's frames are mapped")
     view.set_defaults(handler=commands.view, offline=True)
 
     render = sub.add_parser(

@@ -284,4 +284,4 @@ def view(args: argparse.Namespace) -> int:
         if args.open:
             webbrowser.open(url)
 
-    return viewing.view(path, args.port, args.device, ready)
+    return viewing.view(path, args.port, args.device, ready, args.quiet)

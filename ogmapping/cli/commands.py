@@ -19,6 +19,7 @@ from ogmapping.frames.camera import validate_pose
 
 EPILOG = """examples:
   ogmap run --data ../shared/data/7scenes-redkitchen --frames 0:100 --scale 0.25 --out runs/kitchen
+  ogmap run --data ../shared/data/replica-room0 --scale 0.25 --out runs/replica
   ogmap run --data synthetic --format synthetic --preset sparse-fast --out runs/synthetic
   ogmap run --bag recording.bag --scale 0.5 --out runs/robot     # ROS 1 or 2 bag, see docs/robots.md
   ogmap trajectory --data synthetic --format synthetic --frames 0:20 --out exact.tum
