@@ -14,10 +14,18 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[dev,robots,live]'
+	$(PY) -m pip install -q -e '.[dev,robots,live,spz]'
 	touch $(STAMP)
 
-venv: $(STAMP) $(WEB_ASSETS)
+KERNELS := $(VENV)/.kernels-compiled
+venv: $(STAMP) $(WEB_ASSETS) $(KERNELS)
+
+# Numba compiles the mapping kernels on their first call and caches them beside their sources: done here,
+# once (about half a minute on an idle 2-core machine, minutes on a busy one), not on the server's first start.
+# Again only when a kernel's source changes (Numba itself compiles again then).
+$(KERNELS): $(shell grep -rl --include='*.py' 'cache=True' ogmapping) | $(STAMP)
+	$(PY) -m ogmapping.warmup
+	touch $@
 
 # The web view's browser libraries (three.js, Spark), pinned by version and sha512 in the module, unpacked
 # into its git-ignored vendor/ folder once; the server serves them, so nothing is fetched at run time.
@@ -25,8 +33,10 @@ $(WEB_ASSETS): server/ogserver/web/assets.py | $(STAMP)
 	$(PY) -m ogserver.web.assets
 	touch $@
 
-demo: $(STAMP) $(WEB_ASSETS) $(LPIPS_WEIGHTS)
-	$(PY) -m ogclient.demo --out out/demo
+# KEEP=1: the server stays up after mapping (Ctrl-C stops it) for the printed watch link and replay command.
+# DEMO_ARGS: more flags (python -m ogclient.demo --help), e.g. DEMO_ARGS='--start-timeout 900'.
+demo: $(STAMP) $(WEB_ASSETS) $(KERNELS) $(LPIPS_WEIGHTS)
+	$(PY) -m ogclient.demo --out out/demo $(if $(KEEP),--keep) $(DEMO_ARGS)
 
 # The cluster tests (marker `cluster`) are make cluster-test's: deselected here, so they never run twice.
 test: $(STAMP) $(WEB_ASSETS) $(LPIPS_WEIGHTS)

@@ -29,3 +29,19 @@ def replica_room0() -> Path:
     if not REPLICA_ROOM0.exists():
         pytest.skip(f"Replica room0 frames not found at {REPLICA_ROOM0} (CI has ../shared beside the checkout)")
     return REPLICA_ROOM0
+
+
+@pytest.fixture
+def tiny_snapshot(tmp_path: Path) -> Path:
+    """A snapshot of two tiny synthetic frames mapped with two and one iterations: a real map in seconds."""
+    from ogmapping.config import resolve
+    from ogmapping.datasets.synthetic import SyntheticSource
+    from ogmapping.mapper import Mapper
+
+    source = SyntheticSource(n_frames=2, width=64, height=48)
+    mapper = Mapper(resolve("sparse", overrides={"keyframes.first_iterations": 2, "keyframes.iterations": 1}), "cpu")
+    for position in range(len(source)):
+        mapper.process(source[position])
+    path = tmp_path / "map.safetensors"
+    path.write_bytes(mapper.snapshot())
+    return path

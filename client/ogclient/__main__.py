@@ -17,26 +17,30 @@ from ogmapping.datasets import FORMATS
 EPILOG = """\
 typical session:
   ogclient --server 127.0.0.1:50051 stream --data ../shared/data/7scenes-redkitchen --frames 0:100 \\
-      --scale 0.25 --session-out kitchen.json
+      --scale 0.25 --session-out out/kitchen.json
+  ogclient stream --data ../shared/data/replica-room0 --scale 0.25 --session-out out/replica.json
   ogclient stream --bag robot.bag --scale 0.5 --close        # ROS 1/2 bag: topics, TF, see docs/robots.md
-  ogclient eval --session kitchen.json --data ../shared/data/7scenes-redkitchen --frames 0:100 --scale 0.25
-  ogclient render --session kitchen.json --data ../shared/data/7scenes-redkitchen --scale 0.25 --position 55
-  ogclient snapshot --session kitchen.json --out kitchen.safetensors
-  ogclient close --session kitchen.json
+  ogclient eval --session out/kitchen.json --data ../shared/data/7scenes-redkitchen --frames 0:100 --scale 0.25
+  ogclient render --session out/kitchen.json --data ../shared/data/7scenes-redkitchen --scale 0.25 --position 55
+  ogclient snapshot --session out/kitchen.json --out out/kitchen.safetensors
+  ogclient close --session out/kitchen.json
   ogclient replay recordings/<session>.mcap --close
   ogclient repair-recording recordings/<session>.mcap repaired.mcap   # after a server crash
   ogclient trajectory recordings/<session>.mcap --out refined.tum   # poses.refine; --client: the sent poses
-  ogclient view kitchen.safetensors --open      # the map as Gaussians in the browser (also a recording)
+  ogclient view out/kitchen.safetensors --open      # the map as Gaussians in the browser (also a recording)
 
 Session commands read the credentials file written by create/stream/replay/restore (--session-out,
-default session.json). --server defaults to $OGMAP_SERVER or 127.0.0.1:50051. A server with API keys
+default out/session.json). --server defaults to $OGMAP_SERVER or 127.0.0.1:50051. A server with API keys
 wants one for create/stream/replay/restore/list: --api-key-file FILE or $OGMAP_API_KEY. Exit status:
 0 ok, 1 the server refused a call (or rejected frames), 2 usage error or server unreachable."""
 
 
+DEFAULT_SESSION_FILE = "out/session.json"  # under out/ (git-ignored): it holds the session's token
+
+
 def add_session_out(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--session-out", default="session.json",
-                        help="where to write the new session's id and token (default session.json)")
+    parser.add_argument("--session-out", default=DEFAULT_SESSION_FILE,
+                        help=f"where to write the new session's id and token (default {DEFAULT_SESSION_FILE})")
     parser.add_argument("--label", default="", help="free text shown by `ogclient list`")
 
 
@@ -154,6 +158,7 @@ def parser() -> argparse.ArgumentParser:
     view.add_argument("--port", type=int, default=0, help="port on 127.0.0.1 (default: any free one)")
     view.add_argument("--device", default="auto", help="where to load and decode the map: auto, cpu, cuda")
     view.add_argument("--open", action="store_true", help="open the page in the default browser")
+    view.add_argument("--quiet", action="store_true", help="no progress bar while a recording's frames are mapped")
     view.set_defaults(handler=commands.view, offline=True)
 
     render = sub.add_parser(

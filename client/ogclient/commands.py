@@ -22,7 +22,7 @@ from ogclient import trajectory as trajectories
 from ogclient import viewing
 from ogclient.connection import ClientError, SessionRef
 from ogclient.evaluation import evaluate, snapshot_bytes
-from ogclient.messages import frame_to_proto, intrinsics_to_proto
+from ogclient.messages import frame_to_proto, intrinsics_to_proto, restore_chunks
 from ogclient.resuming import Backoff, stream_resuming
 from ogclient.streaming import StreamResult, paced, stream_frames
 from ogmapping.cli.options import dataset_source, open_frame_set, parse_intrinsics
@@ -32,7 +32,6 @@ from ogmapping.quality.evaluation import open_frames
 
 COLOR_CHOICES = {"png": pb.COLOR_PNG, "jpeg": pb.COLOR_JPEG, "raw": pb.COLOR_RAW_RGB8}
 DEPTH_CHOICES = {"png16": pb.DEPTH_PNG16, "raw": pb.DEPTH_RAW_F32}
-RESTORE_CHUNK_BYTES = 1 << 20
 
 
 @dataclass
@@ -229,14 +228,7 @@ def snapshot(ctx: Context, args: argparse.Namespace) -> int:
 
 
 def restore(ctx: Context, args: argparse.Namespace) -> int:
-    data = Path(args.snapshot).read_bytes()
-
-    def chunks():
-        for offset in range(0, max(len(data), 1), RESTORE_CHUNK_BYTES):
-            part = data[offset : offset + RESTORE_CHUNK_BYTES]
-            yield pb.RestoreChunk(data=part, label=args.label if offset == 0 else "")
-
-    announce(ctx.stub.RestoreSession(chunks()), args, ctx.server)
+    announce(ctx.stub.RestoreSession(restore_chunks(Path(args.snapshot).read_bytes(), args.label)), args, ctx.server)
     return 0
 
 
@@ -292,4 +284,4 @@ def view(args: argparse.Namespace) -> int:
         if args.open:
             webbrowser.open(url)
 
-    return viewing.view(path, args.port, args.device, ready)
+    return viewing.view(path, args.port, args.device, ready, args.quiet)

@@ -5,6 +5,8 @@ Here rather than in ``ogapi`` so the API package never imports the engine.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 from ogapi.convert import FrameEncoding, matrix_to_list
 from ogapi.images import encode_color, encode_depth
 from ogapi.v1 import mapping_pb2 as pb
@@ -13,6 +15,13 @@ from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
 
 DEFAULT_ENCODING = FrameEncoding()  # lossless PNG colour, millimetre PNG depth
+RESTORE_CHUNK_BYTES = 1 << 20
+
+
+def restore_chunks(snapshot: bytes, label: str) -> Iterator[pb.RestoreChunk]:
+    """A snapshot as the RestoreSession stream (at least one chunk; the label on the first)."""
+    for offset in range(0, max(len(snapshot), 1), RESTORE_CHUNK_BYTES):
+        yield pb.RestoreChunk(data=snapshot[offset:offset + RESTORE_CHUNK_BYTES], label=label if offset == 0 else "")
 
 
 def intrinsics_to_proto(intrinsics: Intrinsics) -> pb.CameraIntrinsics:

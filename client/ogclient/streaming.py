@@ -40,7 +40,8 @@ class StreamResult:
         return (
             f"{len(accepted)} frames mapped ({keyframes} keyframes), {len(self.skipped)} skipped, "
             f"{len(self.rejected)} rejected, "
-            f"{self.seconds:.1f} s ({fps:.2f} frames/s); map: {last.anchors} anchors, {last.gaussians} Gaussians"
+            f"{self.seconds:.1f} s ({fps:.2f} frames/s); map: {last.anchors} anchors, {last.gaussians} Gaussians "
+            "drawn in the last view"
         )
 
 
@@ -99,7 +100,7 @@ def stream_frames(
             if ack.accepted and not ack.skipped:
                 keyframes += ack.keyframe
                 bar.set_postfix(
-                    anchors=ack.anchors, gaussians=ack.gaussians, keyframes=keyframes,
+                    anchors=ack.anchors, drawn=ack.gaussians, keyframes=keyframes,
                     latency=f"{ack.latency_seconds:.2f}s", queue=ack.queue_depth,
                 )
             elif not ack.accepted:

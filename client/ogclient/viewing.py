@@ -9,11 +9,12 @@ status 2 too). The command stops the child whenever it ends itself: Ctrl-C, SIGT
 
 from __future__ import annotations
 
+import io
 import signal
 import subprocess
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO
 
@@ -26,7 +27,8 @@ STOP_SECONDS = 3.0
 
 
 class Stderr(threading.Thread):
-    """Passes the child's stderr through, keeping its error line (``ogserver view: ...``) to report as ours."""
+    """Passes the child's stderr through as it comes, a progress bar's redrawn line (ended by a carriage
+    return) too, keeping its error line (``ogserver view: ...``) to report as ours."""
 
     def __init__(self, stream: IO[str]) -> None:
         super().__init__(name="ogserver-view-stderr", daemon=True)
@@ -34,25 +36,37 @@ class Stderr(threading.Thread):
         self.error = ""
 
     def run(self) -> None:
-        for line in self.stream:
-            if line.startswith(ERROR_PREFIX):
-                self.error = line[len(ERROR_PREFIX):].strip()
+        for segment in segments(self.stream):
+            if segment.startswith(ERROR_PREFIX):
+                self.error = segment[len(ERROR_PREFIX):].strip()
             else:
-                sys.stderr.write(line)
+                sys.stderr.write(segment)
                 sys.stderr.flush()
 
 
-def view(path: Path, port: int, device: str, ready: Callable[[str], None]) -> int:
+def segments(stream: IO[str]) -> Iterator[str]:
+    """``stream``'s text in pieces that each end at a newline or a carriage return (the last at its end)."""
+    piece = ""
+    while character := stream.read(1):
+        piece += character
+        if character in "\r\n":
+            yield piece
+            piece = ""
+    if piece:
+        yield piece
+
+
+def view(path: Path, port: int, device: str, ready: Callable[[str], None], quiet: bool = False) -> int:
     """Serve the map at ``path`` until Ctrl-C or SIGTERM, calling ``ready(url)`` once its page is served; the
-    child's progress lines are printed as they come. ClientError where it fails."""
-    command = [sys.executable, "-m", "ogserver", "view", str(path), "--port", str(port), "--device", device]
+    child's progress lines and bar (none when ``quiet``) are shown as they come. ClientError where it fails."""
+    command = [sys.executable, "-m", "ogserver", "view", str(path), "--port", str(port), "--device", device,
+               *(["--quiet"] if quiet else [])]
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # stops the child too, like Ctrl-C
-    child = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                             text=True, bufsize=1)
-    stderr = Stderr(child.stderr)
+    child = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    stderr = Stderr(io.TextIOWrapper(child.stderr, newline=""))  # carriage returns kept: a bar redraws its line
     stderr.start()
     try:
-        for line in child.stdout:
+        for line in io.TextIOWrapper(child.stdout):
             if line.startswith(READY_PREFIX):
                 ready(line[len(READY_PREFIX):].strip())
             else:

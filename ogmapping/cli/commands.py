@@ -19,6 +19,7 @@ from ogmapping.frames.camera import validate_pose
 
 EPILOG = """examples:
   ogmap run --data ../shared/data/7scenes-redkitchen --frames 0:100 --scale 0.25 --out runs/kitchen
+  ogmap run --data ../shared/data/replica-room0 --scale 0.25 --out runs/replica
   ogmap run --data synthetic --format synthetic --preset sparse-fast --out runs/synthetic
   ogmap run --bag recording.bag --scale 0.5 --out runs/robot     # ROS 1 or 2 bag, see docs/robots.md
   ogmap trajectory --data synthetic --format synthetic --frames 0:20 --out exact.tum
@@ -81,7 +82,9 @@ def parse_center(text: str) -> np.ndarray:
 def command_export(args: argparse.Namespace) -> int:
     from ogmapping.mapper import Mapper
     from ogmapping.persist.export import Viewpoint, default_viewpoint, export_ply
+    from ogmapping.persist.spz import write_spz
 
+    format = export_format(args.format, args.out)
     mapper = Mapper.restore(Path(args.snapshot).read_bytes(), "cpu")
     if args.center:
         viewpoint = Viewpoint(parse_center(args.center), "--center")
@@ -90,11 +93,19 @@ def command_export(args: argparse.Namespace) -> int:
         viewpoint = Viewpoint(pose[:3, 3], f"the camera centre of {args.pose}")
     else:
         viewpoint = default_viewpoint(mapper)
-    count = export_ply(mapper, args.out, viewpoint.center)
+    if format == "spz":
+        count = write_spz(mapper.decode_at(viewpoint.center), args.out)
+    else:
+        count = export_ply(mapper, args.out, viewpoint.center)
     x, y, z = viewpoint.center
-    print(f"wrote {count} Gaussians to {args.out}; view-dependent colour baked at ({x:.3f}, {y:.3f}, {z:.3f}), "
-          f"{viewpoint.origin}")
+    print(f"wrote {count} Gaussians to {args.out} ({format}); view-dependent colour baked at ({x:.3f}, {y:.3f}, "
+          f"{z:.3f}), {viewpoint.origin}")
     return 0
+
+
+def export_format(format: str, out: str) -> str:
+    """``--format``, or with auto the one ``--out``'s suffix names (.ply unless .spz)."""
+    return format if format != "auto" else "spz" if Path(out).suffix.lower() == ".spz" else "ply"
 
 
 def parser() -> argparse.ArgumentParser:
@@ -149,14 +160,18 @@ def parser() -> argparse.ArgumentParser:
     render.add_argument("--out", default="renders", help="output folder for color.png and depth.png")
     render.set_defaults(handler=command_render)
     export = commands.add_parser(
-        "export", help="export a snapshot's Gaussians as a 3DGS .ply",
-        description="Write the map's Gaussians as a standard 3DGS .ply (SH degree 0). The map's colours and "
+        "export", help="export a snapshot's Gaussians as a 3DGS .ply or a compressed .spz",
+        description="Write the map's Gaussians as a standard 3DGS .ply (SH degree 0), or as Niantic's compressed "
+        "SPZ (--format spz, about a quarter of the size; Spark and SuperSplat read it; needs the 'spz' extra, "
+        "gsply), in SPZ's own right-up-back axes as Niantic's converter writes a .ply's. The map's colours and "
         "opacities depend on the viewpoint, a .ply holds one colour per Gaussian: the export fixes them as seen "
         "from ONE point, by default the centroid of the camera positions the map was built from. Renders of the "
         ".ply agree best with the map's own renders near that point; choose another with --center or --pose.",
     )
     export.add_argument("--snapshot", required=True, help="map.safetensors written by ogmap run or ogclient snapshot")
-    export.add_argument("--out", required=True, help="path of the .ply to write")
+    export.add_argument("--out", required=True, help="path of the .ply or .spz to write")
+    export.add_argument("--format", choices=("auto", "ply", "spz"), default="auto",
+                        help="file format (default auto: spz for an --out ending in .spz, else ply)")
     viewpoint = export.add_mutually_exclusive_group()
     viewpoint.add_argument("--center", metavar="X,Y,Z", help="bake view-dependent colour as seen from this world point")
     viewpoint.add_argument("--pose", metavar="FILE",

@@ -19,7 +19,8 @@ from ogmapping.quality.evaluation import FrameSet, open_frames
 def add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
     """The dataset flags shared by ``ogmap run`` and ``ogclient stream/eval``, with the ROS bag ones."""
     source = parser.add_mutually_exclusive_group(required=True)
-    source.add_argument("--data", help="dataset folder (or 'synthetic'), or a ROS bag")
+    source.add_argument("--data", help="dataset folder, or the folder above it (the frames in its data/ or one "
+                        "other subfolder), or 'synthetic', or a ROS bag")
     source.add_argument("--bag", metavar="PATH", help="a ROS 1 .bag, or a ROS 2 bag (folder, .mcap or .db3); "
                         "same as --data PATH --format bag (see docs/robots.md)")
     parser.add_argument("--format", default="auto", choices=FORMATS, help="dataset layout (default: detect)")

@@ -6,17 +6,19 @@ from pathlib import Path
 from typing import Any
 
 from ogmapping.datasets.base import FrameSource
-from ogmapping.datasets.replica import Replica, is_replica
+from ogmapping.datasets.locate import locate
+from ogmapping.datasets.replica import Replica
 from ogmapping.datasets.rosbag import is_bag
-from ogmapping.datasets.scannet import ScanNet, is_scannet
-from ogmapping.datasets.sevenscenes import SevenScenes, find_root
+from ogmapping.datasets.scannet import ScanNet
+from ogmapping.datasets.sevenscenes import SevenScenes
 from ogmapping.datasets.synthetic import SyntheticSource
-from ogmapping.datasets.tum import TUM, is_tum
+from ogmapping.datasets.tum import TUM
 
 FORMATS = ("auto", "7scenes", "tum", "replica", "scannet", "synthetic", "bag")
 
 LOOKED_FOR = (
-    "7scenes: frame-*.depth.png in the folder or its data/ subfolder; "
+    "in the folder, its data/ subfolder or one other subfolder: "
+    "7scenes: frame-*.depth.png; "
     "tum: rgb.txt and depth.txt; "
     "replica: traj.txt and results/depth*.png; "
     "scannet: color/, depth/, pose/ and intrinsic/ folders; "
@@ -24,25 +26,31 @@ LOOKED_FOR = (
 )
 
 __all__ = ["FORMATS", "TUM", "FrameSource", "Replica", "ScanNet", "SevenScenes", "SyntheticSource", "detect_format",
-           "is_bag", "open_bag", "open_dataset"]
+           "find_dataset", "is_bag", "open_bag", "open_dataset"]
 
 
 def detect_format(path: str | Path) -> str:
     """The format whose folder layout ``path`` has, or ValueError naming what was looked for."""
-    if str(path) in ("", "synthetic"):
-        return "synthetic"
+    return find_dataset(path)[0]
+
+
+def find_dataset(path: str | Path, format: str = "auto") -> tuple[str, Path]:
+    """The format of the dataset at ``path`` (``format``'s layout only, unless auto) and the folder holding it:
+    ``path`` itself, or below it (``locate``); ValueError naming what was looked for where there is none."""
+    if format == "synthetic" or (format == "auto" and str(path) in ("", "synthetic")):
+        return "synthetic", Path(path)
     root = Path(path)
     if not root.exists():
         raise ValueError(f"dataset path does not exist: {root}")
-    if is_bag(root):
-        return "bag"
+    if format == "bag" or (format == "auto" and is_bag(root)):
+        return "bag", root
     if not root.is_dir():
         raise ValueError(f"dataset path is not a folder: {root}")
-    checks = (("tum", is_tum), ("scannet", is_scannet), ("replica", is_replica),
-              ("7scenes", lambda p: find_root(p) is not None))
-    for name, check in checks:
-        if check(root):
-            return name
+    found = locate(root, format)
+    if found is not None:
+        return found
+    if format != "auto":
+        return format, root  # its reader says what it is missing
     raise ValueError(f"no known dataset layout in {root}; looked for {LOOKED_FOR}")
 
 
@@ -55,13 +63,9 @@ def open_dataset(path: str, format: str = "auto", **options: Any) -> FrameSource
     """
     if format not in FORMATS:
         raise ValueError(f"unknown dataset format {format!r}; expected one of {', '.join(FORMATS)}")
-    if format == "auto":
-        format = detect_format(path)
+    format, root = find_dataset(path, format)
     if format == "synthetic":
         return SyntheticSource(**options)
-    root = Path(path)
-    if not root.exists():
-        raise ValueError(f"dataset path does not exist: {root}")
     if format == "bag":
         return open_bag(root, **options)
     readers: dict[str, type[FrameSource]] = {

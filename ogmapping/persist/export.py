@@ -61,25 +61,40 @@ def export_ply(mapper: Decodable, path: str | Path, camera_center: np.ndarray) -
     return gaussians.means.shape[0]
 
 
+@dataclass(frozen=True)
+class SplatArrays:
+    """Gaussians as 3DGS files hold them (float32 arrays): the .ply's and the .spz's source."""
+
+    means: np.ndarray  # (N, 3)
+    log_scales: np.ndarray  # (N, 3)
+    quats: np.ndarray  # (N, 4) unit, w first
+    logit_opacities: np.ndarray  # (N,)
+    sh_dc: np.ndarray  # (N, 3) colour as the zeroth spherical-harmonic coefficient
+
+
+def splat_arrays(gaussians: GaussianSet) -> SplatArrays:
+    opacity = gaussians.opacities.clamp(1e-6, 1 - 1e-6).cpu().numpy()
+    return SplatArrays(
+        means=gaussians.means.cpu().numpy().astype(np.float32),
+        log_scales=np.log(np.maximum(gaussians.scales.cpu().numpy(), 1e-12)).astype(np.float32),
+        quats=torch.nn.functional.normalize(gaussians.quats, dim=-1).cpu().numpy().astype(np.float32),
+        logit_opacities=np.log(opacity / (1 - opacity)).astype(np.float32),
+        sh_dc=((gaussians.colors.cpu().numpy() - 0.5) / SH_C0).astype(np.float32),
+    )
+
+
 def ply_bytes(gaussians: GaussianSet) -> bytes:
     """Decoded Gaussians as a standard 3DGS .ply file's bytes."""
-    means = gaussians.means.cpu().numpy().astype(np.float32)
-    count = means.shape[0]
-    opacity = gaussians.opacities.clamp(1e-6, 1 - 1e-6).cpu().numpy()
-    quats = torch.nn.functional.normalize(gaussians.quats, dim=-1).cpu().numpy()
+    splats = splat_arrays(gaussians)
+    count = splats.means.shape[0]
     columns = {
-        "x": means[:, 0], "y": means[:, 1], "z": means[:, 2],
+        "x": splats.means[:, 0], "y": splats.means[:, 1], "z": splats.means[:, 2],
         "nx": np.zeros(count), "ny": np.zeros(count), "nz": np.zeros(count),
-        "f_dc_0": None, "f_dc_1": None, "f_dc_2": None,
-        "opacity": np.log(opacity / (1 - opacity)),
-        "scale_0": None, "scale_1": None, "scale_2": None,
-        "rot_0": quats[:, 0], "rot_1": quats[:, 1], "rot_2": quats[:, 2], "rot_3": quats[:, 3],
+        **{f"f_dc_{axis}": splats.sh_dc[:, axis] for axis in range(3)},
+        "opacity": splats.logit_opacities,
+        **{f"scale_{axis}": splats.log_scales[:, axis] for axis in range(3)},
+        **{f"rot_{axis}": splats.quats[:, axis] for axis in range(4)},
     }
-    colors = (gaussians.colors.cpu().numpy() - 0.5) / SH_C0
-    log_scales = np.log(np.maximum(gaussians.scales.cpu().numpy(), 1e-12))
-    for axis in range(3):
-        columns[f"f_dc_{axis}"] = colors[:, axis]
-        columns[f"scale_{axis}"] = log_scales[:, axis]
     table = np.zeros(count, dtype=[(name, "<f4") for name in columns])
     for name, values in columns.items():
         table[name] = values

@@ -155,6 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     # Sessions map in parallel threads; numba's default fallback layer (workqueue) aborts the process
     # on concurrent parallel kernels, so insist on a thread-safe one (OpenMP or TBB).
     os.environ.setdefault("NUMBA_THREADING_LAYER", "threadsafe")
+    logging.getLogger("ogserver").info("starting: loading torch and the mapping engine")
     from ogserver.app import build  # torch and the engine load only once the arguments are sound
 
     try:

@@ -131,7 +131,8 @@ def build(settings: Settings) -> Server:
         if settings.live.web_port >= 0 and isinstance(registry, Registry) else None
     loop.run(server.start())
     log.info("device %s, %d torch threads, record dir %s", device, torch.get_num_threads(), settings.record_dir)
-    _announce_access(settings, callers, credentials is not None, endpoint)
+    _announce_access(settings, f"{settings.address.rsplit(':', 1)[0]}:{port}", callers, credentials is not None,
+                     endpoint)
     return Server(server, loop, pool, registry, health_servicer, port, Expiry(registry).start(), endpoint,
                   live.start() if live is not None else None, web)
 
@@ -163,7 +164,10 @@ def _host(settings: Settings, device: str) -> SessionHost:
                 from None
         return ClusterHost(settings)
     if settings.warm_up:
-        log.info("warming up on %s: %.1f s", device, warm_up(device))
+        log.info("warming up on %s (a first start compiles the kernels, minutes on a slow CPU; `make venv` or "
+                 "python -m ogmapping.warmup does it ahead)", device)
+        seconds = warm_up(device, progress=lambda stage, elapsed: log.info("warm-up: %s, %.1f s", stage, elapsed))
+        log.info("warmed up on %s: %.1f s", device, seconds)
     registry = Registry(settings, device)
     if settings.resume:
         resume_all(registry)
@@ -191,13 +195,14 @@ def _live_view(settings: Settings, registry: Registry) -> LiveView | None:
     return LiveView(registry, live, foxglove)
 
 
-def _announce_access(settings: Settings, callers: Callers, tls: bool, metrics: Endpoint | None) -> None:
-    """Say in the log who may call; warn when anyone who reaches a non-local address may."""
+def _announce_access(settings: Settings, bound: str, callers: Callers, tls: bool, metrics: Endpoint | None) -> None:
+    """Say in the log who may call at ``bound`` (HOST:PORT with the port bound, not 0); warn when anyone who
+    reaches a non-local address may."""
     transport_name = "mutual TLS" if settings.access.tls_client_ca else "TLS" if tls else "plaintext (no TLS)"
     if callers.open:
         level = logging.INFO if settings.address.startswith(("127.", "localhost:", "[::1]:")) else logging.WARNING
         log.log(level, "%s, open: no API keys or client certificates, so anyone who reaches %s may create, "
-                "restore and list sessions", transport_name, settings.address)
+                "restore and list sessions", transport_name, bound)
     else:
         log.info("%s; creating, restoring and listing sessions need %s", transport_name, callers.describe())
     if metrics is not None:

@@ -28,6 +28,7 @@ def parser() -> argparse.ArgumentParser:
                                "else its frames mapped here as a replay would)")
     p.add_argument("--port", type=int, default=0, help="port on 127.0.0.1 (default: any free one)")
     p.add_argument("--device", default="auto", help="where to load and decode the map: auto, cpu, cuda")
+    p.add_argument("--quiet", action="store_true", help="no progress bar while a recording's frames are mapped")
     return p
 
 
@@ -35,7 +36,7 @@ def progress(line: str) -> None:
     print(line, flush=True)
 
 
-def serve(path: Path, port: int, device: str) -> NoReturn:
+def serve(path: Path, port: int, device: str, bar: bool = True) -> NoReturn:
     """Load the map and serve it until a signal ends the process."""
     if not path.is_file():
         raise ValueError(f"{path}: no such file")
@@ -44,7 +45,7 @@ def serve(path: Path, port: int, device: str) -> NoReturn:
                          "(make venv does)")
     from ogserver.web import still  # torch and the engine load only once the arguments are sound
 
-    _, url = still.serve(still.open_map(path, device, progress), port)  # on a thread of its own
+    _, url = still.serve(still.open_map(path, device, progress, bar), port)  # on a thread of its own
     print(f"{READY_PREFIX} {url}", flush=True)
     while True:
         signal.pause()
@@ -62,7 +63,7 @@ def main(argv: list[str]) -> int:
     for number in (signal.SIGINT, signal.SIGTERM):
         signal.signal(number, stop_at_once)
     try:
-        serve(Path(args.map), args.port, args.device)
+        serve(Path(args.map), args.port, args.device, not args.quiet)
     except (ValueError, OSError) as error:
         print(f"{ERROR_PREFIX} {error}", file=sys.stderr)
     return 2

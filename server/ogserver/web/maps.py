@@ -168,7 +168,7 @@ class MapView:
             "id": self.source.id, "label": self.source.label, "version": self.source.version(), "start": start,
             "up": world_up(poses),
             "stats": {"frames": stats.frames, "keyframes": len(poses), "anchors": stats.anchors,
-                      "gaussians_drawn": decoded.count if decoded else 0, "device": stats.device,
+                      "gaussians_in_map": decoded.count if decoded else 0, "device": stats.device,
                       **self.source.counters()},
             "path": poses[:, :3, 3].round(4).tolist(), "latest": latest,
         }

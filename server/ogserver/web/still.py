@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 from ogapi import recording as layout
 from ogapi.v1 import mapping_pb2 as pb
+from tqdm import tqdm
 
 from ogmapping.config import pinned
 from ogmapping.mapper import Mapper
@@ -61,8 +62,9 @@ class StillMap:
         return {}
 
 
-def replay(path: Path, device: str, progress: Callable[[str], None]) -> Mapper:
-    """The map a replay of the recording at ``path`` builds; ValueError for a recording that cannot be one."""
+def replay(path: Path, device: str, progress: Callable[[str], None], bar: bool = False) -> Mapper:
+    """The map a replay of the recording at ``path`` builds; ValueError for a recording that cannot be one.
+    With ``bar``, a progress bar of the frames mapped on stderr (a recording of minutes maps for minutes)."""
     recorded = layout.load(path)
     if recorded.config is None:
         raise ValueError(f"{path} holds no session config: not a session recording")
@@ -73,21 +75,21 @@ def replay(path: Path, device: str, progress: Callable[[str], None]) -> Mapper:
         mapper = Mapper(config, device=device)
         progress(f"mapping the {len(recorded.frames)} recorded frames of {path.name} here (a snapshot beside it, "
                  f"{path.stem}.safetensors, would be read instead)")
-        for _, message in recorded.frames:
+        for _, message in tqdm(recorded.frames, desc="mapping the recording", unit="frame", disable=not bar):
             mapper.process(validation.frame(message, settings.limits.max_image_pixels, config.octree))
     except ServiceError as error:
         raise ValueError(f"{path}: {error.message}") from None
     return mapper
 
 
-def open_map(path: Path, device: str, progress: Callable[[str], None]) -> StillMap:
+def open_map(path: Path, device: str, progress: Callable[[str], None], bar: bool = False) -> StillMap:
     """The map at ``path``: a snapshot (.safetensors) or a recording (.mcap). A snapshot is held to a server's
     default config bounds, as RestoreSession holds one, before anything is built for it (ValueError): a shared
     file may name any model."""
     device = str(resolve_device(device))
     snapshot_path = path.with_suffix(".safetensors") if path.suffix == ".mcap" else path
     if path.suffix == ".mcap" and not snapshot_path.is_file():
-        mapper = replay(path, device, progress)
+        mapper = replay(path, device, progress, bar)
         poses = keyframe_path(mapper)
     else:
         bounds = Settings().config_bounds
