@@ -90,6 +90,7 @@ class Guard(asyncio.Protocol):
         self._requests = 0  # requests being answered
         self._early = False  # bytes came in while one was
         self._before: list[bytes] = []  # bytes come before the handler has its transport
+        self._securing: asyncio.Task | None = None  # the TLS handshake (the loop keeps only a weak reference)
 
     @staticmethod
     def of(transport: asyncio.BaseTransport | None) -> Guard | None:
@@ -113,7 +114,7 @@ class Guard(asyncio.Protocol):
             self._pass(transport)
         else:
             transport.pause_reading()  # the ClientHello is for the TLS layer
-            asyncio.get_running_loop().create_task(self._secure(transport))
+            self._securing = asyncio.get_running_loop().create_task(self._secure(transport))
 
     async def _secure(self, transport: asyncio.Transport) -> None:
         loop = asyncio.get_running_loop()

@@ -69,7 +69,7 @@ class WebServer:
         self.loopback = is_loopback(host)
         self.pages = Pages(catalogue)
         app = web.Application()
-        app.router.add_get("/{path:.*}", self._handle)
+        app.router.add_get("/{path:.*}", self._handle, allow_head=False)
         policy = Policy(MAX_CONNECTIONS, PER_ADDRESS, head_seconds, REQUEST_SECONDS, HostPolicy.serving(host, hosts),
                         tls)
         self.http = HttpServer("web view", host, port, app, policy)
