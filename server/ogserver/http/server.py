@@ -14,6 +14,7 @@ import asyncio
 import logging
 import socket
 import sys
+import time
 from collections.abc import Awaitable, Callable, MutableMapping
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
@@ -127,6 +128,13 @@ class HttpServer:
 
     def _loop_error(self, loop: asyncio.AbstractEventLoop, context: MutableMapping[str, Any]) -> None:
         _loop_errors.warning(f"{self.name}: {context.get('message')}: {context.get('exception')!r}")
+
+    def loop_cpu_seconds(self) -> float:
+        """The CPU seconds its event loop thread has spent (reading requests, sending answers)."""
+        async def spent() -> float:
+            return time.thread_time()
+
+        return self._loop.run(spent()) if self._loop is not None else 0.0
 
     def stop(self) -> None:
         if self._loop is None:

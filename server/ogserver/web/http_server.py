@@ -80,10 +80,13 @@ class WebServer:
         return self
 
     def stop(self) -> None:
+        """Stops serving and logs the view's work: its decodes and renders, and the CPU of its requests' threads
+        and of its event loop's."""
+        loop_cpu_seconds = self.http.loop_cpu_seconds()
         self.http.stop()
         busy = self.catalogue.busy
         log.info("web view: %d decodes and renders, %.1f s; %.2f CPU seconds in all", busy.count, busy.seconds,
-                 busy.cpu_seconds)
+                 busy.cpu_seconds + loop_cpu_seconds)
 
     def url(self, host: str) -> str:
         return self.http.url(host)
