@@ -72,6 +72,8 @@ def parser() -> argparse.ArgumentParser:
                         help="refuse frames once a map holds this many anchors (0 = no limit)")
     limits.add_argument("--max-snapshot-bytes", dest="max_snapshot_bytes", type=int,
                         help="largest snapshot RestoreSession accepts (256 MiB)")
+    limits.add_argument("--max-snapshots-per-session", dest="max_snapshots_per_session", type=int,
+                        help="GetSnapshot calls of one session at once (2)")
     limits.add_argument("--max-skipped-recording-bytes", dest="max_skipped_recording_bytes", type=int,
                         help="realtime sessions: bytes of skipped frames recorded per session (1 GiB; 0 = none)")
     limits.add_argument("--skipped-recording-bytes-per-second", dest="skipped_recording_bytes_per_second", type=int,

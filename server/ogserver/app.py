@@ -124,7 +124,8 @@ def build(settings: Settings) -> Server:
         pool.shutdown()
         raise ValueError(f"could not bind {settings.address}")
     wire.add_mapping_service(MappingService(registry, callers, metrics), server)
-    endpoint = Endpoint.start(access.metrics_address, metrics, access.max_metrics_connections) \
+    endpoint = Endpoint.start(access.metrics_address, metrics, access.max_metrics_connections,
+                              settings.live.web_hosts) \
         if access.metrics_address else None
     live = _live_view(settings, registry) if isinstance(registry, Registry) else None
     web = start_web(settings, registry, callers) \

@@ -5,38 +5,31 @@ Counters that the sessions already keep (frames) are read from the registry when
 scrape costs nothing while nobody scrapes; what only a call sees (statuses, ack latency) is counted
 as it happens. Each server has its own collector registry, so servers in one process do not mix.
 
-The HTTP endpoint serves at most ``max_metrics_connections`` connections at once (a thread each; one
-more is closed at once) and ends a connection that has not finished within ``CONNECTION_SECONDS``, so
-idle or slow clients cannot fill the mapping process with threads.
+The HTTP endpoint serves at most ``max_metrics_connections`` connections at once (one more is closed at
+once) under the policy of every HTTP port of the server (``ogserver.http.policy``): a request's head within
+``CONNECTION_SECONDS``, idle connections closed as soon, and only requests whose ``Host`` names the server.
 """
 
 from __future__ import annotations
 
-import contextlib
-import logging
-import socket
-import threading
-import time
-from collections.abc import Iterator
-from dataclasses import dataclass
-from socketserver import ThreadingMixIn
-from typing import Any
-from wsgiref.simple_server import WSGIRequestHandler, WSGIServer, make_server
+import asyncio
+from collections.abc import Iterable, Iterator
 
 import grpc
+from aiohttp import web
 from ogapi.v1 import mapping_pb2 as pb
-from prometheus_client import CollectorRegistry, Counter, Histogram, make_wsgi_app
+from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.exposition import choose_encoder
 from prometheus_client.registry import Collector
 
+from ogserver.http.policy import PER_ADDRESS, Policy
+from ogserver.http.server import HttpServer
 from ogserver.sessions.hosting import SessionHost
-from ogserver.throttled_log import ThrottledLog
-
-log = logging.getLogger(__name__)
-_throttled = ThrottledLog(log, 10.0)
+from ogserver.web.hosts import HostPolicy
 
 LATENCY_BUCKETS = (0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 25.0, 60.0, 150.0)
-CONNECTION_SECONDS = 5.0  # a scrape's whole connection, request to response
+CONNECTION_SECONDS = 5.0  # a scrape's request head; an idle or stalled connection is closed as soon
 
 
 class _Sessions(Collector):
@@ -97,106 +90,37 @@ class Metrics:
             self._refusals.labels(ack.error.code_name).inc()
 
 
-class _Handler(WSGIRequestHandler):
-    timeout = CONNECTION_SECONDS  # for each read and write; _Deadlines bounds the whole connection
-
-    def log_message(self, format: str, *args: Any) -> None:
-        """Scrapes are not logged."""
-
-
-class _Deadlines:
-    """One thread that cuts the connections open longer than ``seconds``, however slowly they send."""
-
-    def __init__(self, seconds: float) -> None:
-        self._seconds = seconds
-        self._open: dict[socket.socket, float] = {}
-        self._lock = threading.Lock()
-        self._stopped = threading.Event()
-        threading.Thread(target=self._run, name="metrics-deadlines", daemon=True).start()
-
-    def add(self, connection: socket.socket) -> None:
-        with self._lock:
-            self._open[connection] = time.monotonic() + self._seconds
-
-    def remove(self, connection: socket.socket) -> None:
-        with self._lock:
-            self._open.pop(connection, None)
-
-    def _run(self) -> None:
-        while not self._stopped.wait(min(1.0, self._seconds / 4)):
-            now = time.monotonic()
-            with self._lock:
-                late = [connection for connection, deadline in self._open.items() if deadline < now]
-            for connection in late:
-                with contextlib.suppress(OSError):  # it closed meanwhile
-                    connection.shutdown(socket.SHUT_RDWR)
-
-    def stop(self) -> None:
-        self._stopped.set()
-
-
-class _BoundedServer(ThreadingMixIn, WSGIServer):
-    """A thread per connection, at most ``limit`` at once, none longer than CONNECTION_SECONDS."""
-
-    daemon_threads = True
-    limit = 1
-
-    def server_activate(self) -> None:
-        super().server_activate()
-        self._slots = threading.BoundedSemaphore(self.limit)
-        self.deadlines = _Deadlines(CONNECTION_SECONDS)
-
-    def process_request(self, request: Any, client_address: Any) -> None:
-        if not self._slots.acquire(blocking=False):
-            _throttled.warning(f"metrics: {self.limit} connections open already; closed one from {client_address[0]}")
-            self.shutdown_request(request)
-            return
-        self.deadlines.add(request)
-        try:
-            super().process_request(request, client_address)
-        except BaseException:
-            self._finished(request)
-            raise
-
-    def process_request_thread(self, request: Any, client_address: Any) -> None:
-        try:
-            super().process_request_thread(request, client_address)
-        finally:
-            self._finished(request)
-
-    def _finished(self, request: Any) -> None:
-        self.deadlines.remove(request)
-        self._slots.release()
-
-    def handle_error(self, request: Any, client_address: Any) -> None:
-        log.debug("metrics: connection from %s ended", client_address[0], exc_info=True)
-
-
-@dataclass
 class Endpoint:
-    """The HTTP server that answers scrapes at /metrics."""
+    """The HTTP server that answers scrapes at /metrics (every path, as before), on the listener every HTTP
+    port of the server shares (``ogserver.http``)."""
 
-    http: _BoundedServer
-
-    @property
-    def port(self) -> int:
-        return self.http.server_port
-
-    @classmethod
-    def start(cls, address: str, metrics: Metrics, max_connections: int) -> Endpoint:
+    def __init__(self, address: str, metrics: Metrics, max_connections: int, hosts: Iterable[str] = ()) -> None:
         host, port = address.rsplit(":", 1)
+        self._collectors = metrics.collectors
+        app = web.Application()
+        app.router.add_get("/{path:.*}", self._scrape)
+        policy = Policy(max_connections, min(PER_ADDRESS, max_connections), CONNECTION_SECONDS, CONNECTION_SECONDS,
+                        HostPolicy.serving(host, hosts))
         try:
-            family = socket.getaddrinfo(host.strip("[]"), int(port), type=socket.SOCK_STREAM,
-                                        flags=socket.AI_PASSIVE)[0][0]
-            server_class = type("Server", (_BoundedServer,), {"address_family": family, "limit": max_connections})
-            http = make_server(host.strip("[]"), int(port), make_wsgi_app(metrics.collectors), server_class,
-                               handler_class=_Handler)
+            self.http = HttpServer("metrics", host, int(port), app, policy)
         except (OSError, ValueError) as error:
             raise ValueError(f"cannot serve metrics on {address}: {error}") from None
-        threading.Thread(target=http.serve_forever, name="metrics", daemon=True).start()
-        return cls(http)
+        self.port: int = self.http.port
+
+    @classmethod
+    def start(cls, address: str, metrics: Metrics, max_connections: int, hosts: Iterable[str] = ()) -> Endpoint:
+        endpoint = cls(address, metrics, max_connections, hosts)
+        endpoint.http.start()
+        return endpoint
+
+    async def _scrape(self, request: web.Request) -> web.Response:
+        """The collectors read on a worker thread (they take the sessions' locks), in the format the scraper
+        accepts (Prometheus text, or OpenMetrics), only the ``name[]`` families where it names some."""
+        encoder, kind = choose_encoder(request.headers.get("Accept", ""))
+        names = request.query.getall("name[]", [])
+        collectors = self._collectors.restricted_registry(names) if names else self._collectors
+        body = await asyncio.get_running_loop().run_in_executor(None, encoder, collectors)
+        return web.Response(body=body, headers={"Content-Type": kind})
 
     def stop(self) -> None:
-        self.http.shutdown()
-        self.http.server_close()
-        self.http.deadlines.stop()
+        self.http.stop()

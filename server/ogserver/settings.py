@@ -39,6 +39,8 @@ class Limits:
     max_anchors: int = ranged(0, 0)  # frames are refused once a map holds this many anchors; 0 = no limit
     # the largest snapshot RestoreSession accepts (buffered before it is read)
     max_snapshot_bytes: int = ranged(256 * MIB, 1)
+    # GetSnapshot calls of one session at once (each holds its snapshot's bytes while its client reads them)
+    max_snapshots_per_session: int = ranged(2, 1)
     # --- recording: what a realtime session's skipped frames may add to its recording (mapped frames are
     # always recorded); beyond either, a skipped frame is acknowledged as not recorded. 0: none recorded.
     max_skipped_recording_bytes: int = ranged(1024 * MIB, 0)  # per session, over its life on this server

@@ -1,5 +1,6 @@
 """The /metrics endpoint against clients that connect and send nothing: a bounded number of threads,
-idle connections cut, and scrapes answered again once they are."""
+idle connections cut, and scrapes answered again once they are; a request naming another host is refused
+(DNS rebinding), as on the web view."""
 
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ import time
 import urllib.error
 import urllib.request
 from pathlib import Path
+
+import pytest
 
 from .inprocess import serving, settings
 
@@ -53,3 +56,15 @@ def test_idle_metrics_connections_hold_few_threads_and_are_cut(tmp_path: Path) -
         finally:
             for connection in idle:
                 connection.close()
+
+
+def test_metrics_answer_only_requests_naming_the_server(tmp_path: Path) -> None:
+    configured = settings(tmp_path)
+    configured.access.metrics_address = "127.0.0.1:0"
+    with serving(configured) as running:
+        url = f"http://127.0.0.1:{running.server.metrics.port}/metrics"
+        with urllib.request.urlopen(urllib.request.Request(url, headers={"Host": "localhost"}), timeout=5) as page:
+            assert "ogserver_sessions" in page.read().decode()
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            urllib.request.urlopen(urllib.request.Request(url, headers={"Host": "evil.example"}), timeout=5)
+        assert refused.value.code == 403 and b"ogserver_" not in refused.value.read()

@@ -12,7 +12,7 @@ from types import SimpleNamespace
 import pytest
 from ogserver.web.catalogue import Credential
 from ogserver.web.hosts import HostPolicy
-from ogserver.web.http_server import Handler, WebServer
+from ogserver.web.http_server import Pages, WebServer
 from ogserver.web.maps import Busy
 
 HOST = "127.0.0.1"
@@ -84,10 +84,10 @@ def test_a_path_the_lookup_cannot_take_is_refused_without_a_traceback(target: by
 
 
 def test_what_escapes_a_handler_is_one_throttled_log_line(monkeypatch, capfd, caplog) -> None:
-    def fails(handler) -> None:
+    def fails(pages, *request) -> None:
         raise RuntimeError("a handler's own bug")
 
-    monkeypatch.setattr(Handler, "do_GET", fails)
+    monkeypatch.setattr(Pages, "answer", fails)
     with web_server() as server:
         for _ in range(3):
             exchange(server.port, b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import hashlib
 import threading
-from collections import Counter
 from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import Executor
 from contextlib import contextmanager
@@ -24,6 +23,7 @@ import grpc
 from grpc import aio
 from ogapi import API_KEY_METADATA_KEY, SERVICE_NAME
 
+from ogserver.access.shares import Shares
 from ogserver.access.sync_calls import SyncCalls
 
 HEADROOM = 8
@@ -51,8 +51,7 @@ class CallGate(aio.ServerInterceptor):
         self.limit = limit
         self.per_caller = per_caller  # 0: no share, only the limit
         self._slots = threading.BoundedSemaphore(limit)
-        self._held: Counter[str] = Counter()  # slots held per caller
-        self._lock = threading.Lock()
+        self._held = Shares(per_caller)  # slots held per caller
         self._observe = observe
         self._sync = SyncCalls(request_seconds, pool, response_seconds)
 
@@ -93,11 +92,7 @@ class CallGate(aio.ServerInterceptor):
     @contextmanager
     def _admitted(self, method: str, context: _Recorded) -> Iterator[None]:
         caller = caller_of(context)
-        with self._lock:
-            shared_out = self.per_caller and self._held[caller] >= self.per_caller
-            if not shared_out:
-                self._held[caller] += 1
-        if shared_out:
+        if not self._held.take(caller):
             self._observe(method, grpc.StatusCode.RESOURCE_EXHAUSTED)
             context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED,
                           f"this caller holds its share of {self.per_caller} concurrent calls (the server's "
@@ -106,10 +101,7 @@ class CallGate(aio.ServerInterceptor):
             with self._slot(method, context):
                 yield
         finally:
-            with self._lock:
-                self._held[caller] -= 1
-                if not self._held[caller]:
-                    del self._held[caller]
+            self._held.give_back(caller)
 
     @contextmanager
     def _slot(self, method: str, context: _Recorded) -> Iterator[None]:

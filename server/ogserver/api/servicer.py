@@ -15,6 +15,7 @@ from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 
 from ogserver.access.callers import Callers
 from ogserver.access.failed_auth import FailedAuthentications, peer_address
+from ogserver.access.shares import Shares
 from ogserver.api import messages, stream, validation, wire
 from ogserver.api.pacing import Paced, Timeout
 from ogserver.errors import ServiceError, exhausted, invalid
@@ -61,6 +62,7 @@ class MappingService(pb_grpc.MappingServicer):
         self.access = registry.settings.access
         self.failures = FailedAuthentications(self.access.max_auth_failures, self.access.auth_failure_window_seconds,
                                               self.access.max_auth_failures_total)
+        self.snapshots = Shares(self.limits.max_snapshots_per_session)  # GetSnapshot calls per session
 
     def _caller(self, context: grpc.ServicerContext) -> str:
         """Who creates, restores or lists: refused (and counted against the address) when unknown."""
@@ -108,8 +110,15 @@ class MappingService(pb_grpc.MappingServicer):
 
     def GetSnapshot(self, request: pb.GetSnapshotRequest, context: grpc.ServicerContext) -> Iterator[pb.SnapshotChunk]:
         with status_errors(context):
-            data = self._session(request.session_id, context).snapshot()
-            yield from messages.snapshot_chunks(data, min(SNAPSHOT_CHUNK_BYTES, self.limits.max_message_bytes // 2))
+            session = self._session(request.session_id, context)
+            if not self.snapshots.take(request.session_id):
+                raise exhausted("session_id", f"this session has {self.snapshots.limit} GetSnapshot calls running "
+                                              f"(the server's limits.max_snapshots_per_session); retry when one ends")
+            try:
+                data = session.snapshot()
+                yield from messages.snapshot_chunks(data, min(SNAPSHOT_CHUNK_BYTES, self.limits.max_message_bytes // 2))
+            finally:
+                self.snapshots.give_back(request.session_id)
 
     def RestoreSession(
         self, request_iterator: Iterable[pb.RestoreChunk], context: grpc.ServicerContext

@@ -88,9 +88,8 @@ def intrinsics(message: pb.CameraIntrinsics, field: str, max_pixels: int) -> Int
     if message.width == 0 or message.height == 0:
         raise invalid(field, f"width and height must be positive (got {message.width}x{message.height})")
     if message.width * message.height > max_pixels:
-        raise exhausted(
-            field, f"{message.width}x{message.height} exceeds the server limit of {max_pixels} pixels"
-        )
+        raise exhausted(field, f"{message.width}x{message.height} exceeds the server limit of {max_pixels} pixels "
+                               f"(limits.max_image_pixels)")
     side = max(message.width, message.height)
     low, high = FOCAL_RANGE[0] * side, FOCAL_RANGE[1] * side
     for name in ("fx", "fy"):

@@ -1,0 +1,1 @@
+"""The server's HTTP listeners (the web view, /metrics) on aiohttp, held to one policy (``policy.py``)."""
