@@ -7,10 +7,9 @@ import re
 
 from ogclient import demo
 from ogserver.web.maps import MapView
-from ogserver.web.still import StillMap
+from ogserver.web.still import open_map
 
 from ogmapping.cli.commands import main as ogmap
-from ogmapping.mapper import Mapper
 
 
 def test_export_web_panel_and_demo_count_the_same_gaussians(tmp_path, tiny_snapshot, capsys) -> None:
@@ -18,8 +17,7 @@ def test_export_web_panel_and_demo_count_the_same_gaussians(tmp_path, tiny_snaps
     assert ogmap(["export", "--snapshot", str(snapshot), "--out", str(tmp_path / "map.ply")]) == 0
     exported = int(re.match(r"wrote (\d+) Gaussians", capsys.readouterr().out).group(1))
 
-    mapper = Mapper.restore(snapshot.read_bytes(), "cpu")
-    view = MapView(StillMap("map", "map.safetensors", mapper), 0.0)
+    view = MapView(open_map(snapshot, "cpu", print), 0.0)
     assert view.splats(None).count == exported
     stats = view.state()["stats"]
     assert stats["gaussians_in_map"] == exported and "gaussians_drawn" not in stats
