@@ -105,8 +105,11 @@ def test_two_sessions_map_in_two_workers_and_replay(workers: LocalServer, tmp_pa
     rendered = render(stub, sessions[0], held_out.c2w, held_out.color_intrinsics)
     assert rendered.color.shape == (held_out.color_intrinsics.height, held_out.color_intrinsics.width, 3)
     assert rendered.color.std() > 0 and np.all(rendered.depth >= 0)
-    restored = Mapper.restore(snapshot_bytes(stub, sessions[1]), device="cpu")
-    assert restored.stats().anchors == stats(stub, sessions[1]).anchors
+    snapshot = snapshot_bytes(stub, sessions[1])
+    assert Mapper.restore(snapshot, device="cpu").stats().anchors == stats(stub, sessions[1]).anchors
+    restored = SessionRef.from_credentials(stub.RestoreSession(iter([pb.RestoreChunk(data=snapshot, label="r")])))
+    assert stats(stub, restored).anchors == stats(stub, sessions[1]).anchors
+    stub.CloseSession(pb.CloseSessionRequest(session_id=restored.session_id), metadata=restored.metadata())
     listed = stub.ListSessions(pb.ListSessionsRequest()).sessions
     assert {item.session_id for item in listed} == {session.session_id for session in sessions}
 
