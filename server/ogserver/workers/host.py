@@ -5,8 +5,9 @@ different workers map under different interpreter locks. The server keeps the gR
 control and the session limits (max_sessions and the per-caller quota count every worker's
 sessions), places each new session on the worker holding the fewest, and remembers which worker
 holds which session; every other call goes to that worker, which answers with the single server's
-own code, refusals included. Torch's threads are split between the workers: each gets
-``torch_threads`` (default min(cores, 8)) divided by the number of workers, at least one.
+own code, refusals included. The cores are split between the workers: each maps with
+``torch_threads`` (default min(cores, 8)) divided by the number of workers, at least one, as its
+torch threads and its Numba kernels' threads.
 
 A worker that dies takes only its own sessions: calls on them answer UNAVAILABLE, they leave
 ListSessions and stop counting against the limits, and the next server started with ``--resume``
@@ -46,7 +47,7 @@ log = logging.getLogger(__name__)
 
 
 def worker_threads(settings: Settings) -> int:
-    """Torch threads each worker maps with: the server's share split evenly, at least one."""
+    """Threads (torch's and Numba's) each worker maps with: the server's share split evenly, at least one."""
     return max(1, settings.threads() // settings.workers)
 
 

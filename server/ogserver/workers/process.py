@@ -71,7 +71,10 @@ class Worker:
     def spawn(cls, number: int, settings: Settings, threads: int) -> Worker:
         """Start the process and hand it the settings; ``ready`` waits for it to serve."""
         ours, theirs = socket.socketpair()
-        env = {**os.environ, "NUMBA_THREADING_LAYER": os.environ.get("NUMBA_THREADING_LAYER", "threadsafe")}
+        # Before numba loads in the worker: its sessions run parallel kernels concurrently (as in __main__),
+        # each kernel on the worker's share of the cores, as torch's calls.
+        env = {**os.environ, "NUMBA_THREADING_LAYER": os.environ.get("NUMBA_THREADING_LAYER", "threadsafe"),
+               "NUMBA_NUM_THREADS": str(threads)}
         process = subprocess.Popen([sys.executable, "-m", "ogserver.workers.worker", str(theirs.fileno()),
                                     str(threads)], pass_fds=(theirs.fileno(),), env=env)
         theirs.close()
@@ -105,12 +108,10 @@ class Worker:
                 codec.send(self._sock, ["call", call_id, method, list(args)])
         except OSError:
             self._lose()
-        error: BaseException | None = None
         try:
             return future.result()
-        except codec.RemoteFailure as failure:
-            error = RuntimeError(str(failure))
-        raise error
+        except codec.RemoteFailure as failure:  # the servicer answers INTERNAL with its text
+            raise RuntimeError(str(failure)) from None
 
     def attach(self, sink: queue.SimpleQueue[StreamEvent]) -> int:
         """A number for a stream: the worker tags that stream's events with it, and they go to ``sink``."""
@@ -132,7 +133,9 @@ class Worker:
                 if message[0] == "reply":
                     _, call_id, ok, value = message
                     with self._lock:
-                        future = self._calls.pop(call_id)
+                        future = self._calls.pop(call_id, None)
+                    if future is None:  # failed already: its request could not be sent
+                        continue
                     if ok:
                         future.set_result(value)
                     else:

@@ -28,11 +28,19 @@ from contextlib import ExitStack, suppress
 from pathlib import Path
 from typing import Any
 
+import ogmapping  # noqa: F401 (before torch: it sets the OpenMP wait policy torch's pool reads at start)
+
+# isort: split
 import grpc
+import torch
 from ogapi.v1 import mapping_pb2 as pb
 
+from ogmapping.config.overrides import assign
+from ogmapping.runtime.profile import resolve_device
+from ogmapping.warmup import warm_up
 from ogserver import LOG_FORMAT
 from ogserver.errors import ServiceError
+from ogserver.live.publisher import LiveView
 from ogserver.sessions.counters import FrameTotals, SessionCounters
 from ogserver.sessions.hosting import Closed, Opened, Upload
 from ogserver.sessions.registry import Registry
@@ -172,8 +180,6 @@ class WorkerSessions:
 
 
 def settings_from(mapping: dict[str, Any]) -> Settings:
-    from ogmapping.config.overrides import assign
-
     settings = Settings()
     assign(settings, mapping, LABEL)
     settings.validate()
@@ -182,19 +188,9 @@ def settings_from(mapping: dict[str, Any]) -> Settings:
 
 def main(argv: list[str]) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    os.environ.setdefault("NUMBA_THREADING_LAYER", "threadsafe")  # sessions run kernels concurrently
     logging.basicConfig(level=logging.INFO, format=LOG_FORMAT)
     link = Link(socket.socket(fileno=int(argv[0])))
     settings = settings_from(codec.receive(link.sock))
-    import ogmapping  # noqa: F401 (before torch: it sets the OpenMP wait policy torch's pool reads at start)
-
-    # isort: split
-    import torch
-
-    from ogmapping.runtime.profile import resolve_device
-    from ogmapping.warmup import warm_up
-    from ogserver.live.publisher import LiveView
-
     torch.set_num_threads(int(argv[1]))
     device = str(resolve_device(settings.device))
     if settings.warm_up:
