@@ -112,10 +112,10 @@ class PeakSampler(threading.Thread):
 
 
 def run(count: int, frames: list[pb.Frame], request: pb.CreateSessionRequest, record_dir: Path,
-        device: str = "cpu", workers: int = 0) -> Row:
+        device: str = "cpu", workers: int = 0, torch_threads: int = 0) -> Row:
     gpu = gpu_id(device)
     with LocalServer(record_dir / f"{count}", "--device", device, "--max-sessions", str(count),
-                     "--workers", str(workers)) as server:
+                     "--workers", str(workers), "--torch-threads", str(torch_threads)) as server:
         assert server.process is not None
         rss_start = rss_mb(server.process.pid, "VmRSS")
         gpu_start = gpu_used_mb(gpu) if gpu is not None else None
@@ -191,6 +191,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="config override for every session (repeatable)")
     parser.add_argument("--workers", type=int, default=0,
                         help="the server's --workers: sessions in this many worker processes (0: threads)")
+    parser.add_argument("--torch-threads", type=int, default=0,
+                        help="the server's --torch-threads, split between its workers (0: min(cores, 8))")
     parser.add_argument("--json", help="also write the figures here")
     args = parser.parse_args(argv)
     frame_set = open_frames(args.data, args.format, args.frames, 1, args.scale)
@@ -199,9 +201,10 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     with tempfile.TemporaryDirectory(prefix="ogload-") as folder:
         for count in args.sessions:
-            rows.append(run(count, frames, request, Path(folder), args.device, args.workers))
+            rows.append(run(count, frames, request, Path(folder), args.device, args.workers, args.torch_threads))
             print(f"{count} sessions: {rows[-1].frames_per_second:.2f} frames/s", file=sys.stderr, flush=True)
-    print(f"server: {f'--workers {args.workers}' if args.workers else 'sessions in threads'}")
+    print(f"server: {f'--workers {args.workers}' if args.workers else 'sessions in threads'}"
+          f"{f', --torch-threads {args.torch_threads}' if args.torch_threads else ''}")
     print(table(rows))
     if args.json:
         Path(args.json).write_text(json.dumps([asdict(row) for row in rows], indent=2) + "\n")
