@@ -14,6 +14,7 @@ import os
 import re
 import signal
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -36,6 +37,7 @@ from .scene import FROZEN, TINY, create_request, messages, scene
 
 WORKERS = ("--workers", "2", "--no-warm-up")
 PLACED = re.compile(r"session (\w+) placed on worker (\d+) \(pid (\d+)\)")
+SERVING = re.compile(r"worker \d+ \(pid (\d+)\) serving")
 
 
 @pytest.fixture(scope="module")
@@ -211,5 +213,12 @@ def test_a_killed_worker_costs_only_its_session(tmp_path: Path) -> None:
         assert [frame.index for _, frame in recorded.frames][:len(acked)] == acked
         stub.CloseSession(pb.CloseSessionRequest(session_id=doomed.session_id), metadata=doomed.metadata())
         channel.close()
+        workers_left = {int(pid) for pid in SERVING.findall(second.log_path.read_text())}
+        assert len(workers_left) == 2
+        second.kill()  # a server killed outright takes its workers with it
+        deadline = time.monotonic() + 30
+        while any(Path(f"/proc/{pid}").exists() for pid in workers_left) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not any(Path(f"/proc/{pid}").exists() for pid in workers_left), "a worker outlived its server"
     finally:
         second.stop()
