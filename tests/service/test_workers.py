@@ -1,11 +1,11 @@
 """Sessions in worker processes (``ogserver --workers 2``): the same service as threads of one process.
 
-Sessions go to the least-loaded worker and map side by side; create, stream, render, stats, snapshot
-and close work through the workers; refusals carry the same status and message as a threaded
-server's; two sessions streaming at once lose and reorder nothing and both recordings replay. A
-worker killed with SIGKILL mid-stream costs only its own session (UNAVAILABLE, naming why), the other
-worker's session maps on, and a server restarted with ``--resume`` brings the lost one back with every
-acknowledged frame.
+Sessions go to the least-loaded worker and map side by side; create, stream, render, stats, snapshot and
+close work through the workers; refusals carry the same status and message as a threaded server's;
+max_sessions counts every worker's sessions and idle ones expire in their worker; two sessions streaming
+at once lose and reorder nothing and both recordings replay. A worker killed with SIGKILL mid-stream
+costs only its own session (UNAVAILABLE, naming why), the other worker's session maps on, and a server
+restarted with ``--resume`` brings the lost one back with every acknowledged frame.
 """
 
 from __future__ import annotations
@@ -222,3 +222,30 @@ def test_a_killed_worker_costs_only_its_session(tmp_path: Path) -> None:
         assert not any(Path(f"/proc/{pid}").exists() for pid in workers_left), "a worker outlived its server"
     finally:
         second.stop()
+
+
+def test_limits_count_every_worker_and_idle_sessions_expire(tmp_path: Path) -> None:
+    with start_local(tmp_path / "limits", *WORKERS, "--max-sessions", "2", "--session-idle-seconds", "4") as server:
+        channel, stub = connect(server.address, timeout=60.0)
+        idle, busy = (SessionRef.from_credentials(stub.CreateSession(create_request(FROZEN, label)))
+                      for label in ("idle", "busy"))
+        with pytest.raises(grpc.RpcError) as full:
+            stub.CreateSession(create_request(FROZEN, "one too many"))
+        assert (full.value.code(), full.value.details()) == (grpc.StatusCode.RESOURCE_EXHAUSTED,
+                                                             "the server already holds its limit of 2 sessions")
+        deadline = time.monotonic() + 40
+        while time.monotonic() < deadline:
+            stats(stub, busy)  # in use: it stays
+            listed = {item.session_id for item in stub.ListSessions(pb.ListSessionsRequest()).sessions}
+            if idle.session_id not in listed:
+                break
+            time.sleep(0.2)
+        assert listed == {busy.session_id}
+        with pytest.raises(grpc.RpcError) as expired:
+            stats(stub, idle)
+        assert expired.value.code() == grpc.StatusCode.NOT_FOUND
+        assert recording.load(server.record_dir / f"{idle.session_id}.mcap").stats is not None  # closed cleanly
+        again = SessionRef.from_credentials(stub.CreateSession(create_request(FROZEN, "again")))
+        placed = placements(server)
+        assert placed[again.session_id] == placed[idle.session_id]  # the worker the expired session left
+        channel.close()
