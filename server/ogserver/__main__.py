@@ -59,7 +59,7 @@ def parser() -> argparse.ArgumentParser:
                          help="at start, resume the sessions a crashed server left open in the record dir, with "
                               "their ids and tokens (default on)")
     p.add_argument("--workers", dest="workers", type=int, metavar="N",
-                   help="map sessions in N worker processes (each new session on the least-loaded one, torch "
+                   help="map sessions in N worker processes (each new session on the least-loaded one, the "
                         "threads split between them) instead of threads of this process (0, the default); a "
                         "worker that dies takes only its own sessions, which --resume brings back")
     limits = p.add_argument_group("limits (exceeding one gives RESOURCE_EXHAUSTED)")
