@@ -162,8 +162,11 @@ def refusals(address: str) -> list[tuple[grpc.StatusCode, str]]:
 
 
 def test_refusals_are_those_of_threads(workers: LocalServer, tmp_path: Path) -> None:
-    with start_local(tmp_path / "threads", "--no-warm-up") as threads:
+    threads = start_local(tmp_path / "threads", "--no-warm-up")
+    try:
         expected = refusals(threads.address)
+    finally:
+        threads.stop()
     assert expected[-1][0] == grpc.StatusCode.NOT_FOUND and expected[len(CASES)][0] == grpc.StatusCode.OK
     assert refusals(workers.address) == expected
 
@@ -225,7 +228,8 @@ def test_a_killed_worker_costs_only_its_session(tmp_path: Path) -> None:
 
 
 def test_limits_count_every_worker_and_idle_sessions_expire(tmp_path: Path) -> None:
-    with start_local(tmp_path / "limits", *WORKERS, "--max-sessions", "2", "--session-idle-seconds", "4") as server:
+    server = start_local(tmp_path / "limits", *WORKERS, "--max-sessions", "2", "--session-idle-seconds", "4")
+    try:
         channel, stub = connect(server.address, timeout=60.0)
         idle, busy = (SessionRef.from_credentials(stub.CreateSession(create_request(FROZEN, label)))
                       for label in ("idle", "busy"))
@@ -249,3 +253,5 @@ def test_limits_count_every_worker_and_idle_sessions_expire(tmp_path: Path) -> N
         placed = placements(server)
         assert placed[again.session_id] == placed[idle.session_id]  # the worker the expired session left
         channel.close()
+    finally:
+        server.stop()
