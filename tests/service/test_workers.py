@@ -2,10 +2,10 @@
 
 Sessions go to the least-loaded worker and map side by side; create, stream, render, stats, snapshot and
 close work through the workers; refusals carry the same status and message as a threaded server's;
-max_sessions counts every worker's sessions and idle ones expire in their worker; two sessions streaming
-at once lose and reorder nothing and both recordings replay. A worker killed with SIGKILL mid-stream
-costs only its own session (UNAVAILABLE, naming why), the other worker's session maps on, and a server
-restarted with ``--resume`` brings the lost one back with every acknowledged frame.
+max_sessions and each caller's quota count every worker's sessions, idle ones expire in their worker;
+two sessions streaming at once lose and reorder nothing and both recordings replay. A worker killed with
+SIGKILL mid-stream costs only its own session (UNAVAILABLE, naming why), the other worker's session maps
+on, and a server restarted with ``--resume`` brings the lost one back with every acknowledged frame.
 """
 
 from __future__ import annotations
@@ -22,12 +22,13 @@ import grpc
 import numpy as np
 import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
-from ogapi import recording
+from ogapi import API_KEY_METADATA_KEY, recording
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.__main__ import main as ogclient_main
 from ogclient.connection import SessionRef, connect
 from ogclient.evaluation import render, snapshot_bytes
 from ogclient.local_server import LocalServer
+from ogserver.apikeys import digest
 
 from ogmapping.mapper import Mapper
 
@@ -252,6 +253,36 @@ def test_limits_count_every_worker_and_idle_sessions_expire(tmp_path: Path) -> N
         again = SessionRef.from_credentials(stub.CreateSession(create_request(FROZEN, "again")))
         placed = placements(server)
         assert placed[again.session_id] == placed[idle.session_id]  # the worker the expired session left
+        channel.close()
+    finally:
+        server.stop()
+
+
+def test_callers_and_their_quota_hold_across_workers(tmp_path: Path) -> None:
+    keys = tmp_path / "keys.txt"
+    keys.write_text(f"alice:{digest('alice-key')}\nbob:{digest('bob-key')}\n")
+    server = start_local(tmp_path / "callers", *WORKERS, "--api-keys-file", str(keys), "--max-sessions-per-client", "2")
+    try:
+        channel, stub = connect(server.address, timeout=60.0)
+        alice, bob = ((API_KEY_METADATA_KEY, "alice-key"),), ((API_KEY_METADATA_KEY, "bob-key"),)
+        with pytest.raises(grpc.RpcError) as anonymous:
+            stub.CreateSession(create_request(FROZEN))
+        assert anonymous.value.code() == grpc.StatusCode.UNAUTHENTICATED
+        hers = [SessionRef.from_credentials(stub.CreateSession(create_request(FROZEN), metadata=alice))
+                for _ in range(2)]
+        assert len({placements(server)[session.session_id] for session in hers}) == 2  # one on each worker
+        with pytest.raises(grpc.RpcError) as over:
+            stub.CreateSession(create_request(FROZEN), metadata=alice)
+        assert over.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        assert over.value.details() == "the caller key:alice already holds its limit of 2 sessions"
+        his = SessionRef.from_credentials(stub.CreateSession(create_request(FROZEN), metadata=bob))
+        listed = {item.session_id for item in stub.ListSessions(pb.ListSessionsRequest(), metadata=alice).sessions}
+        assert listed == {session.session_id for session in hers}
+        assert [item.session_id for item in stub.ListSessions(pb.ListSessionsRequest(), metadata=bob).sessions] == \
+            [his.session_id]
+        with pytest.raises(grpc.RpcError) as foreign:  # a session answers only to its own token
+            stub.GetStats(pb.GetStatsRequest(session_id=hers[0].session_id), metadata=his.metadata())
+        assert foreign.value.code() == grpc.StatusCode.UNAUTHENTICATED
         channel.close()
     finally:
         server.stop()
