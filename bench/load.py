@@ -2,6 +2,7 @@
 
     python bench/load.py --sessions 1 4 8 --frames 0:20 --scale 0.25 [--preset sparse-fast] [--set KEY=VALUE]
     python bench/load.py --device cuda --data DIR --format 7scenes --frames 0:100 --scale 1   # on a GPU
+    python bench/load.py --sessions 1 2 --workers 2   # sessions in 2 worker processes (ogserver --workers 2)
 
 For each N a fresh ``ogserver`` (a subprocess on 127.0.0.1, ``--max-sessions N``, ``--device``: the
 CPU unless told) gets N sessions that each stream the same frames (the synthetic scene unless
@@ -10,7 +11,8 @@ from the first send to the last ack, throughput (frames mapped per second over a
 session's own frames per second (its frames over the time to its last ack; slowest and median), ack
 latency percentiles (p50/p95/p99 of the server's ``latency_seconds``: from reading a frame to its
 ack, so queueing behind other frames is included), the server's RSS once started and at its peak
-(``VmHWM``), and refused frames; on a GPU also the memory in use on it (``nvidia-smi``, every
+(``VmHWM``; with ``--workers``, the server's and its workers' added up), and refused frames; on a GPU
+also the memory in use on it (``nvidia-smi``, every
 process on that GPU) once the server started and at its peak, and their difference per session.
 Prints a Markdown table; ``--json`` writes the figures too.
 """
@@ -26,6 +28,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
+from contextlib import suppress
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -35,6 +38,7 @@ from ogclient.connection import SessionRef, connect
 from ogclient.local_server import LocalServer
 from ogclient.messages import frame_to_proto
 from ogclient.streaming import stream_frames
+from ogserver.cluster.local import descendants
 
 from ogmapping.config import parse_override_args
 from ogmapping.datasets import FORMATS
@@ -57,13 +61,18 @@ class Row:
     session_fps_median: float = 0.0
     gpu_start_mb: float | None = None
     gpu_peak_mb: float | None = None
+    workers: int = 0  # the server's --workers: 0, sessions in threads of its process
 
 
 def rss_mb(pid: int, field: str) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith(f"{field}:"):
-            return int(line.split()[1]) / 1024
-    raise RuntimeError(f"no {field} for process {pid}")
+    """``field`` of the process and of every process below it (a server's workers), added up."""
+    total = 0.0
+    for process in (pid, *descendants(pid)):
+        with suppress(FileNotFoundError):  # a child that has just exited
+            for line in Path(f"/proc/{process}/status").read_text().splitlines():
+                if line.startswith(f"{field}:"):
+                    total += int(line.split()[1]) / 1024
+    return total
 
 
 def gpu_id(device: str) -> str | None:
@@ -103,9 +112,10 @@ class PeakSampler(threading.Thread):
 
 
 def run(count: int, frames: list[pb.Frame], request: pb.CreateSessionRequest, record_dir: Path,
-        device: str = "cpu") -> Row:
+        device: str = "cpu", workers: int = 0, torch_threads: int = 0) -> Row:
     gpu = gpu_id(device)
-    with LocalServer(record_dir / f"{count}", "--device", device, "--max-sessions", str(count)) as server:
+    with LocalServer(record_dir / f"{count}", "--device", device, "--max-sessions", str(count),
+                     "--workers", str(workers), "--torch-threads", str(torch_threads)) as server:
         assert server.process is not None
         rss_start = rss_mb(server.process.pid, "VmRSS")
         gpu_start = gpu_used_mb(gpu) if gpu is not None else None
@@ -140,7 +150,7 @@ def run(count: int, frames: list[pb.Frame], request: pb.CreateSessionRequest, re
     refused = sum(len(result.rejected) for result in results)
     per_session = [len(result.mapped) / (end - began) for result, end in zip(results, ends, strict=True)]
     return Row(count, mapped, refused, seconds, mapped / seconds, float(p50), float(p95), float(p99), rss_start,
-               rss_peak, min(per_session), float(np.median(per_session)), gpu_start, gpu_peak)
+               rss_peak, min(per_session), float(np.median(per_session)), gpu_start, gpu_peak, workers)
 
 
 def table(rows: list[Row]) -> str:
@@ -179,6 +189,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preset", default="sparse-fast", help="session preset (sparse-fast)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="config override for every session (repeatable)")
+    parser.add_argument("--workers", type=int, default=0,
+                        help="the server's --workers: sessions in this many worker processes (0: threads)")
+    parser.add_argument("--torch-threads", type=int, default=0,
+                        help="the server's --torch-threads, split between its workers (0: min(cores, 8))")
     parser.add_argument("--json", help="also write the figures here")
     args = parser.parse_args(argv)
     frame_set = open_frames(args.data, args.format, args.frames, 1, args.scale)
@@ -187,8 +201,10 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     with tempfile.TemporaryDirectory(prefix="ogload-") as folder:
         for count in args.sessions:
-            rows.append(run(count, frames, request, Path(folder), args.device))
+            rows.append(run(count, frames, request, Path(folder), args.device, args.workers, args.torch_threads))
             print(f"{count} sessions: {rows[-1].frames_per_second:.2f} frames/s", file=sys.stderr, flush=True)
+    print(f"server: {f'--workers {args.workers}' if args.workers else 'sessions in threads'}"
+          f"{f', --torch-threads {args.torch_threads}' if args.torch_threads else ''}")
     print(table(rows))
     if args.json:
         Path(args.json).write_text(json.dumps([asdict(row) for row in rows], indent=2) + "\n")

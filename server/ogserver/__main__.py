@@ -58,6 +58,10 @@ def parser() -> argparse.ArgumentParser:
     crashes.add_argument("--resume", dest="resume", action=argparse.BooleanOptionalAction, default=None,
                          help="at start, resume the sessions a crashed server left open in the record dir, with "
                               "their ids and tokens (default on)")
+    p.add_argument("--workers", dest="workers", type=int, metavar="N",
+                   help="map sessions in N worker processes (each new session on the least-loaded one, the "
+                        "threads split between them) instead of threads of this process (0, the default); a "
+                        "worker that dies takes only its own sessions, which --resume brings back")
     limits = p.add_argument_group("limits (exceeding one gives RESOURCE_EXHAUSTED)")
     limits.add_argument("--max-sessions", dest="max_sessions", type=int, help="open sessions at once (4)")
     limits.add_argument("--queue-depth", dest="queue_depth", type=int,

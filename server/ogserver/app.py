@@ -156,7 +156,8 @@ async def _grpc_server(
 
 def _host(settings: Settings, device: str) -> SessionHost:
     """Where sessions live: in this process (resuming those a crashed server left, before serving, so a
-    client never finds its session missing while it comes back), or in Ray actors (``--cluster``)."""
+    client never finds its session missing while it comes back), in worker processes (``--workers``), or
+    in Ray actors (``--cluster``)."""
     if settings.cluster:
         try:
             from ogserver.cluster.host import ClusterHost
@@ -164,6 +165,10 @@ def _host(settings: Settings, device: str) -> SessionHost:
             raise RuntimeError(f"--cluster needs Ray, the 'cluster' extra (pip install -e '.[cluster]'): {error}") \
                 from None
         return ClusterHost(settings)
+    if settings.workers:
+        from ogserver.workers.host import WorkerHost
+
+        return WorkerHost(settings, device)  # each worker warms up, and --resume places the sessions on them
     if settings.warm_up:
         log.info("warming up on %s (a first start compiles the kernels, minutes on a slow CPU; `make venv` or "
                  "python -m ogmapping.warmup does it ahead)", device)

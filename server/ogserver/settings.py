@@ -159,6 +159,9 @@ class Settings:
     # written when it opens); at start, resume the sessions a crashed server left open
     checkpoint_interval: int = ranged(50, 0)
     resume: bool = True
+    # --- worker mode (docs/service.md, "Worker processes"): sessions in this many child processes of the
+    # server, each mapping under its own interpreter lock, placed on the least-loaded; 0 = threads of this process
+    workers: int = ranged(0, 0)
     live: Live = field(default_factory=Live)
     # --- cluster mode (docs/cluster.md): sessions as named Ray actors; "" = sessions in this process
     cluster: str = ""  # a Ray address: "auto", HOST:PORT of a head node, or ray://HOST:PORT (Ray Client)
@@ -194,6 +197,12 @@ def conflict(settings: Settings) -> str:
         return "live.foxglove_port: the live view is not available in cluster mode yet"
     if settings.cluster and live.web_port >= 0:
         return "live.web_port: the web view is not available in cluster mode yet"
+    if settings.workers and settings.cluster:
+        return "workers and cluster do not go together (cluster mode's sessions are Ray actors already)"
+    if settings.workers and live.foxglove:
+        return "live.foxglove_port: the live view is not available with worker processes yet"
+    if settings.workers and live.web_port >= 0:
+        return "live.web_port: the web view is not available with worker processes yet"
     if settings.shared_storage and not settings.cluster:
         return f"shared_storage is for cluster mode only (got {settings.shared_storage!r} without cluster)"
     return ""

@@ -64,6 +64,10 @@ def test_the_test_server_config_loads() -> None:
         ("live:\n  foxglove_port: -2\n", r"live.foxglove_port is out of range: must be in \[-1, 65535\], got -2"),
         ("live:\n  foxglove_port: 0\n  view_seconds: 0\n", "live.foxglove_port needs live.view_seconds > 0"),
         ("live:\n  view_points: 0\n", "live.view_points is out of range: must be >= 1, got 0"),
+        ("workers: -1\n", "workers is out of range: must be >= 0, got -1"),
+        ("workers: 2\ncluster: auto\n", "workers and cluster do not go together"),
+        ("workers: 2\nlive:\n  foxglove_port: 0\n", "live.foxglove_port: the live view is not available with worker"),
+        ("workers: 2\nlive:\n  web_port: 0\n", "live.web_port: the web view is not available with worker"),
     ],
 )
 def test_bad_settings_are_refused(tmp_path: Path, text: str, message: str) -> None:

@@ -15,10 +15,11 @@ import threading
 import time
 import uuid
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import grpc
 from ogapi import recording as layout
@@ -45,6 +46,7 @@ from ogserver.settings import Settings
 
 log = logging.getLogger(__name__)
 DEFAULT_PRESET = "sparse"  # as ogmap run
+Held = TypeVar("Held")
 
 
 def new_session_id() -> str:
@@ -77,6 +79,16 @@ def requested_config(request: pb.CreateSessionRequest, settings: Settings) -> tu
     config.resolution.reference_pixels = server
     overrides["resolution.reference_pixels"] = str(server)
     return preset, overrides, config
+
+
+def find(held: Mapping[str, Held], lock: threading.Lock, session_id: str, field: str) -> Held:
+    """``held``'s entry for ``session_id`` once its form is checked (refusals name ``field``), or NOT_FOUND."""
+    session_id = validation.session_id(session_id, field)
+    with lock:
+        found = held.get(session_id)
+    if found is None:
+        raise ServiceError(grpc.StatusCode.NOT_FOUND, f"{field}: no session {session_id}")
+    return found
 
 
 @dataclass
@@ -226,14 +238,15 @@ class Registry:
 
     def get(self, session_id: str, token: str, field: str = "session_id") -> Session:
         """The session, after checking the id's form (refusals name ``field``) and the token."""
-        session_id = validation.session_id(session_id, field)
-        with self._lock:
-            session = self._sessions.get(session_id)
-        if session is None:
-            raise ServiceError(grpc.StatusCode.NOT_FOUND, f"{field}: no session {session_id}")
+        session = find(self._sessions, self._lock, session_id, field)
         tokens.check_token(token, session.token)
         self.touch(session)
         return session
+
+    def owner(self, session: Session) -> str:
+        """The caller that created the session (worker mode's front-end counts its quota)."""
+        with self._lock:
+            return self._tenancy[session.id].owner
 
     def touch(self, session: Session) -> None:
         """The session is in use now: idle expiry counts from here."""

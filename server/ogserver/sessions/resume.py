@@ -9,6 +9,7 @@ is logged with the reason and skipped, its files left as they are, and the serve
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,13 +42,19 @@ def unfinished(record_dir: Path) -> list[Path]:
 
 def resume_all(registry: Registry) -> Resumed:
     """Resume every session left open in the record dir; never raises for one session."""
+    return resume_each(registry.record_dir, lambda path: registry.resume(path).id)
+
+
+def resume_each(record_dir: Path, resume: Callable[[Path], str]) -> Resumed:
+    """``resume`` (which answers the session's id) each recording left open in ``record_dir``, wherever
+    the session goes (this process's registry, or a worker process's)."""
     for pattern in LEFTOVERS:
-        for leftover in registry.record_dir.glob(pattern):
+        for leftover in record_dir.glob(pattern):
             leftover.unlink(missing_ok=True)
     result = Resumed()
-    for path in unfinished(registry.record_dir):
+    for path in unfinished(record_dir):
         try:
-            result.sessions.append(registry.resume(path).id)
+            result.sessions.append(resume(path))
         except Exception as error:  # one session that cannot come back must not keep the server down
             reason = getattr(error, "message", None) or str(error) or type(error).__name__
             result.skipped[path.name] = reason
