@@ -116,7 +116,8 @@ class MappingSteps:
             for (gaussians, output, drawn), weight in zip(renders, weights, strict=True):
                 loss, _ = model.graphs.view_loss(output.color, output.depth, drawn.rgb, drawn.depth, gaussians.scales,
                                                  config.loss, drawn.ssim_reference, compiled=model.profile.compiled,
-                                                 drawn=gaussians.drawn if static else None)
+                                                 drawn=gaussians.drawn if static else None,
+                                                 triton=model.profile.triton_loss)
                 total = total + loss * weight / weight_sum
             for correction in corrections:
                 total = total + correction.prior(config.poses)

@@ -3,7 +3,8 @@
 Each term is returned on its own as well, so the mapper can log them and tests can check that
 every term reacts to its own input only. In a compiled execution profile (the CPU with the ``cpu``
 backend, ``ogmapping.runtime.profile``) the three image terms come from one compiled pass
-(``ogmapping.optim.fused_loss``); otherwise from the autograd definitions below.
+(``ogmapping.optim.fused_loss``); on CUDA with triton installed, from two Triton kernels
+(``ogmapping.optim.triton_loss``); otherwise from the autograd definitions below.
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ def mapping_loss(
     *,
     compiled: bool,
     drawn: torch.Tensor | None = None,
+    triton: bool = False,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Weighted sum of the four terms for one view.
 
@@ -57,8 +59,13 @@ def mapping_loss(
     cached SSIM side of ``gt_color`` when the caller has it. ``compiled`` takes the image terms from
     ``fused_loss`` (CPU tensors) instead of autograd; both give the same values and gradients.
     ``drawn`` (N,) marks the Gaussians drawn where ``scales`` holds inert ones too (static shapes).
+    ``triton`` takes them from ``triton_loss`` instead (float32 CUDA tensors, or CPU ones when interpreted).
     """
-    if compiled:
+    if triton:
+        from ogmapping.optim.triton_loss import image_terms as triton_terms
+
+        color, ssim, depth = triton_terms(render_color, render_depth, gt_color, gt_depth, gt_statistics)
+    elif compiled:
         color, ssim, depth = image_terms(render_color, render_depth, gt_color, gt_depth, gt_statistics)
     else:
         color = (render_color - gt_color).abs().mean()
