@@ -13,7 +13,7 @@ import ogmapping.mapper
 from ogmapping.config import LossConfig, resolve
 from ogmapping.datasets.synthetic import SyntheticSource
 from ogmapping.optim import fused_loss
-from ogmapping.optim.losses import mapping_loss
+from ogmapping.optim.losses import mapping_loss, same_size_groups, window_mapping_loss
 from ogmapping.optim.ssim import ReferenceStatistics, reference_statistics
 
 pytestmark = pytest.mark.skipif(not HAS_TRITON, reason=NO_TRITON)
@@ -43,7 +43,7 @@ def _check_view(height: int, width: int, seed: int, weights=WEIGHTS, gt_depth: t
     reference = _reference_terms(color, depth, gt_color, measured)
     expected = _weighted_backward(reference, [color, depth], weights)
     color_d, depth_d, gt_color_d, measured_d = _on(device, color, depth, gt_color, measured)
-    fused = module.image_terms(color_d, depth_d, gt_color_d, measured_d)
+    fused = module.window_terms(color_d[None], depth_d[None], gt_color_d[None], measured_d[None])[0].unbind()
     _assert_close(fused, reference)
     _assert_close(_weighted_backward(fused, [color_d, depth_d], weights), expected)
 
@@ -87,45 +87,59 @@ def test_a_window_of_views_equals_each_view_alone() -> None:
         _assert_close([grads[0][index], grads[1][index]], expected)
 
 
-def test_mapping_loss_takes_its_image_terms_from_the_kernels() -> None:
+def test_the_window_loss_is_each_views_mapping_loss() -> None:
     _, device = triton_loss()
-    color, depth, gt_color, gt_depth = _views(24, 17, 7)
-    scales = torch.rand(5, 3)
+    views = [_views(12, 10, seed) for seed in (7, 8)]
+    scales = [torch.rand(5, 3), torch.rand(4, 3)]
+    drawn = [None, torch.tensor([True, False, True, True])]
     config = LossConfig()
-    expected, _ = mapping_loss(color, depth, gt_color, gt_depth, scales, config, compiled=False)
-    color_d, depth_d, gt_color_d, gt_depth_d, scales_d = _on(device, color, depth, gt_color, gt_depth, scales)
-    total, _ = mapping_loss(color_d, depth_d, gt_color_d, gt_depth_d, scales_d, config, compiled=False,
-                                triton=True)
-    assert float(total.detach()) == pytest.approx(float(expected.detach()), rel=1e-5)
-    _assert_close(torch.autograd.grad(total, [color_d, depth_d]), torch.autograd.grad(expected, [color, depth]))
+    expected = [mapping_loss(*view, view_scales, config, compiled=False, drawn=view_drawn)[0]
+                for view, view_scales, view_drawn in zip(views, scales, drawn, strict=True)]
+    on_device = [_on(device, *view) for view in views]
+    losses = window_mapping_loss(
+        *([view[i] for view in on_device] for i in range(4)), [s.to(device) for s in scales], config,
+        [reference_statistics(view[2], compiled=False) for view in on_device],
+        [None if d is None else d.to(device) for d in drawn])
+    assert losses.shape == (2,)
+    _assert_close(losses, torch.stack(expected))
+    inputs = [t for view in views for t in view[:2]]
+    _assert_close(torch.autograd.grad(losses.sum(), [t for view in on_device for t in view[:2]]),
+                  torch.autograd.grad(sum(expected), inputs))
 
 
-def test_inputs_it_cannot_take_are_refused() -> None:
-    module, device = triton_loss()
-    color, depth, gt_color, gt_depth = _on(device, *_views(6, 5, 8))
-    with pytest.raises(ValueError, match="runs in float32"):
-        module.image_terms(color.double(), depth, gt_color.double(), gt_depth)
-    with pytest.raises(ValueError, match="depths matching the colours"):
-        module.image_terms(color, depth[:, :4], gt_color, gt_depth)
-    with pytest.raises(ValueError, match="colours of one shape"):
-        module.image_terms(color, depth, gt_color[:, :4], gt_depth)
+def test_views_are_grouped_by_image_size() -> None:
+    images = [torch.zeros(4, 6, 3), torch.zeros(2, 3, 3), torch.zeros(4, 6, 3), torch.zeros(2, 3, 3)]
+    assert same_size_groups(images) == [[0, 2], [1, 3]]
+    assert same_size_groups([]) == []
 
 
 def test_a_mapping_step_with_the_profile_flag_takes_the_kernels_terms(monkeypatch) -> None:
-    """The step asks for the Triton terms once per view of its window when the profile says so (the
+    """The step asks for the Triton terms once per image size of its window when the profile says so (the
     kernels stood in for by the CPU's fused terms here: the step's wiring is what is checked)."""
     module, _ = triton_loss()
     calls = []
 
-    def recorded(*args):
-        calls.append(args[0].shape)
-        return fused_loss.image_terms(*args)
+    def recorded(colors, depths, gt_colors, gt_depths, reference):
+        calls.append(tuple(colors.shape))
+        return torch.stack([torch.stack(fused_loss.image_terms(*view)) for view in zip(
+            colors, depths, gt_colors, gt_depths, strict=True)])
 
-    monkeypatch.setattr(module, "image_terms", recorded)
+    monkeypatch.setattr(module, "window_terms", recorded)
     chosen = ogmapping.mapper.execution_profile
     monkeypatch.setattr(ogmapping.mapper, "execution_profile",
                         lambda *args: dataclasses.replace(chosen(*args), triton_loss=True))
     source = SyntheticSource(n_frames=1, width=32, height=24)
     mapper = ogmapping.mapper.Mapper(resolve("sparse", overrides={"keyframes.first_iterations": 2}), "cpu")
     mapper.process(source[0])
-    assert calls == [(24, 32, 3)] * 2
+    assert calls == [(1, 24, 32, 3)] * 2
+
+
+def test_inputs_it_cannot_take_are_refused() -> None:
+    module, device = triton_loss()
+    color, depth, gt_color, gt_depth = (t[None] for t in _on(device, *_views(6, 5, 8)))
+    with pytest.raises(ValueError, match="runs in float32"):
+        module.window_terms(color.double(), depth, gt_color.double(), gt_depth)
+    with pytest.raises(ValueError, match="depths matching the colours"):
+        module.window_terms(color, depth[:, :, :4], gt_color, gt_depth)
+    with pytest.raises(ValueError, match="colours of one shape"):
+        module.window_terms(color, depth, gt_color[:, :, :4], gt_depth)

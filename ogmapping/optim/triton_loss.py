@@ -233,16 +233,6 @@ def window_terms(render_color: torch.Tensor, render_depth: torch.Tensor, gt_colo
     return terms
 
 
-def image_terms(render_color: torch.Tensor, render_depth: torch.Tensor, gt_color: torch.Tensor,
-                gt_depth: torch.Tensor, reference: ReferenceStatistics | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``window_terms`` of one view, (H, W, 3) and (H, W): as ``ogmapping.optim.fused_loss.image_terms``."""
-    if reference is not None:
-        reference = ReferenceStatistics(reference.image[None], reference.mean[None], reference.square_mean[None])
-    terms = window_terms(render_color[None], render_depth[None], gt_color[None], gt_depth[None], reference)[0]
-    return terms[0], terms[1], terms[2]
-
-
 def _batched_statistics(gt_color: torch.Tensor) -> ReferenceStatistics:
     """``reference_statistics`` of every view of a (B, H, W, 3) batch, stacked."""
     each = [reference_statistics(view, compiled=False) for view in gt_color]
