@@ -24,11 +24,12 @@ import triton.language as tl
 from torch.library import triton_op, wrap_triton
 
 from ogmapping.optim.ssim import C1, C2, WINDOW_SIZE, ReferenceStatistics, gaussian_window, reference_statistics
+from ogmapping.runtime.device_constants import on_device
 
 ROWS = 32  # rows a program blurs: its output rows and the window's half on either side
 OUT_ROWS = ROWS - (WINDOW_SIZE - 1)  # output rows a program covers
 COLS = 64  # output columns a program covers
-HALF = WINDOW_SIZE // 2
+TAPS = gaussian_window()  # float32, on the CPU; ``_taps`` puts it on a device
 
 
 @triton.jit
@@ -226,11 +227,18 @@ def window_terms(render_color: torch.Tensor, render_depth: torch.Tensor, gt_colo
         raise ValueError(f"the fused loss runs in float32, got {render_color.dtype}")
     if reference is None:
         reference = _batched_statistics(gt_color)
-    taps = gaussian_window(device=render_color.device)
+    taps = _taps(render_color.device)
     terms, _, _ = _fused_image_terms(render_color.contiguous(), render_depth.contiguous(), gt_color.contiguous(),
                                      gt_depth.contiguous(), reference.mean.contiguous(),
                                      reference.square_mean.contiguous(), taps)
     return terms
+
+
+def _taps(device: torch.device) -> torch.Tensor:
+    """The window's taps on ``device``: copied there once, or a graph's own constant when compiled."""
+    if torch.compiler.is_compiling():
+        return TAPS.to(device)
+    return on_device(TAPS, device, torch.float32)
 
 
 def _batched_statistics(gt_color: torch.Tensor) -> ReferenceStatistics:
