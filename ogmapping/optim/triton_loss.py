@@ -13,7 +13,8 @@ y G*(dS/de_xy). The forward kernel stores the three partials; the backward kerne
 
 The kernels are ``torch.library.triton_op`` operators with their autograd registered, so a compiled
 graph (``ogmapping.mapping.graphs``) traces them as they are. Importing this module needs triton;
-``TRITON_INTERPRET=1`` (set before triton is imported) runs them on CPU tensors, as the tests do.
+with ``TRITON_INTERPRET=1`` set before it is imported (and while they run) the kernels run on CPU
+tensors through Triton's interpreter, as the tests run them.
 """
 
 from __future__ import annotations
