@@ -13,7 +13,7 @@ import ogmapping.mapper
 from ogmapping.config import LossConfig, resolve
 from ogmapping.datasets.synthetic import SyntheticSource
 from ogmapping.optim import fused_loss
-from ogmapping.optim.losses import mapping_loss, same_size_groups, window_mapping_loss
+from ogmapping.optim.losses import mapping_loss, window_mapping_loss
 from ogmapping.optim.ssim import ReferenceStatistics, reference_statistics
 
 pytestmark = pytest.mark.skipif(not HAS_TRITON, reason=NO_TRITON)
@@ -105,12 +105,6 @@ def test_the_window_loss_is_each_views_mapping_loss() -> None:
     inputs = [t for view in views for t in view[:2]]
     _assert_close(torch.autograd.grad(losses.sum(), [t for view in on_device for t in view[:2]]),
                   torch.autograd.grad(sum(expected), inputs))
-
-
-def test_views_are_grouped_by_image_size() -> None:
-    images = [torch.zeros(4, 6, 3), torch.zeros(2, 3, 3), torch.zeros(4, 6, 3), torch.zeros(2, 3, 3)]
-    assert same_size_groups(images) == [[0, 2], [1, 3]]
-    assert same_size_groups([]) == []
 
 
 def test_a_mapping_step_with_the_profile_flag_takes_the_kernels_terms(monkeypatch) -> None:
