@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from ogmapping.config import LossConfig
-from ogmapping.optim.losses import mapping_loss, mean_volume
+from ogmapping.optim.losses import mapping_loss, mean_volume, same_size_groups
 from ogmapping.optim.ssim import _blur, gaussian_window
 
 
@@ -134,3 +134,9 @@ def test_the_volume_term_averages_the_drawn_gaussians_only():
     torch.testing.assert_close(scales.grad[drawn], subset.grad)
     assert not scales.grad[~drawn].any()
     assert float(mean_volume(scales.detach(), torch.zeros(6, dtype=torch.bool))) == 0.0
+
+
+def test_views_are_grouped_by_image_size() -> None:
+    images = [torch.zeros(4, 6, 3), torch.zeros(2, 3, 3), torch.zeros(4, 6, 3), torch.zeros(2, 3, 3)]
+    assert same_size_groups(images) == [[0, 2], [1, 3]]
+    assert same_size_groups([]) == []

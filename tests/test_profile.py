@@ -17,6 +17,7 @@ from ogmapping.mapper import Mapper
 from ogmapping.persist.state import MapState
 from ogmapping.render import gsplat_backend
 from ogmapping.render.rules import ALPHA_MIN
+from ogmapping.runtime import profile
 from ogmapping.runtime.profile import execution_profile, resolve_device
 from ogmapping.runtime.threads import torch_threads
 
@@ -44,6 +45,16 @@ def test_compiled_kernels_run_on_the_cpu_with_the_cpu_backend_only(monkeypatch):
     assert not execution_profile("cuda", "cpu", "anchor").compiled
     with pytest.raises(ValueError, match="unknown rasterizer backend"):
         execution_profile("cpu", "vulkan", "anchor")
+
+
+def test_the_triton_loss_runs_on_cuda_with_gsplat_where_triton_imports(monkeypatch):
+    assert not execution_profile("cpu", "auto", "anchor").triton_loss
+    monkeypatch.setattr(gsplat_backend, "unavailable_reason", lambda: None)
+    monkeypatch.setattr(profile, "triton_unavailable_reason", lambda: None)
+    assert execution_profile("cuda", "auto", "anchor").triton_loss
+    assert not execution_profile("cuda", "torch", "anchor").triton_loss
+    monkeypatch.setattr(profile, "triton_unavailable_reason", lambda: "triton is not installed")
+    assert not execution_profile("cuda", "auto", "anchor").triton_loss
 
 
 def test_device_resolution(monkeypatch):

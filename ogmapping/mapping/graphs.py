@@ -25,7 +25,7 @@ from ogmapping.model.static_gaussians import decode_views
 from ogmapping.optim import refine
 from ogmapping.optim.averaging import fold_in
 from ogmapping.optim.keyframes import view_images
-from ogmapping.optim.losses import mapping_loss
+from ogmapping.optim.losses import mapping_loss, window_mapping_loss
 
 
 @dataclass(frozen=True)
@@ -34,13 +34,15 @@ class StepGraphs:
 
     decode: Callable  # static_gaussians.decode_views
     view_loss: Callable  # losses.mapping_loss
+    window_loss: Callable  # losses.window_mapping_loss
     statistics: Callable  # refine.accumulate_drawn
     average: Callable  # averaging.fold_in
     keyframe_images: Callable  # keyframes.view_images
 
     @classmethod
     def build(cls, *, compiled: bool, device: torch.device) -> StepGraphs:
-        parts = {"decode": decode_views, "view_loss": mapping_loss, "statistics": refine.accumulate_drawn,
+        parts = {"decode": decode_views, "view_loss": mapping_loss, "window_loss": window_mapping_loss,
+                 "statistics": refine.accumulate_drawn,
                  "average": fold_in, "keyframe_images": view_images}
         if compiled:
             mode = "reduce-overhead" if device.type == "cuda" else None

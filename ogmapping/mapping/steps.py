@@ -17,6 +17,7 @@ from ogmapping.model.gaussians import GaussianSet, generate_window
 from ogmapping.model.static_gaussians import DrawnWindow, frustum_camera
 from ogmapping.optim import refine
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
+from ogmapping.optim.losses import same_size_groups
 from ogmapping.optim.poses import PoseCorrection
 from ogmapping.render import rasterize_batch
 from ogmapping.render.output import RenderOutput
@@ -113,14 +114,33 @@ class MappingSteps:
         weights = self.window_weights(keyframes)
         weight_sum = sum(weights)
         with model.timed("loss"):
-            for (gaussians, output, drawn), weight in zip(renders, weights, strict=True):
-                loss, _ = model.graphs.view_loss(output.color, output.depth, drawn.rgb, drawn.depth, gaussians.scales,
-                                                 config.loss, drawn.ssim_reference, compiled=model.profile.compiled,
-                                                 drawn=gaussians.drawn if static else None)
+            for loss, weight in zip(self.view_losses(renders), weights, strict=True):
                 total = total + loss * weight / weight_sum
             for correction in corrections:
                 total = total + correction.prior(config.poses)
         return total, renders, corrections
+
+    def view_losses(self, renders: list[tuple[GaussianSet, RenderOutput, View]]) -> list[torch.Tensor]:
+        """Each render's ``mapping_loss``: per view, or with the Triton loss (``profile.triton_loss``) per
+        group of views of one image size, in one batch."""
+        model, config = self.model, self.model.config
+        static = model.profile.static_shapes
+        if not model.profile.triton_loss:
+            return [model.graphs.view_loss(output.color, output.depth, drawn.rgb, drawn.depth, gaussians.scales,
+                                           config.loss, drawn.ssim_reference, compiled=model.profile.compiled,
+                                           drawn=gaussians.drawn if static else None)[0]
+                    for gaussians, output, drawn in renders]
+        losses: dict[int, torch.Tensor] = {}
+        for group in same_size_groups([output.color for _, output, _ in renders]):
+            chosen = [renders[position] for position in group]
+            batch = model.graphs.window_loss(
+                [output.color for _, output, _ in chosen], [output.depth for _, output, _ in chosen],
+                [drawn.rgb for _, _, drawn in chosen], [drawn.depth for _, _, drawn in chosen],
+                [gaussians.scales for gaussians, _, _ in chosen], config.loss,
+                [drawn.ssim_reference for _, _, drawn in chosen],
+                [gaussians.drawn if static else None for gaussians, _, _ in chosen])
+            losses.update(zip(group, batch.unbind(), strict=True))
+        return [losses[position] for position in range(len(renders))]
 
     def decode_static(self, views: list[tuple[torch.Tensor, View]]) -> DrawnWindow:
         """The Gaussians of every buffer row seen from each (pose, view), stacked, the ones not drawn inert."""

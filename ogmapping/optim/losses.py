@@ -3,7 +3,9 @@
 Each term is returned on its own as well, so the mapper can log them and tests can check that
 every term reacts to its own input only. In a compiled execution profile (the CPU with the ``cpu``
 backend, ``ogmapping.runtime.profile``) the three image terms come from one compiled pass
-(``ogmapping.optim.fused_loss``); otherwise from the autograd definitions below.
+(``ogmapping.optim.fused_loss``); otherwise from the autograd definitions below. On CUDA with triton,
+``window_mapping_loss`` takes them for every view of one size from two Triton kernels
+(``ogmapping.optim.triton_loss``) in one batch.
 """
 
 from __future__ import annotations
@@ -77,6 +79,38 @@ def mapping_loss(
         + weights.scale * parts["scale"]
     )
     return total, parts
+
+
+def window_mapping_loss(
+    render_colors: list[torch.Tensor],
+    render_depths: list[torch.Tensor],
+    gt_colors: list[torch.Tensor],
+    gt_depths: list[torch.Tensor],
+    scales: list[torch.Tensor],
+    weights: LossConfig,
+    gt_statistics: list[ReferenceStatistics],
+    drawn: list[torch.Tensor | None],
+) -> torch.Tensor:
+    """``mapping_loss`` of each of a window's views of one image size, (B,): the image terms from the
+    Triton kernels, all views in one batch (float32 CUDA tensors, or CPU ones when interpreted)."""
+    from ogmapping.optim.triton_loss import window_terms
+
+    cached = ReferenceStatistics(*(torch.stack([getattr(statistics, name) for statistics in gt_statistics])
+                                   for name in ("image", "mean", "square_mean")))
+    terms = window_terms(torch.stack(render_colors), torch.stack(render_depths), torch.stack(gt_colors),
+                         torch.stack(gt_depths), cached)
+    volume = torch.stack([mean_volume(view_scales, view_drawn) for view_scales, view_drawn in zip(
+        scales, drawn, strict=True)])
+    image = weights.color * terms[:, 0] + weights.ssim * terms[:, 1] + weights.depth * terms[:, 2]
+    return image + weights.scale * volume
+
+
+def same_size_groups(images: list[torch.Tensor]) -> list[list[int]]:
+    """The positions of ``images`` grouped by shape, each group in order, the groups by first appearance."""
+    groups: dict[tuple[int, ...], list[int]] = {}
+    for position, image in enumerate(images):
+        groups.setdefault(tuple(image.shape), []).append(position)
+    return list(groups.values())
 
 
 def tracking_loss(

@@ -8,6 +8,8 @@ path, so one session cannot mix the two halves of a choice. The rule for the Num
 iff the device is the CPU and the backend resolves to ``cpu``, so ``backend="torch"`` on the CPU
 runs the pure-torch reference end to end. ``auto`` resolves as ``render.resolve_backend`` does:
 ``cpu`` on the CPU, ``gsplat`` on CUDA when it can render there, else ``torch`` (with a warning).
+The GPU's counterpart of the fused loss, its Triton kernels, runs iff the device is CUDA, the backend
+``gsplat`` and triton importable; ``backend="torch"`` there too keeps the reference end to end.
 """
 
 from __future__ import annotations
@@ -37,7 +39,8 @@ class ExecutionProfile:
     static_shapes: bool = False
     # The static-shape step's torch work runs as compiled graphs (``ogmapping.mapping.graphs``).
     graphs: bool = False
-
+    # The loss's image terms come from the Triton kernels (``ogmapping.optim.triton_loss``), not autograd.
+    triton_loss: bool = False
 
     @property
     def step_mode(self) -> str:
@@ -61,7 +64,18 @@ def execution_profile(device: str | torch.device, backend: str, encoding: str,
         shared_decode=device.type == "cuda" or static,
         static_shapes=static,
         graphs=step == "compiled",
+        triton_loss=device.type == "cuda" and concrete == "gsplat" and triton_unavailable_reason() is None,
     )
+
+
+def triton_unavailable_reason() -> str | None:
+    """Why the Triton fused loss (``ogmapping.optim.triton_loss``) cannot run here, or None: it needs triton
+    (on CUDA, torch's own)."""
+    try:
+        import triton  # noqa: F401
+    except ImportError as error:
+        return f"triton is not installed ({error})"
+    return None
 
 
 def _mapping_threads(device: torch.device, encoding: str) -> int | None:

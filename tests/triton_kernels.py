@@ -1,0 +1,42 @@
+"""The Triton loss module for the tests: compiled on a GPU, interpreted on CPU tensors without one.
+
+Triton decides when a kernel is defined whether it is interpreted (``TRITON_INTERPRET=1`` then) and reads
+the setting again when it runs one, so without a GPU the setting is made before the module is imported and
+stays for the session; a session that imported it compiled and has no GPU skips with the reason.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import os
+import sys
+from types import ModuleType
+
+import pytest
+import torch
+
+MODULE = "ogmapping.optim.triton_loss"
+HAS_TRITON = importlib.util.find_spec("triton") is not None
+NO_TRITON = "triton is not installed (the dev extra installs it: pip install -e '.[dev]')"
+
+
+def interpreted(module: ModuleType) -> bool:
+    from triton.runtime.interpreter import InterpretedFunction
+
+    return isinstance(module._forward_kernel, InterpretedFunction)
+
+
+def triton_loss() -> tuple[ModuleType, torch.device]:
+    """The module and the device its kernels take tensors on: CUDA where there is a GPU, else the CPU
+    through the interpreter."""
+    if not HAS_TRITON:
+        pytest.skip(NO_TRITON)
+    if MODULE not in sys.modules and not torch.cuda.is_available():
+        os.environ["TRITON_INTERPRET"] = "1"
+    module = importlib.import_module(MODULE)
+    if interpreted(module):
+        return module, torch.device("cpu")
+    if not torch.cuda.is_available():
+        pytest.skip("the Triton kernels were imported compiled in this session and there is no GPU to run them")
+    return module, torch.device("cuda")
