@@ -13,7 +13,7 @@
 # meanwhile), pytest -m gpu, ogmap run of sparse-fast / sparse / dense on 7-Scenes 0-299 at 640x480 (sparse
 # also with step=dynamic, the eager step sized by the data) and on
 # Replica room0 0-19 at 1200x680, sparse with pose refinement from noisy poses on room0 (replica-refine),
-# bench/load.py with 1 / 4 / 8 sparse-fast sessions on one server, the service's sparse run of 0-299
+# bench/load.py with 1 / 4 / 8 / 16 sparse-fast sessions on one server (threads, then 4 worker processes), the service's sparse run of 0-299
 # (ogserver + ogclient stream/eval), the CPU thread table (sparse at 320x240, 1 / 2 / 4 / 8 / 16 threads),
 # sparse at 320x240 on the GPU, the suite with gsplat. A step that succeeded leaves a marker in .gpu/done,
 # so a second call on the same machine goes on where the first stopped.
@@ -140,12 +140,20 @@ gpu_tests() {
     OGMAP_GPU_REPORT=$RESULTS/gpu-tests OGMAP_GPU_DATA=$data bench/gpu/run.sh tests 2>&1 | tee "$RESULTS/gpu-tests/pytest.txt"
 }
 
-# bench/load.py: 1 / 4 / 8 sessions of sparse-fast at 640x480 on one ogserver --device cuda.
+# bench/load.py: 1 / 4 / 8 / 16 sessions of sparse-fast at 640x480 on one ogserver --device cuda, its sessions
+# as threads (NAME load) or in WORKERS worker processes (NAME load-workers-N).
 service_load() {
     set -o pipefail
+    local name=load workers=()
+    if [ -n "${WORKERS:-}" ]; then name=load-workers-$WORKERS; workers=(--workers "$WORKERS"); fi
     mkdir -p "$RESULTS/load"
     "$PY" bench/load.py --device cuda --data "$DATA" --format 7scenes --frames "$LOAD_FRAMES" --scale 1 \
-        --preset sparse-fast --sessions 1 4 8 --json "$RESULTS/load/load.json" | tee "$RESULTS/load/load.md"
+        --preset sparse-fast --sessions 1 4 8 16 "${workers[@]}" --json "$RESULTS/load/$name.json" \
+        | tee "$RESULTS/load/$name.md"
+}
+
+service_load_workers() {
+    WORKERS=4 service_load
 }
 
 # ogmap run of sparse at 320x240 on the CPU, once per thread count: torch's (OMP_NUM_THREADS, MKL_NUM_THREADS)
@@ -206,7 +214,7 @@ replica_refine() {
     return $status
 }
 
-export -f pytest_interruptible suite install_with_fallback_suite gpu_tests service_load cpu_threads service replica_refine
+export -f pytest_interruptible suite install_with_fallback_suite gpu_tests service_load service_load_workers cpu_threads service replica_refine
 log "check: budget ${BUDGET} s, results $STAMP, 7-Scenes '$DATA' ($SEVEN_SCENES_FRAMES frames), Replica '$REPLICA' ($REPLICA_FRAMES frames), only '${ONLY:-all}'"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>&1 | tee -a "$LOGS/check.log"
 
@@ -233,7 +241,8 @@ ogmap_run replica sparse-fast 45 replica:20 replica 0:20 1 "$REPLICA"
 ogmap_run replica sparse 45 replica:20 replica 0:20 1 "$REPLICA"
 ogmap_run replica dense 60 replica:20 replica 0:20 1 "$REPLICA"
 step replica-refine 90 replica:20,gpu replica_refine
-step load 180 "7scenes:${LOAD_FRAMES#*:},gpu" service_load
+step load 240 "7scenes:${LOAD_FRAMES#*:},gpu" service_load
+step load-workers-4 240 "7scenes:${LOAD_FRAMES#*:},gpu" service_load_workers
 step service-sparse-640 120 7scenes:300,gpu service
 # about 1.6 s a frame over the five thread counts, and 40 s of start-up
 step cpu-threads $((40 + 16 * (${THREAD_FRAMES#*:} - ${THREAD_FRAMES%:*}) / 10)) "cpu,7scenes:${THREAD_FRAMES#*:}" cpu_threads

@@ -148,9 +148,9 @@ def tree(root: Path) -> str:
     lines = [f"# {root.name}", ""]
     if runs:
         lines += [table(runs), ""]
-    load_table = root / "load" / "load.md"
-    if load_table.exists():
-        lines += ["## Sessions on one server (bench/load.py)", "", load_table.read_text().rstrip(), ""]
+    for load_table in sorted((root / "load").glob("load*.md"), key=lambda path: (path.stem != "load", path.stem)):
+        how = "threads" if load_table.stem == "load" else load_table.stem.removeprefix("load-").replace("-", " ")
+        lines += [f"## Sessions on one server, {how} (bench/load.py)", "", load_table.read_text().rstrip(), ""]
     lines += step_figures(root / "gpu-tests")
     return "\n".join(lines)
 
