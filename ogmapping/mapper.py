@@ -28,7 +28,7 @@ import torch
 
 from ogmapping import queries
 from ogmapping.config import ConfigBounds, MapperConfig, resolution
-from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.camera import Intrinsics, validate_pose
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.preprocess import prepare
 from ogmapping.mapping import corrections
@@ -244,8 +244,7 @@ class Mapper:
             for position, c2w in corrected.items():
                 if not 0 <= position < len(self.keyframes):
                     raise ValueError(f"keyframe {position}: the map has {len(self.keyframes)} keyframes")
-                if (problem := corrections.rigid_problem(c2w)) is not None:
-                    raise ValueError(f"keyframe {position}: the corrected pose {problem}")
+                c2w = validate_pose(c2w, f"keyframe {position}: the corrected pose")
                 old = self.keyframes.keyframes[position].c2w.detach().cpu().double().numpy()
                 deltas[position] = corrections.delta(old, c2w)
             anchors = corrections.move(self.model, deltas)

@@ -25,25 +25,6 @@ import torch
 from ogmapping.mapping.model import MapModel
 from ogmapping.structure.anchors import AnchorMap
 
-# A rotation is orthonormal when R^T R is the identity within this (each entry) and det R = 1 within it.
-RIGID_TOLERANCE = 1e-4
-
-
-def rigid_problem(c2w: np.ndarray, tolerance: float = RIGID_TOLERANCE) -> str | None:
-    """Why ``c2w`` (4, 4) is not a rigid camera-to-world transform, or None when it is."""
-    if c2w.shape != (4, 4):
-        return f"must be 4x4, not {c2w.shape}"
-    if not np.isfinite(c2w).all():
-        return "holds NaN or infinity"
-    if not np.array_equal(c2w[3], [0.0, 0.0, 0.0, 1.0]):
-        return "last row must be 0 0 0 1"
-    rotation = c2w[:3, :3]
-    if np.abs(rotation.T @ rotation - np.eye(3)).max() > tolerance:
-        return f"rotation is not orthonormal (within {tolerance:g})"
-    if abs(np.linalg.det(rotation) - 1.0) > tolerance:
-        return f"rotation's determinant is not 1 (within {tolerance:g}): a reflection"
-    return None
-
 
 def jump(old: np.ndarray, corrected: np.ndarray) -> tuple[float, float]:
     """How far a correction moves the camera: (metres the centre moves, degrees it turns)."""

@@ -1,0 +1,171 @@
+"""CorrectPoses end to end: each bad batch is INVALID_ARGUMENT naming its first bad entry and changes nothing;
+a good one moves the map, is recorded, and `ogclient replay` reproduces it; `ogclient correct-poses` sends a
+TUM trajectory; the batch limit and the token are enforced."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+import grpc
+import numpy as np
+import pytest
+from ogapi import recording
+from ogapi.v1 import mapping_pb2 as pb
+from ogclient.__main__ import main as ogclient_main
+from ogclient.connection import SessionRef
+from ogclient.evaluation import snapshot_bytes
+from ogclient.streaming import stream_frames
+from safetensors.torch import load as load_tensors
+
+from ogmapping.frames.rotation import axis_angle_matrix
+from ogmapping.frames.trajectory import write_tum
+
+from .inprocess import Running, serving, settings
+from .scene import TINY, create_request, messages, scene
+
+FIRST = 6  # frames streamed before the corrections; the rest after
+
+
+@pytest.fixture(scope="module")
+def running(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
+    configured = settings(tmp_path_factory.mktemp("corrections"))
+    configured.limits.max_pose_corrections = 8
+    with serving(configured) as server:
+        yield server
+
+
+def moved(c2w: np.ndarray, degrees: float = 2.0, shift: tuple = (0.03, 0.0, -0.02)) -> np.ndarray:
+    motion = np.eye(4)
+    motion[:3, :3] = axis_angle_matrix(np.array([0.0, 1.0, 0.0]), np.radians(degrees))
+    motion[:3, 3] = shift
+    return motion @ c2w
+
+
+def entry(ack: pb.FrameAck, c2w: np.ndarray, **frame) -> pb.CorrectedPose:
+    return pb.CorrectedPose(c2w=c2w.reshape(-1).tolist(), **(frame or {"sequence": ack.sequence}))
+
+
+def correct(running: Running, session: SessionRef, *poses: pb.CorrectedPose) -> pb.CorrectPosesResponse:
+    request = pb.CorrectPosesRequest(session_id=session.session_id, poses=poses)
+    return running.stub.CorrectPoses(request, metadata=session.metadata())
+
+
+@pytest.fixture(scope="module")
+def mapped(running: Running):
+    """A session with FIRST frames mapped: (session, their acks, their messages, the rest)."""
+    frames = messages(scene())
+    session = SessionRef.from_credentials(running.stub.CreateSession(create_request(TINY, "corrections")))
+    acks = stream_frames(running.stub, session, frames[:FIRST], progress=False).acks
+    assert all(ack.accepted for ack in acks)
+    return session, acks, frames[:FIRST], frames[FIRST:]
+
+
+def pose_of(message: pb.Frame) -> np.ndarray:
+    return np.array(message.c2w, dtype=np.float64).reshape(4, 4)
+
+
+def bad_cases(acks: list[pb.FrameAck], sent: list[pb.Frame]) -> list[tuple[list[pb.CorrectedPose], str]]:
+    keyframe = next(ack for ack in acks[1:] if ack.keyframe)
+    pose = pose_of(sent[keyframe.sequence - 1])
+    good = entry(keyframe, moved(pose))
+    nan, scaled, mirrored, last_row = pose.copy(), pose.copy(), pose.copy(), pose.copy()
+    nan[0, 3] = np.nan
+    scaled[:3, :3] *= 1.2
+    mirrored[:3, 0] *= -1.0
+    last_row[3, 0] = 0.1
+    far, turned = moved(pose, 0.0, (8.0, 0.0, 0.0)), moved(pose, 45.0, (0.0, 0.0, 0.0))
+    stamp = sent[0].timestamp
+    return [
+        ([], "poses: is empty"),
+        ([good, entry(keyframe, pose, sequence=99)], r"poses\[1\].sequence: frame 99 is not a frame this session"),
+        ([good, entry(keyframe, pose, timestamp=stamp + 0.5)], r"poses\[1\].timestamp: no mapped frame"),
+        ([good, entry(keyframe, nan)], r"poses\[1\].c2w: .*non-finite"),
+        ([good, entry(keyframe, scaled)], r"poses\[1\].c2w: .*not orthonormal"),
+        ([good, entry(keyframe, mirrored)], r"poses\[1\].c2w: .*reflection"),
+        ([good, entry(keyframe, last_row)], r"poses\[1\].c2w: .*last row"),
+        ([good, pb.CorrectedPose(c2w=pose.reshape(-1).tolist())], r"poses\[1\]: names no frame"),
+        ([entry(keyframe, far)], r"poses\[0\].c2w: moves frame \d+'s camera 8 m .* beyond the server's bounds"),
+        ([entry(keyframe, turned)], r"poses\[0\].c2w: moves .* 45 degrees, beyond"),
+        ([good, entry(keyframe, moved(pose, 1.0))], rf"poses\[1\]: names frame {keyframe.sequence} again"),
+        ([good, entry(keyframe, pose, timestamp=sent[keyframe.sequence - 1].timestamp)], r"poses\[1\]: names frame"),
+        ([good, pb.CorrectedPose(sequence=1, c2w=[1.0] * 12)], r"poses\[1\].c2w: must hold 16 numbers"),
+    ]
+
+
+def test_bad_batches_are_refused_and_change_nothing(running: Running, mapped) -> None:
+    session, acks, sent, _ = mapped
+    before = snapshot_bytes(running.stub, session)
+    for poses, message in bad_cases(acks, sent):
+        with pytest.raises(grpc.RpcError) as refused:
+            correct(running, session, *poses)
+        assert refused.value.code() == grpc.StatusCode.INVALID_ARGUMENT, message
+        assert re.search(message, refused.value.details()), (message, refused.value.details())
+    too_many = [entry(acks[0], pose_of(sent[0]))] * 9
+    with pytest.raises(grpc.RpcError) as refused:
+        correct(running, session, *too_many)
+    assert refused.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+    assert "limits.max_pose_corrections" in refused.value.details()
+    with pytest.raises(grpc.RpcError) as refused:
+        running.stub.CorrectPoses(pb.CorrectPosesRequest(session_id=session.session_id),
+                                  metadata=(("x-session-token", "x" * 43),))
+    assert refused.value.code() == grpc.StatusCode.UNAUTHENTICATED
+    after = load_tensors(snapshot_bytes(running.stub, session))
+    before = load_tensors(before)
+    assert after.keys() == before.keys()
+    assert all(bool((after[name] == before[name]).all()) for name in before)
+
+
+def anchors(data: bytes) -> dict:
+    tensors = load_tensors(data)
+    return {name: tensors[f"anchors.{name}"] for name in ("positions", "keyframe", "codes")}
+
+
+def test_a_correction_moves_the_map_and_replays(running: Running, mapped, tmp_path: Path) -> None:
+    session, acks, sent, rest = mapped
+    keyframes = [ack for ack in acks if ack.keyframe]
+    target = keyframes[-1]
+    owner = len(keyframes) - 1
+    before = anchors(snapshot_bytes(running.stub, session))
+    mine = before["keyframe"] == owner
+    assert bool(mine.any())
+    pose = pose_of(sent[target.sequence - 1])
+    plain = next((ack for ack in acks if not ack.keyframe), None)
+    batch = [entry(target, moved(pose), timestamp=sent[target.sequence - 1].timestamp)]
+    if plain is not None:
+        batch.append(entry(plain, pose_of(sent[plain.sequence - 1])))
+    response = correct(running, session, *batch)
+    assert (response.keyframes, response.frames) == (1, len(batch) - 1)
+    assert response.anchors_moved == int(mine.sum()) and response.after_sequence == FIRST
+    after = anchors(snapshot_bytes(running.stub, session))
+    motion = moved(pose) @ np.linalg.inv(pose)
+    expected = before["positions"][mine].double().numpy() @ motion[:3, :3].T + motion[:3, 3]
+    assert np.allclose(after["positions"][mine].double().numpy(), expected, atol=1e-5)
+    assert np.array_equal(after["positions"][~mine].numpy(), before["positions"][~mine].numpy())
+
+    # The rest of the frames, then a TUM file through `ogclient correct-poses`.
+    stream_frames(running.stub, session, rest, progress=False)
+    session_file = tmp_path / "session.json"
+    session.save(session_file, running.address)
+    tum = tmp_path / "corrected.tum"
+    write_tum(tum, [sent[0].timestamp], [moved(pose_of(sent[0]), 1.0, (0.0, 0.01, 0.0))], ["corrected"])
+    assert ogclient_main(["--server", running.address, "correct-poses", "--session", str(session_file),
+                          str(tum)]) == 0
+    live = anchors(snapshot_bytes(running.stub, session))
+    closed = running.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id),
+                                       metadata=session.metadata())
+    recorded = recording.load(running.record_dir / closed.recording)
+    assert [batch.after_sequence for batch in recorded.corrections] == [FIRST, len(sent) + len(rest)]
+    assert all(pose.HasField("sequence") for batch in recorded.corrections for pose in batch.poses)
+
+    replayed_file = tmp_path / "replayed.json"
+    assert ogclient_main(["--server", running.address, "replay", str(running.record_dir / closed.recording),
+                          "--session-out", str(replayed_file), "--quiet"]) == 0
+    replayed = anchors(snapshot_bytes(running.stub, SessionRef.load(replayed_file)))
+    assert torch_equal(replayed["keyframe"], live["keyframe"])
+    assert np.allclose(replayed["positions"].numpy(), live["positions"].numpy(), atol=1e-6)
+
+
+def torch_equal(first, second) -> bool:
+    return first.shape == second.shape and bool((first == second).all())
