@@ -14,7 +14,7 @@ import pytest
 from ogapi import recording
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.__main__ import main as ogclient_main
-from ogclient.connection import SessionRef
+from ogclient.connection import SessionRef, connect
 from ogclient.evaluation import snapshot_bytes
 from ogclient.streaming import stream_frames
 from safetensors.torch import load as load_tensors
@@ -22,6 +22,7 @@ from safetensors.torch import load as load_tensors
 from ogmapping.frames.rotation import axis_angle_matrix
 from ogmapping.frames.trajectory import write_tum
 
+from .conftest import start_local
 from .inprocess import Running, serving, settings
 from .scene import TINY, create_request, messages, scene
 
@@ -47,9 +48,9 @@ def entry(ack: pb.FrameAck, c2w: np.ndarray, **frame) -> pb.CorrectedPose:
     return pb.CorrectedPose(c2w=c2w.reshape(-1).tolist(), **(frame or {"sequence": ack.sequence}))
 
 
-def correct(running: Running, session: SessionRef, *poses: pb.CorrectedPose) -> pb.CorrectPosesResponse:
+def correct(stub, session: SessionRef, *poses: pb.CorrectedPose) -> pb.CorrectPosesResponse:
     request = pb.CorrectPosesRequest(session_id=session.session_id, poses=poses)
-    return running.stub.CorrectPoses(request, metadata=session.metadata())
+    return stub.CorrectPoses(request, metadata=session.metadata())
 
 
 @pytest.fixture(scope="module")
@@ -99,12 +100,12 @@ def test_bad_batches_are_refused_and_change_nothing(running: Running, mapped) ->
     before = snapshot_bytes(running.stub, session)
     for poses, message in bad_cases(acks, sent):
         with pytest.raises(grpc.RpcError) as refused:
-            correct(running, session, *poses)
+            correct(running.stub, session, *poses)
         assert refused.value.code() == grpc.StatusCode.INVALID_ARGUMENT, message
         assert re.search(message, refused.value.details()), (message, refused.value.details())
     too_many = [entry(acks[0], pose_of(sent[0]))] * 9
     with pytest.raises(grpc.RpcError) as refused:
-        correct(running, session, *too_many)
+        correct(running.stub, session, *too_many)
     assert refused.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
     assert "limits.max_pose_corrections" in refused.value.details()
     with pytest.raises(grpc.RpcError) as refused:
@@ -135,7 +136,7 @@ def test_a_correction_moves_the_map_and_replays(running: Running, mapped, tmp_pa
     batch = [entry(target, moved(pose), timestamp=sent[target.sequence - 1].timestamp)]
     if plain is not None:
         batch.append(entry(plain, pose_of(sent[plain.sequence - 1])))
-    response = correct(running, session, *batch)
+    response = correct(running.stub, session, *batch)
     assert (response.keyframes, response.frames) == (1, len(batch) - 1)
     assert response.anchors_moved == int(mine.sum()) and response.after_sequence == FIRST
     after = anchors(snapshot_bytes(running.stub, session))
@@ -169,3 +170,36 @@ def test_a_correction_moves_the_map_and_replays(running: Running, mapped, tmp_pa
 
 def torch_equal(first, second) -> bool:
     return first.shape == second.shape and bool((first == second).all())
+
+
+def test_a_resumed_session_keeps_its_corrections(tmp_path: Path) -> None:
+    """kill -9 after a correction a checkpoint holds and one made after it: the next server's session has both
+    (the second applied again from the recording), once each, and still resolves the frames before its
+    checkpoint."""
+    record_dir = tmp_path / "recordings"
+    frames = messages(scene())
+    first = start_local(record_dir, "--checkpoint-interval", "2", "--no-warm-up")
+    try:
+        channel, stub = connect(first.address, timeout=60.0)
+        session = SessionRef.from_credentials(stub.CreateSession(create_request(TINY, "resume")))
+        acks = stream_frames(stub, session, frames[:4], progress=False).acks
+        keyframes = [ack for ack in acks if ack.keyframe]
+        correct(stub, session, entry(keyframes[-1], moved(pose_of(frames[keyframes[-1].sequence - 1]))))
+        stream_frames(stub, session, frames[4:6], progress=False)  # the checkpoint at frame 6 holds the correction
+        correct(stub, session, entry(keyframes[0], moved(pose_of(frames[0]), 1.0, (0.0, 0.02, 0.0))))
+        live = anchors(snapshot_bytes(stub, session))
+        channel.close()
+    finally:
+        first.kill()
+    second = start_local(record_dir, "--checkpoint-interval", "2", "--no-warm-up")
+    try:
+        channel, stub = connect(second.address, timeout=60.0)
+        assert "resumed for" in second.log_path.read_text()
+        resumed = anchors(snapshot_bytes(stub, session))
+        assert torch_equal(resumed["keyframe"], live["keyframe"])
+        assert np.allclose(resumed["positions"].numpy(), live["positions"].numpy(), atol=1e-6)
+        again = correct(stub, session, entry(acks[1], pose_of(frames[1])))
+        assert again.after_sequence == 6
+        channel.close()
+    finally:
+        second.stop()
