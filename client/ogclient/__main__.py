@@ -112,6 +112,10 @@ def parser() -> argparse.ArgumentParser:
     stream.add_argument("--close", action="store_true", help="close the session when done")
     stream.add_argument("--quiet", action="store_true", help="no progress bar")
     add_trajectory(stream)
+    stream.add_argument("--corrected-trajectory", metavar="FILE",
+                        help="a TUM trajectory of corrected poses (a SLAM system's after a loop closure, e.g. for a "
+                             "--bag): once every frame is mapped, the poses of the frames this stream mapped are sent "
+                             "as pose corrections (matched by timestamp, else index; see correct-poses)")
     stream.set_defaults(handler=commands.stream)
 
     replay = sub.add_parser(

@@ -129,9 +129,24 @@ def stream(ctx: Context, args: argparse.Namespace) -> int:
     result = stream_resuming(ctx.stub, session, after, total=len(positions), progress=not args.quiet,
                              backoff=Backoff(retries=args.retries))
     print(result.summary())
+    correct_streamed(ctx, session, args.corrected_trajectory, keys, result)
     close_if_asked(ctx, session, args)
     write_refined(args.trajectory, keys, result)
     return 1 if result.rejected else 0
+
+
+def correct_streamed(ctx: Context, session: SessionRef, path: str | None, keys: dict[int, float],
+                     result: StreamResult) -> None:
+    """--corrected-trajectory: once every frame is mapped, the file's poses of the frames this stream mapped
+    (matched by key: timestamp, else index) sent as pose corrections; its other lines are left out."""
+    if not path:
+        return
+    trajectory = read_tum(path)
+    poses = corrections.for_mapped(trajectory, keys, result.acks)
+    if not poses:
+        raise ClientError(f"{path}: none of its {len(trajectory.keys)} poses is of a frame this stream mapped")
+    sent = corrections.send(ctx.stub, session, poses, corrections.DEFAULT_BATCH)
+    print(f"{path}: {len(poses)} of its {len(trajectory.keys)} poses are of frames mapped here; {sent.summary()}")
 
 
 def write_refined(path: str | None, keys: dict[int, float], result: StreamResult) -> None:

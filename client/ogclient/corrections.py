@@ -35,6 +35,19 @@ def entries(trajectory: Trajectory, keys: str) -> list[pb.CorrectedPose]:
     return poses
 
 
+def for_mapped(trajectory: Trajectory, keys: dict[int, float], acks: list[pb.FrameAck]) -> list[pb.CorrectedPose]:
+    """The trajectory's poses of the frames this stream had mapped, each by its sequence: ``keys`` maps each
+    sent frame's index to its key (its timestamp, else its index), as a TUM file keys it."""
+    poses = []
+    for ack in acks:
+        if not ack.accepted or ack.skipped or ack.index not in keys:
+            continue
+        c2w = trajectory.find(keys[ack.index])
+        if c2w is not None:
+            poses.append(pb.CorrectedPose(sequence=ack.sequence, c2w=c2w.reshape(-1).tolist()))
+    return poses
+
+
 @dataclass
 class Sent:
     batches: int = 0

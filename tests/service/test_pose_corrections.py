@@ -20,7 +20,8 @@ from ogclient.streaming import stream_frames
 from safetensors.torch import load as load_tensors
 
 from ogmapping.frames.rotation import axis_angle_matrix
-from ogmapping.frames.trajectory import write_tum
+from ogmapping.frames.trajectory import frame_key, write_tum
+from ogmapping.quality.evaluation import open_frames
 
 from .conftest import start_local
 from .inprocess import Running, serving, settings
@@ -203,3 +204,23 @@ def test_a_resumed_session_keeps_its_corrections(tmp_path: Path) -> None:
         channel.close()
     finally:
         second.stop()
+
+
+def test_a_stream_sends_its_corrected_trajectory_at_the_end(running: Running, tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture) -> None:
+    """`ogclient stream --corrected-trajectory` (as for a bag): the file's poses of the frames it mapped, matched by
+    key, sent once they are mapped; lines of other frames are left out."""
+    frame_set = open_frames("synthetic", "synthetic", "0:6", 1, 0.25)  # what the command streams
+    streamed = [frame_set.load(position) for position in frame_set.selection.streamed]
+    tum = tmp_path / "slam.tum"
+    keys = [frame_key(frame) for frame in streamed] + [1000.0]
+    write_tum(tum, keys, [moved(frame.c2w, 0.5, (0.01, 0.0, 0.0)) for frame in streamed] + [np.eye(4)], ["slam"])
+    session_file = tmp_path / "streamed.json"
+    assert ogclient_main(["--server", running.address, "stream", "--data", "synthetic", "--format", "synthetic",
+                          "--frames", "0:6", "--scale", "0.25", "--preset", "sparse-fast", "--quiet",
+                          *(item for key, value in TINY.items() for item in ("--set", f"{key}={value}")),
+                          "--session-out", str(session_file), "--corrected-trajectory", str(tum), "--close"]) == 0
+    said = re.search(rf"{len(streamed)} of its {len(keys)} poses are of frames mapped here; 1 batches applied: "
+                     r"(\d+) keyframes corrected \((\d+) anchors moved\)", out := capsys.readouterr().out)
+    assert said, out
+    assert int(said.group(1)) >= 1 and int(said.group(2)) > 0
