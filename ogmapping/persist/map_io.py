@@ -89,6 +89,8 @@ def load(model: MapModel, keyframes: KeyframeSet, state: MapState, training_stat
         _load_map(model, state)
         if training_state:
             model.drawn.post(training.restore(optimisation(model, keyframes), state.tensors) or 0)
+        else:  # the keyframes its anchors belonged to are not loaded: a correction of a new keyframe moves none
+            model.anchors.keyframe = torch.full_like(model.anchors.keyframe, -1)
     except (KeyError, RuntimeError, ValueError) as error:
         raise ValueError(f"map state does not match its config: {error}") from error
     model.frames = state.frames
