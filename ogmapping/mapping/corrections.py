@@ -1,7 +1,7 @@
 """Pose corrections of keyframes already mapped: the anchors each keyframe owns follow it rigidly.
 
 A client's SLAM corrects past poses when it closes a loop. For each corrected keyframe the rigid
-delta D = corrected @ inverse(old) (old: the keyframe's client pose the map was built from) moves the
+delta D = corrected @ inverse(old) (old: its pose as the client gave it, or as the last correction left it) moves the
 anchors that belong to it (``AnchorMap`` row ``keyframe``): their centres p -> D p, and their
 offsets rotated with it so that every Gaussian mean p + s * o lands at D (p + s * o) (the offsets are
 scaled per axis by s, so o -> R (s * o) / s). The decoded rotations and the hash grid's features are
@@ -24,6 +24,7 @@ import torch
 
 from ogmapping.mapping.model import MapModel
 from ogmapping.structure.anchors import AnchorMap
+from ogmapping.structure.octree import SparseVoxelOctree
 
 
 def jump(old: np.ndarray, corrected: np.ndarray) -> tuple[float, float]:
@@ -104,7 +105,7 @@ def move(model: MapModel, deltas: dict[int, np.ndarray]) -> int:
     return int(rows.numel())
 
 
-def _recode_octree(anchors: AnchorMap, octree, levels: torch.Tensor, old_codes: torch.Tensor,
+def _recode_octree(anchors: AnchorMap, octree: SparseVoxelOctree, levels: torch.Tensor, old_codes: torch.Tensor,
                    codes: torch.Tensor) -> None:
     """Free the cells moved anchors left that no anchor holds now; occupy the cells they moved into."""
     for level in range(octree.levels):
