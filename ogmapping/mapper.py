@@ -28,9 +28,10 @@ import torch
 
 from ogmapping import queries
 from ogmapping.config import ConfigBounds, MapperConfig, resolution
-from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.camera import Intrinsics, validate_pose
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.preprocess import prepare
+from ogmapping.mapping import corrections
 from ogmapping.mapping.model import MapModel
 from ogmapping.mapping.steps import MappingSteps
 from ogmapping.mapping.tracker import Tracker
@@ -160,7 +161,8 @@ class Mapper:
             new_codes = allocation.allocate(self.config.octree.allocation, model.octree, sampled,
                                             frame.color_intrinsics, placed,
                                             lambda: model.render(placed, frame.color_intrinsics)[1])
-            model.add_coarse_anchors(new_codes, rgb, depth, frame.color_intrinsics, placed)
+            first_new = len(model.anchors)
+            model.add_coarse_anchors(new_codes, rgb, depth, frame.color_intrinsics, placed, len(self.keyframes) - 1)
         with model.timed("keyframes"):
             codes = model.octree.seen_from(depth, frame.color_intrinsics, placed)
             is_keyframe = self.keyframes.should_insert(codes)
@@ -168,6 +170,8 @@ class Mapper:
             if is_keyframe:
                 self.keyframes.insert(Keyframe.capture(frame.index, rgb, depth, frame.color_intrinsics, c2w, codes,
                                                        pinned=self.device.type == "cuda", correction=correction))
+                with self.lock:  # the anchors this frame allocated belong to it, not to the keyframe before
+                    model.anchors.keyframe[first_new:] = len(self.keyframes) - 1
         # The frame itself, at full precision, is the view every step trains on.
         view = (View.of(rgb, depth, frame.color_intrinsics, c2w, compiled=self.profile.compiled, correction=correction)
                 if iterations else None)
@@ -229,6 +233,26 @@ class Mapper:
             return settings.frame_iterations
         renders_per_step = 1 + self.keyframes.window_size(view_is_newest=False)
         return min(settings.frame_iterations, max(1, settings.frame_renders // renders_per_step))
+
+    def correct_poses(self, corrected: dict[int, np.ndarray]) -> corrections.Moved:
+        """Corrected camera-to-world poses (4x4) of keyframes, by their position in the keyframe list: each
+        keyframe's anchors move rigidly with it (``ogmapping.mapping.corrections``), its pose becomes the
+        corrected one and it joins the next windows. All or nothing: ValueError, and the map unchanged, for an
+        unknown keyframe, a pose that is not rigid, or a move beyond the octree's range."""
+        with on_stream(self.stream), self.lock, torch_threads(self.profile.threads):
+            deltas = {}
+            for position, c2w in corrected.items():
+                if not 0 <= position < len(self.keyframes):
+                    raise ValueError(f"keyframe {position}: the map has {len(self.keyframes)} keyframes")
+                c2w = validate_pose(c2w, f"keyframe {position}: the corrected pose")
+                old = self.keyframes.keyframes[position].c2w.detach().cpu().double().numpy()
+                deltas[position] = corrections.delta(old, c2w)
+            anchors = corrections.move(self.model, deltas)
+            for position, c2w in corrected.items():
+                pose = self.keyframes.keyframes[position].c2w
+                pose.copy_(torch.as_tensor(c2w, dtype=pose.dtype))
+            self.keyframes.revisit(list(corrected))
+            return corrections.Moved(len(corrected), anchors)
 
     # ------------------------------------------------------------------ queries
 

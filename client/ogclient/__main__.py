@@ -9,7 +9,7 @@ from pathlib import Path
 
 import grpc
 
-from ogclient import commands
+from ogclient import commands, corrections
 from ogclient.connection import DEFAULT_SERVER, ClientError, Transport, connect, describe
 from ogmapping.cli.options import add_bag_arguments, add_config_arguments, add_dataset_arguments
 from ogmapping.datasets import FORMATS
@@ -23,6 +23,7 @@ typical session:
   ogclient eval --session out/kitchen.json --data ../shared/data/7scenes-redkitchen --frames 0:100 --scale 0.25
   ogclient render --session out/kitchen.json --data ../shared/data/7scenes-redkitchen --scale 0.25 --position 55
   ogclient snapshot --session out/kitchen.json --out out/kitchen.safetensors
+  ogclient correct-poses --session out/kitchen.json slam-corrected.tum   # a loop closure: poses already mapped
   ogclient close --session out/kitchen.json
   ogclient replay recordings/<session>.mcap --close
   ogclient repair-recording recordings/<session>.mcap repaired.mcap   # after a server crash
@@ -111,6 +112,10 @@ def parser() -> argparse.ArgumentParser:
     stream.add_argument("--close", action="store_true", help="close the session when done")
     stream.add_argument("--quiet", action="store_true", help="no progress bar")
     add_trajectory(stream)
+    stream.add_argument("--corrected-trajectory", metavar="FILE",
+                        help="a TUM trajectory of corrected poses (a SLAM system's after a loop closure, e.g. for a "
+                             "--bag): once every frame is mapped, the poses of the frames this stream mapped are sent "
+                             "as pose corrections (matched by timestamp, else index; see correct-poses)")
     stream.set_defaults(handler=commands.stream)
 
     replay = sub.add_parser(
@@ -209,6 +214,23 @@ def parser() -> argparse.ArgumentParser:
     listing = sub.add_parser("list", help="list your sessions on the server",
                              description="List the sessions you created (on an open server: every session).")
     listing.set_defaults(handler=commands.list_sessions)
+
+    correct = sub.add_parser(
+        "correct-poses", help="send corrected poses of mapped frames (a SLAM loop closure) to a session",
+        description="Send a corrected trajectory (TUM: timestamp tx ty tz qx qy qz qw, camera-to-world) for frames "
+                    "the session already mapped. Each keyframe's anchors move rigidly with its correction and it is "
+                    "optimised again; lines naming mapped frames that are not keyframes move nothing. Sent in batches, "
+                    "each applied whole or not at all: a refused batch (an unknown frame, a pose that is not rigid, a "
+                    "jump beyond the server's bounds) is named and leaves the batches before it applied.")
+    add_session(correct)
+    correct.add_argument("trajectory", help="TUM trajectory file of corrected camera-to-world poses")
+    correct.add_argument("--keys", choices=("timestamp", "sequence"), default="timestamp",
+                         help="what the file's first column is: the frames' timestamps as they were sent (default), "
+                              "or their FrameAck.sequence numbers")
+    correct.add_argument("--batch", type=int, default=corrections.DEFAULT_BATCH,
+                         help=f"poses a call (default {corrections.DEFAULT_BATCH}; the server's "
+                              "limits.max_pose_corrections caps it)")
+    correct.set_defaults(handler=commands.correct_poses)
 
     close = sub.add_parser("close", help="close a session (finishes its recording)", description="Close a session.")
     add_session(close)

@@ -17,9 +17,9 @@ from ogapi.images import decode_color, decode_depth
 from ogapi.v1 import mapping_pb2 as pb
 from ogapi.v1 import mapping_pb2_grpc as pb_grpc
 
+from ogclient import corrections, viewing
 from ogclient import replay as replaying
 from ogclient import trajectory as trajectories
-from ogclient import viewing
 from ogclient.connection import ClientError, SessionRef
 from ogclient.evaluation import evaluate, snapshot_bytes
 from ogclient.messages import frame_to_proto, intrinsics_to_proto, restore_chunks
@@ -28,6 +28,7 @@ from ogclient.streaming import StreamResult, paced, stream_frames
 from ogmapping.cli.options import dataset_source, open_frame_set, parse_intrinsics
 from ogmapping.config import load_file, parse_override_args, resolve
 from ogmapping.frames.camera import validate_pose
+from ogmapping.frames.trajectory import read_tum
 from ogmapping.quality.evaluation import open_frames
 
 COLOR_CHOICES = {"png": pb.COLOR_PNG, "jpeg": pb.COLOR_JPEG, "raw": pb.COLOR_RAW_RGB8}
@@ -128,9 +129,24 @@ def stream(ctx: Context, args: argparse.Namespace) -> int:
     result = stream_resuming(ctx.stub, session, after, total=len(positions), progress=not args.quiet,
                              backoff=Backoff(retries=args.retries))
     print(result.summary())
+    correct_streamed(ctx, session, args.corrected_trajectory, keys, result)
     close_if_asked(ctx, session, args)
     write_refined(args.trajectory, keys, result)
     return 1 if result.rejected else 0
+
+
+def correct_streamed(ctx: Context, session: SessionRef, path: str | None, keys: dict[int, float],
+                     result: StreamResult) -> None:
+    """--corrected-trajectory: once every frame is mapped, the file's poses of the frames this stream mapped
+    (matched by key: timestamp, else index) sent as pose corrections; its other lines are left out."""
+    if not path:
+        return
+    trajectory = read_tum(path)
+    poses = corrections.for_mapped(trajectory, keys, result.acks)
+    if not poses:
+        raise ClientError(f"{path}: none of its {len(trajectory.keys)} poses is of a frame this stream mapped")
+    sent = corrections.send(ctx.stub, session, poses, corrections.DEFAULT_BATCH)
+    print(f"{path}: {len(poses)} of its {len(trajectory.keys)} poses are of frames mapped here; {sent.summary()}")
 
 
 def write_refined(path: str | None, keys: dict[int, float], result: StreamResult) -> None:
@@ -157,13 +173,31 @@ def replay(ctx: Context, args: argparse.Namespace) -> int:
               "and maps every recorded frame")
     credentials = ctx.stub.CreateSession(replaying.session_request(recorded.config, args.label))
     session = announce(credentials, args, ctx.server)
-    result = stream_frames(ctx.stub, session, replaying.frames(recorded, args.realtime),
-                           total=len(recorded.frames), progress=not args.quiet)
+    result = StreamResult()
+    # Each recorded batch of pose corrections once the frames before it are mapped, as the recorded session took it.
+    for segment in corrections.segments(recorded):
+        if segment.end > segment.start:
+            stream_frames(ctx.stub, session, replaying.frames(recorded, args.realtime, segment.start, segment.end),
+                          total=segment.end - segment.start, progress=not args.quiet, result=result)
+        if segment.corrections is not None:
+            sent = corrections.send(ctx.stub, session, list(segment.corrections.poses), len(segment.corrections.poses))
+            print(f"after frame {segment.end}: {sent.summary()}")
     print(result.summary())
     close_if_asked(ctx, session, args)
     write_refined(args.trajectory, {frame.index: trajectories.frame_key(frame) for _, frame in recorded.frames},
                   result)
     return 1 if result.rejected else 0
+
+
+def correct_poses(ctx: Context, args: argparse.Namespace) -> int:
+    """A corrected trajectory (TUM) to a session, in batches."""
+    if args.batch < 1:
+        raise ClientError("--batch must be 1 or more")
+    session = SessionRef.load(args.session)
+    poses = corrections.entries(read_tum(args.trajectory), args.keys)
+    sent = corrections.send(ctx.stub, session, poses, args.batch)
+    print(sent.summary())
+    return 0
 
 
 def trajectory(args: argparse.Namespace) -> int:

@@ -33,12 +33,15 @@ def recorded_times(recording: Recording) -> list[float]:
     return [(t - arrivals[0]) / 1e9 for t in arrivals]
 
 
-def frames(recording: Recording, realtime: bool = False) -> Iterator[pb.Frame]:
-    """The recorded Frame messages, unchanged, optionally paced like the original stream."""
+def frames(recording: Recording, realtime: bool = False, first: int = 0,
+           end: int | None = None) -> Iterator[pb.Frame]:
+    """The recorded Frame messages ``first`` to ``end`` (list positions), unchanged, optionally paced like the
+    original stream (from the first of them)."""
     offsets = recorded_times(recording) if realtime else [0.0] * len(recording.frames)
+    chosen = slice(first, end)
     start = time.monotonic()
-    for offset, (_, frame) in zip(offsets, recording.frames, strict=True):
-        delay = offset - (time.monotonic() - start)
+    for offset, (_, frame) in zip(offsets[chosen], recording.frames[chosen], strict=True):
+        delay = offset - offsets[first] - (time.monotonic() - start)
         if delay > 0:
             time.sleep(delay)
         yield frame

@@ -197,11 +197,11 @@ class MapModel:
     # ------------------------------------------------------------------ growth
 
     def add_coarse_anchors(self, codes: torch.Tensor, rgb: torch.Tensor, depth: torch.Tensor,
-                           intrinsics: Intrinsics, c2w: torch.Tensor) -> None:
+                           intrinsics: Intrinsics, c2w: torch.Tensor, keyframe: int = -1) -> None:
         """New coarsest-level anchors for ``codes``, observed in the frame of ``rgb`` and ``depth``
         (with ``anchor_colour_start`` "cell", each starts with the mean colour of the frame's points
-        in its cell). The map's very first anchors set the opacity decoder's start
-        (``model.initial_visible``)."""
+        in its cell), belonging to ``keyframe``. The map's very first anchors set the opacity decoder's
+        start (``model.initial_visible``)."""
         count = int(codes.numel())
         if count == 0:
             return
@@ -221,4 +221,4 @@ class MapModel:
             target, seen = cell_colour_logits(self.octree, codes, rgb, depth, intrinsics, c2w, stride)
             _, decoded, _ = self.decoded_logits(positions, features, c2w)
             colours = torch.where(seen.unsqueeze(1), target - decoded.view(count, -1, 3).mean(1), 0.0)
-        self.anchors.add(codes, levels, positions, sizes, features, self.optimizer, colours)
+        self.anchors.add(codes, levels, positions, sizes, features, self.optimizer, colours, keyframe)

@@ -6,6 +6,10 @@ earlier keyframes once, when a keyframe is inserted, and keep them until the nex
 ``random`` (ESLAM), ``overlap`` (the most overlapping with K_new, SplaTAM / MonoGS) and
 ``coverage`` (greedy coverage of coarse cells K_new does not see, H2-Mapping-like).
 
+Keyframes whose poses a client corrected (``revisit``) join every window drawn after it, besides
+the keyframes drawn as above, ``REVISIT_PER_DRAW`` at a time in turn until each has joined
+``REVISIT_DRAWS`` windows: the map they moved is settled where it moved to.
+
 A frame's footprint is the set of occupied coarsest-level octree cells it sees (sorted Morton
 codes, ``SparseVoxelOctree.seen_from``): each cell is tested once at its centre's pixel against the
 measured depth, so the footprint, and with it keyframe insertion, does not change with the image
@@ -15,6 +19,7 @@ resolution.
 from __future__ import annotations
 
 import random
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -171,6 +176,11 @@ FIXED_WINDOWS: dict[Window, Callable[[list[Keyframe], Keyframe, list[float], int
 }
 
 
+# Corrected keyframes: how many windows each joins, and at most how many join one window.
+REVISIT_DRAWS = 4
+REVISIT_PER_DRAW = 2
+
+
 class KeyframeSet:
     """The keyframes so far, the newest one's local/global split, and window draws.
 
@@ -188,6 +198,8 @@ class KeyframeSet:
         self.random = random.Random(seed)
         self.footprint = footprint
         self.fixed: list[int] = []  # a fixed window's earlier keyframes, chosen when K_new came
+        # Corrected keyframes still to join windows: (position, windows left), in turn.
+        self.revisits: deque[tuple[int, int]] = deque()
 
     def __len__(self) -> int:
         return len(self.keyframes)
@@ -225,12 +237,31 @@ class KeyframeSet:
         one in its local set (overlap weight >= ``local_threshold``)."""
         return keyframe is self.keyframes[-1] or any(keyframe is self.keyframes[i] for i in self.local)
 
+    def revisit(self, positions: list[int]) -> None:
+        """Corrected keyframes (positions in the list) join the next windows (``REVISIT_DRAWS`` each)."""
+        again = set(positions)
+        self.revisits = deque([item for item in self.revisits if item[0] not in again])
+        self.revisits.extend((position, REVISIT_DRAWS) for position in positions)
+
+    def _revisiting(self, drawn: list[int]) -> list[int]:
+        """The corrected keyframes that join this window (not already in it), each counted as drawn once."""
+        joining = []
+        for _ in range(min(REVISIT_PER_DRAW, len(self.revisits))):
+            position, left = self.revisits.popleft()
+            if position not in drawn:
+                joining.append(position)
+            if left > 1:
+                self.revisits.append((position, left - 1))
+        return joining
+
     def window_size(self, view_is_newest: bool) -> int:
-        """How many keyframes ``draw_window(view_is_newest)`` returns now."""
+        """How many keyframes ``draw_window(view_is_newest)`` returns now (at most: a corrected keyframe
+        already drawn does not join twice)."""
+        revisiting = min(REVISIT_PER_DRAW, len(self.revisits))
         if self.config.window != "dynamic":
-            return len(self.fixed)
+            return len(self.fixed) + revisiting
         local = len(self.local) + (0 if view_is_newest else 1)
-        return min(self.config.local_count, local) + min(self.config.global_count, len(self.global_))
+        return min(self.config.local_count, local) + min(self.config.global_count, len(self.global_)) + revisiting
 
     def is_full(self) -> bool:
         """Whether every draw now holds as many global keyframes as the window asks for (a fixed
@@ -241,7 +272,7 @@ class KeyframeSet:
 
     def draw_window(self, view_is_newest: bool) -> list[Keyframe]:
         """The keyframes trained beside the view: b1 local and b2 global ones drawn afresh without
-        replacement.
+        replacement, and the corrected keyframes whose turn it is (``revisit``).
 
         The view is K_new (``view_is_newest``), or a streamed frame that is not a keyframe: it
         overlaps the newest keyframe by at least the insertion threshold, so that keyframe joins the
@@ -249,9 +280,10 @@ class KeyframeSet:
         inserted, the same at every draw until the next keyframe.
         """
         if self.config.window != "dynamic":
-            return [self.keyframes[i] for i in self.fixed]
-        newest = len(self.keyframes) - 1
-        local_set = self.local if view_is_newest else [*self.local, newest]
-        local = self.random.sample(local_set, min(self.config.local_count, len(local_set)))
-        global_ = self.random.sample(self.global_, min(self.config.global_count, len(self.global_)))
-        return [self.keyframes[i] for i in local + global_]
+            drawn = list(self.fixed)
+        else:
+            newest = len(self.keyframes) - 1
+            local_set = self.local if view_is_newest else [*self.local, newest]
+            drawn = self.random.sample(local_set, min(self.config.local_count, len(local_set)))
+            drawn += self.random.sample(self.global_, min(self.config.global_count, len(self.global_)))
+        return [self.keyframes[i] for i in drawn + self._revisiting(drawn)]

@@ -191,8 +191,9 @@ def grow(anchors: AnchorMap, octree: SparseVoxelOctree, config: RefineConfig, vo
     positions = octree.centers_by_level(proposals.codes, proposals.levels)
     features = anchors.features.detach()[proposals.parents] if anchors.with_features else None
     colours = anchors.colours.detach()[proposals.parents] if anchors.with_colours else None
+    owners = anchors.keyframe[proposals.parents].clone()  # a grown anchor belongs to its parent's keyframe
     anchors.add(proposals.codes, proposals.levels, positions, cell_size(voxel_size, proposals.levels),
-                features, optimizer, colours)
+                features, optimizer, colours, owners)
     return total
 
 

@@ -37,6 +37,9 @@ def capture(model: MapModel, keyframes: KeyframeSet, training_state: bool) -> Ma
             "anchors.offsets": anchors.offsets,
             "anchors.spawned": anchors.spawned.to(torch.uint8),
             "anchors.observations": anchors.observations,
+            # A pose correction moves anchors off their cells' centres, and they remember their keyframe.
+            "anchors.positions": anchors.positions,
+            "anchors.keyframe": anchors.keyframe,
         }
         if anchors.with_features:
             tensors["anchors.features"] = anchors.features
@@ -86,6 +89,8 @@ def load(model: MapModel, keyframes: KeyframeSet, state: MapState, training_stat
         _load_map(model, state)
         if training_state:
             model.drawn.post(training.restore(optimisation(model, keyframes), state.tensors) or 0)
+        else:  # the keyframes its anchors belonged to are not loaded: a correction of a new keyframe moves none
+            model.anchors.keyframe = torch.full_like(model.anchors.keyframe, -1)
     except (KeyError, RuntimeError, ValueError) as error:
         raise ValueError(f"map state does not match its config: {error}") from error
     model.frames = state.frames
@@ -115,8 +120,18 @@ def _load_map(model: MapModel, state: MapState) -> None:
     # Snapshots written before anchors had colours hold none: theirs start at zero (the decoder's colour).
     colours = (checked_shapes(state.tensors, {"anchors.colours": (count, 3)}, model.device)["anchors.colours"]
                if anchors.with_colours and "anchors.colours" in state.tensors else None)
-    anchors.add(codes, levels, model.octree.centers_by_level(codes, levels),
-                torch.ones(count, device=model.device), features, model.optimizer, colours)
+    # Snapshots written before anchors kept their centres and keyframes hold neither: their anchors sit at
+    # their cells' centres (no correction could have moved them) and belong to no keyframe.
+    kept = {name: shape for name, shape in (("anchors.positions", (count, 3)), ("anchors.keyframe", (count,)))
+            if name in state.tensors}
+    extra = checked_shapes(state.tensors, kept, model.device)
+    positions = extra.get("anchors.positions")
+    if positions is None:
+        positions = model.octree.centers_by_level(codes, levels)
+    elif not bool(torch.isfinite(positions).all()):
+        raise ValueError("anchors.positions must be finite")
+    anchors.add(codes, levels, positions, torch.ones(count, device=model.device), features, model.optimizer, colours,
+                extra.get("anchors.keyframe", -1))
     anchors.log_scales.data.copy_(tensor["anchors.log_scales"])
     anchors.offsets.data.copy_(tensor["anchors.offsets"])
     anchors.spawned = tensor["anchors.spawned"].bool()

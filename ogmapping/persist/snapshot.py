@@ -1,6 +1,7 @@
 """Snapshots: a ``MapState`` as safetensors bytes (no pickle), with its config and a format version.
 
-Anchor centres are not stored: they follow exactly from each anchor's Morton code and level. The
+Anchor centres are stored (a pose correction moves anchors off their cells' centres); snapshots written
+before that hold none, and their anchors sit at the centres their Morton codes and levels give. The
 learnable per-anchor tensors and the hash table are stored in float16 (their values are small and
 a float16 round trip changes renders by far less than a display level); decoder weights stay
 float32. A server's checkpoints, from which a session goes on mapping, keep them in float32

@@ -11,6 +11,7 @@ size: colour as uint8 and depth as float16, as they are kept in memory (``keyfra
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import torch
@@ -80,6 +81,7 @@ def capture(mapper: Optimisation) -> dict[str, torch.Tensor]:
     for name in ("local", "global_", "fixed"):
         tensors[f"keyframes.{name}"] = torch.tensor(getattr(keyframes, name), dtype=torch.int64)
     tensors["keyframes.count"] = _scalar(len(keyframes), torch.int64)
+    tensors["keyframes.revisits"] = torch.tensor(list(keyframes.revisits), dtype=torch.int64).reshape(-1, 2)
     for position, keyframe in enumerate(keyframes.keyframes):
         camera = keyframe.intrinsics
         tensors.update({
@@ -186,6 +188,11 @@ def _restore_keyframes(mapper: Optimisation, section: dict[str, torch.Tensor]) -
         if any(not 0 <= index < len(restored) for index in indices):
             raise ValueError(f"{PREFIX}keyframes.{name}: an index beyond the {len(restored)} keyframes")
         setattr(keyframes, name, indices)
+    # Corrected keyframes still to join windows; states written before corrections existed hold none.
+    revisits = section.get("keyframes.revisits", torch.zeros(0, 2, dtype=torch.int64)).reshape(-1, 2).tolist()
+    if any(not 0 <= position < len(restored) or left < 1 for position, left in revisits):
+        raise ValueError(f"{PREFIX}keyframes.revisits: a keyframe beyond the {len(restored)} keyframes")
+    keyframes.revisits = deque((position, left) for position, left in revisits)
     version, *internal = section["keyframes.random"].tolist()
     gauss = float(section["keyframes.random_gauss"][0])
     keyframes.random.setstate((version, tuple(internal), None if math.isnan(gauss) else gauss))

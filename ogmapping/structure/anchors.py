@@ -9,6 +9,14 @@ Per-Gaussian statistics for refinement and pruning live here too, and the moving
 learnable rows (``ogmapping.optim.averaging``), so that they follow the anchors whenever anchors are added
 or removed.
 
+Each anchor also remembers the keyframe it belongs to (``keyframe``, the keyframe's position in the
+mapper's keyframe list), so a pose correction of that keyframe moves it (``ogmapping.mapping.corrections``):
+anchors a frame allocates belong to that frame if it becomes a keyframe, else to the newest keyframe
+before it (a frame that is not a keyframe overlaps that one's view by at least the insertion threshold,
+so its pose is the nearest one the map keeps); anchors grown by refinement inherit their parent's;
+-1 where there is no keyframe (the very first frame's anchors before it is inserted, maps loaded from
+snapshots written before anchors kept it).
+
 Every row tensor is a buffer of ``capacity`` rows of which the first ``count`` are live: growth writes
 rows into the buffers and pruning compacts them in place, so the tensors a step reads keep their shapes
 (and their storage) between the rare capacity doublings, and a captured or compiled step stays valid.
@@ -27,7 +35,7 @@ from torch import nn
 LEARNABLE = ("log_scales", "offsets", "features", "colours")
 # Every row buffer, learnable or not.
 ROWS = ("codes", "levels", "positions", *LEARNABLE, "grad_sum", "grad_count", "spawned", "max_opacity", "observations",
-        "average_steps")
+        "average_steps", "keyframe")
 INITIAL_CAPACITY = 1024
 MOMENTS = ("exp_avg", "exp_avg_sq")
 
@@ -93,6 +101,7 @@ class AnchorMap:
             # Largest decoded opacity per anchor in this interval; -inf where it was not rendered at all.
             "max_opacity": RowSpec((), f32, -torch.inf), "observations": RowSpec((), i64, 0),
             "average_steps": RowSpec((), i64, 0),
+            "keyframe": RowSpec((), i64, -1),  # the keyframe the anchor belongs to; -1: none
         }
         return {name: specs[name] for name in ROWS}
 
@@ -130,9 +139,11 @@ class AnchorMap:
         features: torch.Tensor | None,
         optimizer: torch.optim.Optimizer | None,
         colours: torch.Tensor | None = None,
+        keyframes: torch.Tensor | int = -1,
     ) -> None:
         """Append anchors; new rows start with scale = cell size and zero offsets (and, without
-        ``colours``, a zero colour logit: the decoder's colour alone)."""
+        ``colours``, a zero colour logit: the decoder's colour alone); ``keyframes``: the keyframe each
+        belongs to (one for all, or one per row)."""
         count = int(codes.shape[0])
         if count == 0:
             return
@@ -141,6 +152,7 @@ class AnchorMap:
         values = {
             "codes": codes, "levels": levels, "positions": positions.to(torch.float32),
             "log_scales": torch.log(cell_sizes.to(self.device)).unsqueeze(-1).expand(count, 3),
+            "keyframe": torch.as_tensor(keyframes, dtype=torch.int64, device=self.device).expand(count),
         }
         if features is not None:
             values["features"] = features

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import zstandard
@@ -27,6 +27,8 @@ TOPIC_SESSION = "/ogmap/session"  # ogapi.v1.SessionConfig, first message
 TOPIC_FRAMES = "/ogmap/frames"  # ogapi.v1.Frame, every frame the session mapped (or tried to), as received
 TOPIC_ACKS = "/ogmap/acks"  # ogapi.v1.FrameAck, one per recorded frame once it is mapped (or skipped)
 TOPIC_STATS = "/ogmap/stats"  # ogapi.v1.Stats, at close
+# ogapi.v1.PoseCorrections, each CorrectPoses batch the map took, after the frame it was applied after
+TOPIC_CORRECTIONS = "/ogmap/pose_corrections"
 TOPIC_COLOR = "/camera/color"  # foxglove.CompressedImage
 TOPIC_DEPTH = "/camera/depth"  # foxglove.CompressedImage, 16-bit PNG
 TOPIC_CALIBRATION = "/camera/calibration"  # foxglove.CameraCalibration
@@ -170,12 +172,14 @@ class Recording:
     frames: list[tuple[int, pb.Frame]]  # (log time ns, frame)
     acks: list[pb.FrameAck]
     stats: pb.Stats | None
+    # CorrectPoses batches, in the order they were applied (none in recordings written before they existed)
+    corrections: list[pb.PoseCorrections] = field(default_factory=list)
 
 
 def load(path: str | Path) -> Recording:
     """The recording's ogapi messages; ``RecordingError`` for a damaged file or message."""
     recording = Recording(config=None, frames=[], acks=[], stats=None)
-    for item in read_messages(path, {TOPIC_SESSION, TOPIC_FRAMES, TOPIC_ACKS, TOPIC_STATS}):
+    for item in read_messages(path, {TOPIC_SESSION, TOPIC_FRAMES, TOPIC_ACKS, TOPIC_STATS, TOPIC_CORRECTIONS}):
         try:
             if item.topic == TOPIC_SESSION:
                 recording.config = pb.SessionConfig.FromString(item.data)
@@ -183,6 +187,8 @@ def load(path: str | Path) -> Recording:
                 recording.frames.append((item.log_time_ns, pb.Frame.FromString(item.data)))
             elif item.topic == TOPIC_ACKS:
                 recording.acks.append(pb.FrameAck.FromString(item.data))
+            elif item.topic == TOPIC_CORRECTIONS:
+                recording.corrections.append(pb.PoseCorrections.FromString(item.data))
             else:
                 recording.stats = pb.Stats.FromString(item.data)
         except DecodeError:

@@ -45,6 +45,11 @@ class Limits:
     # always recorded); beyond either, a skipped frame is acknowledged as not recorded. 0: none recorded.
     max_skipped_recording_bytes: int = ranged(1024 * MIB, 0)  # per session, over its life on this server
     skipped_recording_bytes_per_second: int = ranged(4 * MIB, 0)  # per session; bursts of one second's worth
+    # --- CorrectPoses: entries one call may hold (more: RESOURCE_EXHAUSTED), and how far one entry may move a
+    # keyframe from the pose it has (further: INVALID_ARGUMENT, a jump no SLAM correction makes)
+    max_pose_corrections: int = ranged(10000, 1)
+    max_correction_metres: float = ranged(5.0, 0.0, open_low=True)
+    max_correction_degrees: float = ranged(30.0, 0.0, 180.0, open_low=True)
 
 
 # --- access: who may call (TLS, API keys), how much one caller may hold, how long the server waits, metrics

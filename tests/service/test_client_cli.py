@@ -15,7 +15,7 @@ from ogserver import healthcheck
 from ogserver.recording.recorder import Recorder
 
 COMMANDS = ["create", "stream", "replay", "repair-recording", "trajectory", "view", "render", "snapshot", "restore",
-            "stats", "eval", "list", "close"]
+            "stats", "eval", "list", "correct-poses", "close"]
 
 
 def free_port() -> int:

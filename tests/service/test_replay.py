@@ -1,11 +1,13 @@
-"""Replay pacing and the session a replay asks for."""
+"""Replay pacing, the session a replay asks for, and where it applies recorded pose corrections."""
 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
-from ogapi.recording import Recording
+from ogapi.recording import Recording, load
 from ogapi.v1 import mapping_pb2 as pb
+from ogclient.corrections import segments
 from ogclient.replay import recorded_times, session_request
 
 
@@ -37,3 +39,18 @@ def test_session_request_repeats_the_recorded_config() -> None:
     assert request.preset == "dense" and dict(request.overrides) == {"keyframes.iterations": "7", "seed": "0"}
     legacy = pb.SessionConfig(preset="sparse", overrides={"seed": "2"})
     assert dict(session_request(legacy).overrides) == {"seed": "2"}
+
+
+def test_replay_segments_cut_where_corrections_were_applied() -> None:
+    frames = [(i, pb.Frame(index=i)) for i in range(5)]
+    batches = [pb.PoseCorrections(after_sequence=2), pb.PoseCorrections(after_sequence=5)]
+    cut = list(segments(Recording(config=None, frames=frames, acks=[], stats=None, corrections=batches)))
+    assert [(segment.start, segment.end, segment.corrections) for segment in cut] == \
+        [(0, 2, batches[0]), (2, 5, batches[1])]
+    plain = list(segments(Recording(config=None, frames=frames, acks=[], stats=None)))
+    assert [(segment.start, segment.end, segment.corrections) for segment in plain] == [(0, 5, None)]
+
+
+def test_recordings_from_before_corrections_hold_none() -> None:
+    old = load(Path(__file__).resolve().parents[1] / "compat" / "recording.mcap")
+    assert old.frames and old.corrections == []

@@ -104,6 +104,14 @@ def test_two_sessions_map_in_two_workers_and_replay(workers: LocalServer, tmp_pa
         assert all(ack.accepted for ack in stream.acks)
         assert stats(stub, stream.session).frames == len(frames.selection.streamed)
 
+    first = streams[0].acks[0]
+    corrected = np.array(sent[0][0].c2w, dtype=np.float64).reshape(4, 4)
+    corrected[:3, 3] += (0.02, 0.0, -0.01)
+    request = pb.CorrectPosesRequest(session_id=sessions[0].session_id, poses=[
+        pb.CorrectedPose(sequence=first.sequence, c2w=corrected.reshape(-1).tolist())])
+    moved = stub.CorrectPoses(request, metadata=sessions[0].metadata())
+    assert moved.keyframes == 1 and moved.anchors_moved > 0, "a correction through a worker moves the map"
+
     held_out = frame_sets[0].load(5)
     rendered = render(stub, sessions[0], held_out.c2w, held_out.color_intrinsics)
     assert rendered.color.shape == (held_out.color_intrinsics.height, held_out.color_intrinsics.width, 3)

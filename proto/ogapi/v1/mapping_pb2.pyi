@@ -210,6 +210,44 @@ class PoseCorrection(_message.Message):
     refined_c2w: _containers.RepeatedScalarFieldContainer[float]
     def __init__(self, translation: _Optional[_Iterable[float]] = ..., rotation: _Optional[_Iterable[float]] = ..., clamped: _Optional[bool] = ..., refined_c2w: _Optional[_Iterable[float]] = ...) -> None: ...
 
+class CorrectedPose(_message.Message):
+    __slots__ = ("sequence", "timestamp", "c2w")
+    SEQUENCE_FIELD_NUMBER: _ClassVar[int]
+    TIMESTAMP_FIELD_NUMBER: _ClassVar[int]
+    C2W_FIELD_NUMBER: _ClassVar[int]
+    sequence: int
+    timestamp: float
+    c2w: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, sequence: _Optional[int] = ..., timestamp: _Optional[float] = ..., c2w: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class CorrectPosesRequest(_message.Message):
+    __slots__ = ("session_id", "poses")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    POSES_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    poses: _containers.RepeatedCompositeFieldContainer[CorrectedPose]
+    def __init__(self, session_id: _Optional[str] = ..., poses: _Optional[_Iterable[_Union[CorrectedPose, _Mapping]]] = ...) -> None: ...
+
+class CorrectPosesResponse(_message.Message):
+    __slots__ = ("keyframes", "frames", "anchors_moved", "after_sequence")
+    KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_FIELD_NUMBER: _ClassVar[int]
+    ANCHORS_MOVED_FIELD_NUMBER: _ClassVar[int]
+    AFTER_SEQUENCE_FIELD_NUMBER: _ClassVar[int]
+    keyframes: int
+    frames: int
+    anchors_moved: int
+    after_sequence: int
+    def __init__(self, keyframes: _Optional[int] = ..., frames: _Optional[int] = ..., anchors_moved: _Optional[int] = ..., after_sequence: _Optional[int] = ...) -> None: ...
+
+class PoseCorrections(_message.Message):
+    __slots__ = ("after_sequence", "poses")
+    AFTER_SEQUENCE_FIELD_NUMBER: _ClassVar[int]
+    POSES_FIELD_NUMBER: _ClassVar[int]
+    after_sequence: int
+    poses: _containers.RepeatedCompositeFieldContainer[CorrectedPose]
+    def __init__(self, after_sequence: _Optional[int] = ..., poses: _Optional[_Iterable[_Union[CorrectedPose, _Mapping]]] = ...) -> None: ...
+
 class RenderRequest(_message.Message):
     __slots__ = ("session_id", "c2w", "intrinsics", "outputs", "color_encoding", "depth_encoding", "jpeg_quality")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]

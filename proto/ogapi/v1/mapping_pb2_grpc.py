@@ -74,6 +74,11 @@ class MappingStub:
                 request_serializer=ogapi_dot_v1_dot_mapping__pb2.CloseSessionRequest.SerializeToString,
                 response_deserializer=ogapi_dot_v1_dot_mapping__pb2.CloseSessionResponse.FromString,
                 _registered_method=True)
+        self.CorrectPoses = channel.unary_unary(
+                '/ogapi.v1.Mapping/CorrectPoses',
+                request_serializer=ogapi_dot_v1_dot_mapping__pb2.CorrectPosesRequest.SerializeToString,
+                response_deserializer=ogapi_dot_v1_dot_mapping__pb2.CorrectPosesResponse.FromString,
+                _registered_method=True)
 
 
 class MappingServicer:
@@ -138,6 +143,19 @@ class MappingServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def CorrectPoses(self, request, context):
+        """Corrected camera-to-world poses of frames already mapped (a SLAM system's loop closure): the
+        anchors each corrected keyframe created move rigidly with it, and it is optimised again for a few
+        steps. Applied between two frames, after the frame being mapped, all or nothing: the first bad
+        entry (an unknown frame, a pose that is not rigid, a jump beyond the server's bounds) is refused
+        with INVALID_ARGUMENT naming it and the map is left as it was; more entries than the server's
+        limits.max_pose_corrections: RESOURCE_EXHAUSTED. The recording keeps the batch, so a replay
+        applies it at the same point of the frame sequence.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_MappingServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -180,6 +198,11 @@ def add_MappingServicer_to_server(servicer, server):
                     servicer.CloseSession,
                     request_deserializer=ogapi_dot_v1_dot_mapping__pb2.CloseSessionRequest.FromString,
                     response_serializer=ogapi_dot_v1_dot_mapping__pb2.CloseSessionResponse.SerializeToString,
+            ),
+            'CorrectPoses': grpc.unary_unary_rpc_method_handler(
+                    servicer.CorrectPoses,
+                    request_deserializer=ogapi_dot_v1_dot_mapping__pb2.CorrectPosesRequest.FromString,
+                    response_serializer=ogapi_dot_v1_dot_mapping__pb2.CorrectPosesResponse.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -398,6 +421,33 @@ class Mapping:
             '/ogapi.v1.Mapping/CloseSession',
             ogapi_dot_v1_dot_mapping__pb2.CloseSessionRequest.SerializeToString,
             ogapi_dot_v1_dot_mapping__pb2.CloseSessionResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def CorrectPoses(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/ogapi.v1.Mapping/CorrectPoses',
+            ogapi_dot_v1_dot_mapping__pb2.CorrectPosesRequest.SerializeToString,
+            ogapi_dot_v1_dot_mapping__pb2.CorrectPosesResponse.FromString,
             options,
             channel_credentials,
             insecure,

@@ -156,6 +156,10 @@ class MappingService(pb_grpc.MappingServicer):
             owned = self.registry.sessions(self._caller(context))
             return pb.ListSessionsResponse(sessions=[info(session) for session in owned])
 
+    def CorrectPoses(self, request: pb.CorrectPosesRequest, context: grpc.ServicerContext) -> pb.CorrectPosesResponse:
+        with status_errors(context):
+            return self._session(request.session_id, context).correct_poses(request)
+
     def CloseSession(self, request: pb.CloseSessionRequest, context: grpc.ServicerContext) -> pb.CloseSessionResponse:
         with status_errors(context):
             closed = self.registry.close(self._session(request.session_id, context))

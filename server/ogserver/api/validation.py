@@ -225,3 +225,37 @@ def render_request(message: pb.RenderRequest, max_pixels: int) -> RenderSpec:
 
 def _names(encodings: tuple[int, ...], name: Callable[[int], str]) -> str:
     return ", ".join(name(encoding) for encoding in encodings)
+
+
+@dataclass(frozen=True)
+class CorrectionEntry:
+    """One CorrectPoses entry, checked: the frame it names (by sequence or by timestamp) and its rigid pose."""
+
+    field: str  # "poses[3]", for refusals
+    sequence: int | None
+    timestamp: float | None
+    c2w: np.ndarray
+
+
+def pose_corrections(message: pb.CorrectPosesRequest, max_entries: int) -> list[CorrectionEntry]:
+    """The request's entries; RESOURCE_EXHAUSTED beyond ``max_entries``, INVALID_ARGUMENT naming the first entry
+    that names no frame or whose pose is not a rigid 4x4."""
+    if not message.poses:
+        raise invalid("poses", "is empty: no corrections to apply")
+    if len(message.poses) > max_entries:
+        raise exhausted("poses", f"{len(message.poses)} entries, over the server's limit of {max_entries} a call "
+                                 "(limits.max_pose_corrections): send them in batches")
+    entries = []
+    for position, entry in enumerate(message.poses):
+        field = f"poses[{position}]"
+        which = entry.WhichOneof("frame")
+        if which is None:
+            raise invalid(field, "names no frame: set its sequence or its timestamp")
+        if which == "sequence" and entry.sequence == 0:
+            raise invalid(f"{field}.sequence", "must be 1 or more (the frame's FrameAck.sequence)")
+        if which == "timestamp" and not math.isfinite(entry.timestamp):
+            raise invalid(f"{field}.timestamp", f"must be finite (got {entry.timestamp})")
+        stamp = entry.timestamp if which == "timestamp" else None
+        sequence = entry.sequence if which == "sequence" else None
+        entries.append(CorrectionEntry(field, sequence, stamp, pose(entry.c2w, f"{field}.c2w")))
+    return entries

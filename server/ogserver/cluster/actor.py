@@ -145,6 +145,9 @@ class SessionActor:
     def snapshot(self) -> bytes:
         return self._current().snapshot()
 
+    def correct_poses(self, message: bytes) -> bytes:
+        return self._current().correct_poses(pb.CorrectPosesRequest.FromString(message)).SerializeToString()
+
     # ------------------------------------------------------------------ end
 
     def close(self) -> Closed:

@@ -116,3 +116,6 @@ class RemoteSession:
 
     def snapshot(self) -> bytes:
         return call(self.actor, "snapshot")
+
+    def correct_poses(self, message: pb.CorrectPosesRequest) -> pb.CorrectPosesResponse:
+        return pb.CorrectPosesResponse.FromString(call(self.actor, "correct_poses", message.SerializeToString()))

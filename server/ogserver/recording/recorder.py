@@ -311,6 +311,10 @@ class Recorder:
                           transform(sensor_ns, refined, layout.WORLD_FRAME, layout.REFINED_CAMERA_FRAME)))
         self._write_late(items, flush=False)
 
+    def write_corrections(self, corrections: pb.PoseCorrections) -> None:
+        """A batch of pose corrections the map took, flushed at once: a resume applies it again."""
+        self._write_late([(layout.TOPIC_CORRECTIONS, corrections)], flush=True)
+
     def write_views(self, views: list[tuple[str, Message]], sensor_ns: int) -> None:
         """The map as of a keyframe (its render, its points), flushed at once: the thread that made
         them compresses them, not the session's worker at its next frame. After a close, dropped."""

@@ -69,6 +69,8 @@ class HostedSession(Protocol):
 
     def snapshot(self) -> bytes: ...
 
+    def correct_poses(self, message: pb.CorrectPosesRequest) -> pb.CorrectPosesResponse: ...
+
 
 @dataclass(frozen=True)
 class Opened:

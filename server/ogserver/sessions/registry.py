@@ -40,6 +40,8 @@ from ogserver.recording.shared_store import RecordingParts, SharedStore
 from ogserver.sessions.backlog import read_after
 from ogserver.sessions.counters import FrameTotals
 from ogserver.sessions.hosting import Closed, Opened, Upload
+from ogserver.sessions.ledger import TENSOR as LEDGER_TENSOR
+from ogserver.sessions.ledger import FrameLedger
 from ogserver.sessions.limits import check_room
 from ogserver.sessions.session import Session
 from ogserver.settings import Settings
@@ -218,6 +220,7 @@ class Registry:
         backlog = after.backlog()
         with self._reserve(saved.identity.owner):
             try:
+                ledger = FrameLedger.from_tensor(saved.state.tensors.pop(LEDGER_TENSOR, None))
                 mapper = Mapper.from_state(saved.state, device=self.device, training_state=True,
                                            bounds=self.settings.config_bounds)
             except ValueError as error:
@@ -229,11 +232,12 @@ class Registry:
             config.CopyFrom(saved.identity.config)
             config.device = str(mapper.device)  # this server's, which may not be the crashed one's
             session = Session(config, saved.identity.token, mapper, recorder, self.settings.limits,
-                              self.settings.frame_seconds, checkpoints, saved.position, backlog, after.last)
+                              self.settings.frame_seconds, checkpoints, saved.position, backlog, after.last, ledger)
             self._register(session, saved.identity.owner)
         log.info("session %s resumed for %s from its checkpoint at frame %d, %d recorded frames after it to map "
                  "again (%d skipped as before)", session_id, saved.identity.owner, saved.position.sequence,
-                 len(backlog), len(after.frames_after) - len(backlog))
+                 len(backlog) - len(after.corrections_after),
+                 len(after.frames_after) - len(backlog) + len(after.corrections_after))
         return session
 
     def get(self, session_id: str, token: str, field: str = "session_id") -> Session:

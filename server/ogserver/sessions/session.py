@@ -20,6 +20,12 @@ session's ``SkippedBudget`` covers it). Taking a frame out of the queue and reco
 lock, on either path, so the recording keeps arrival order and a replay maps every recorded frame,
 skipped ones included, in that order. Sequences number the recorded frames: a skipped frame left out
 of the recording gives its number to the frames queued after it.
+
+Pose corrections (CorrectPoses) reach the map between two frames: the worker holds ``_mapping`` while it maps
+a frame, acknowledges it and writes any checkpoint due, and a correction takes it too, so the batch lands
+after the last frame mapped, a checkpoint holds either all of it or none, and the recording says after which
+frame (a replay and a resume apply it there again). The session keeps the frames it mapped
+(``ledger.FrameLedger``) to resolve what a correction names.
 """
 
 from __future__ import annotations
@@ -53,8 +59,10 @@ from ogserver.recording.checkpoint import Checkpoints, Position
 from ogserver.recording.disk import StorageError
 from ogserver.recording.recorder import FrameRecord, Recorder, frame_record
 from ogserver.recording.skipped_budget import SkippedBudget
-from ogserver.sessions.backlog import Recorded
+from ogserver.sessions import pose_corrections
+from ogserver.sessions.backlog import Recorded, RecordedCorrections
 from ogserver.sessions.counters import SessionCounters
+from ogserver.sessions.ledger import TENSOR, FrameLedger
 from ogserver.sessions.queued_bytes import ByteBudget, frame_bytes
 from ogserver.sessions.stream_events import Acked, SessionClosed, StreamEvent
 from ogserver.settings import Limits
@@ -79,7 +87,8 @@ class Session:
     def __init__(
         self, config: pb.SessionConfig, token: TokenHash, mapper: Mapper, recorder: Recorder, limits: Limits,
         frame_seconds: float = 0.0, checkpoints: Checkpoints | None = None, start: Position | None = None,
-        backlog: list[Recorded] | None = None, recorded: Position | None = None,
+        backlog: list[Recorded | RecordedCorrections] | None = None, recorded: Position | None = None,
+        ledger: FrameLedger | None = None,
     ) -> None:
         """``start``: where the map stands; ``recorded``: the last frame the recording holds (``start``
         unless the backlog or skipped frames follow it)."""
@@ -91,6 +100,8 @@ class Session:
         self.token = token
         self.checkpoints = checkpoints
         self._backlog = list(backlog or ())
+        self._ledger = ledger or FrameLedger()
+        self._mapping = threading.Lock()  # held while a frame is mapped or the map corrected (never inside _lock)
         start = start or Position()
         recorded = recorded or start
         # Sequences go on from the recording's last frame; this server run counts the backlog as received.
@@ -115,7 +126,7 @@ class Session:
         self._time_budget = Budget(seconds=frame_seconds or math.inf)
         self._stream_sink: queue.SimpleQueue[StreamEvent] | None = None
         self._rejected = self._mapped = self._skipped = 0
-        self._received = self._pending = len(self._backlog)
+        self._received = self._pending = sum(isinstance(item, Recorded) for item in self._backlog)
         engine = mapper.stats()
         self._anchors, self._gaussians = engine.anchors, engine.gaussians  # a restored map starts with them
         self._first_received: float | None = self._started if self._backlog else None
@@ -238,16 +249,21 @@ class Session:
         """A resumed session's recorded frames after its checkpoint, mapped again (not recorded again)."""
         while self._backlog and not self._closed.is_set():
             item = self._backlog.pop(0)
-            try:
-                frame = validation.frame(item.message, self.limits.max_image_pixels, self.mapper.config.octree)
-                self._map(frame, item.sequence, time.monotonic())
-            except ServiceError as refusal:  # a server restarted with lower limits than the frame was taken under
-                log.error("session %s: recorded frame %d (sequence %d) is refused on resume: %s", self.id,
-                          item.message.index, item.sequence, refusal.message)
-            with self._lock:
-                self._pending -= 1
-                self._mapped_position = Position(item.sequence, item.message.index)
-            self._checkpoint_if_due()
+            with self._mapping:
+                if isinstance(item, RecordedCorrections):
+                    self._correct_again(item)
+                    continue
+                try:
+                    frame = validation.frame(item.message, self.limits.max_image_pixels, self.mapper.config.octree)
+                    self._map(frame, item.sequence, time.monotonic())
+                except ServiceError as refusal:  # a server restarted with lower limits than the frame was taken under
+                    log.error("session %s: recorded frame %d (sequence %d) is refused on resume: %s", self.id,
+                              item.message.index, item.sequence, refusal.message)
+                with self._lock:
+                    self._pending -= 1
+                    self._mapped_position = Position(item.sequence, item.message.index)
+                self._checkpoint_if_due()
+        self._backlog = [item for item in self._backlog if isinstance(item, Recorded)]
         if self._backlog:
             log.warning("session %s: closed before its %d remaining recorded frames were mapped again", self.id,
                         len(self._backlog))
@@ -268,7 +284,9 @@ class Session:
                 or self._closed.is_set()):
             return
         try:
-            self.checkpoints.write(self.mapper.state(training_state=True), position)
+            state = self.mapper.state(training_state=True)
+            state.tensors[TENSOR] = self._ledger.tensor()
+            self.checkpoints.write(state, position)
         except OSError as error:
             log.error("session %s: cannot write its checkpoint at sequence %d: %s", self.id, position.sequence,
                       error.strerror or error)
@@ -341,17 +359,18 @@ class Session:
         self._map_backlog()
         while (taken := self._take()) is not None:
             job, refusal = taken
-            try:
-                ack = refusal or self._map_recorded(job)
-            finally:
-                with self._lock:
-                    self._pending -= 1
-                if not self.realtime:
-                    self._queued_bytes.release(job.size)
-                    self._slots.release()
-            if job.sink is not None:
-                job.sink.put(Acked(ack))
-            self._checkpoint_if_due()
+            with self._mapping:
+                try:
+                    ack = refusal or self._map_recorded(job)
+                finally:
+                    with self._lock:
+                        self._pending -= 1
+                    if not self.realtime:
+                        self._queued_bytes.release(job.size)
+                        self._slots.release()
+                if job.sink is not None:
+                    job.sink.put(Acked(ack))
+                self._checkpoint_if_due()
 
     def _map_recorded(self, job: Job) -> pb.FrameAck:
         """A frame is mapped only once the recording holds it."""
@@ -371,6 +390,7 @@ class Session:
         except Exception as error:  # the session survives a failing frame; the client sees why
             log.exception("session %s: mapping frame %d failed", self.id, frame.index)
             return messages.error_ack(frame.index, ServiceError(grpc.StatusCode.INTERNAL, f"mapping failed: {error}"))
+        self._ledger.add(sequence, frame.timestamp, len(self.mapper.keyframes) - 1 if result.keyframe else None)
         with self._lock:
             self._mapped += 1
             self._anchors, self._gaussians = result.anchors, result.gaussians
@@ -383,6 +403,34 @@ class Session:
         if record is not None:
             self.latest.offer(MappedFrame.of(frame, record, result.keyframe, result.pose if refines else None))
         return messages.frame_ack(result, sequence, time.monotonic() - received, max(waiting, 0), refines)
+
+    # ------------------------------------------------------------------ pose corrections
+
+    def correct_poses(self, message: pb.CorrectPosesRequest) -> pb.CorrectPosesResponse:
+        """Apply a CorrectPoses batch after the frame being mapped, and record it; refusals change nothing."""
+        entries = validation.pose_corrections(message, self.limits.max_pose_corrections)
+        with self._mapping:
+            if self._closed.is_set():
+                raise ServiceError(grpc.StatusCode.NOT_FOUND, f"session_id: session {self.id} is closed")
+            if self.recorder.failure is not None:  # a correction the recording cannot keep would not replay
+                raise self.recorder.failure
+            with self._lock:
+                after = self._mapped_position.sequence
+            applied = pose_corrections.apply(self.mapper, self._ledger.resolve(entries), self.limits, after)
+            with suppress(StorageError):  # logged by the recorder, which then refuses further frames
+                self.recorder.write_corrections(applied.record)
+        return applied.response
+
+    def _correct_again(self, item: RecordedCorrections) -> None:
+        """A recorded batch after the checkpoint, applied again on resume (the caller holds ``_mapping``)."""
+        try:
+            entries = validation.pose_corrections(pb.CorrectPosesRequest(poses=item.message.poses),
+                                                  len(item.message.poses))
+            pose_corrections.apply(self.mapper, self._ledger.resolve(entries), self.limits,
+                                   item.message.after_sequence)
+        except ServiceError as refusal:  # a server restarted with tighter bounds than the batch was taken under
+            log.error("session %s: the pose corrections recorded after frame %d are refused on resume: %s",
+                      self.id, item.message.after_sequence, refusal.message)
 
     # ------------------------------------------------------------------ queries
 

@@ -108,6 +108,9 @@ class WorkerSession:
     def snapshot(self) -> bytes:
         return self.worker.call("snapshot", self.id)
 
+    def correct_poses(self, message: pb.CorrectPosesRequest) -> pb.CorrectPosesResponse:
+        return self.worker.call("correct_poses", self.id, message)
+
 
 class WorkerHost:
     def __init__(self, settings: Settings, device: str) -> None:

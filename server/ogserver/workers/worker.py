@@ -83,8 +83,8 @@ class WorkerSessions:
 
     CALLS = frozenset({
         "create", "restore", "resume", "authorize", "touch", "claim_stream", "release_stream", "streaming", "offer",
-        "count_rejected", "render", "map_stats", "counters", "snapshot", "close", "expire_idle", "close_all",
-        "frame_totals",
+        "count_rejected", "render", "map_stats", "counters", "snapshot", "correct_poses", "close", "expire_idle",
+        "close_all", "frame_totals",
     })
 
     def __init__(self, registry: Registry, link: Link) -> None:
@@ -151,6 +151,9 @@ class WorkerSessions:
 
     def snapshot(self, session_id: str) -> bytes:
         return self._session(session_id).snapshot()
+
+    def correct_poses(self, session_id: str, message: pb.CorrectPosesRequest) -> pb.CorrectPosesResponse:
+        return self._session(session_id).correct_poses(message)
 
     def close(self, session_id: str) -> Closed:
         return self.registry.close(self._session(session_id))
