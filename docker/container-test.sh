@@ -194,7 +194,7 @@ compose_server=$(podman ps -a -q --filter "label=$COMPOSE_LABEL" --filter label=
 compose_server=$(podman inspect --format '{{.Name}}' "$compose_server")
 wait_healthy "$compose_server" 300
 page=$(curl -sS -m 20 -w '%{http_code}' "http://127.0.0.1:$OGMAP_WEB_PORT/") || fail "the web view does not answer on 127.0.0.1:$OGMAP_WEB_PORT"
-[[ "$page" == *"<title>OG-Mapping</title>"*200 ]] || fail "the web view's / on 127.0.0.1:$OGMAP_WEB_PORT: ${page: -200}"
+[[ "$page" == *"<h1>Maps</h1>"*200 ]] || fail "the web view's / on 127.0.0.1:$OGMAP_WEB_PORT: ${page: -200}"
 # A WebSocket handshake offering Foxglove's subprotocol: the server's first message is its serverInfo.
 { curl -sS -N -m 5 -H 'Connection: Upgrade' -H 'Upgrade: websocket' -H 'Sec-WebSocket-Version: 13' \
     -H 'Sec-WebSocket-Key: b2dtYXBwaW5nLXRlc3QtMQ==' -H 'Sec-WebSocket-Protocol: foxglove.sdk.v1' \
