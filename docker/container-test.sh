@@ -173,7 +173,9 @@ podman run -d --name "$SERVER" --network "$RUN_ID" --network-alias server \
 wait_healthy "$SERVER" 300
 
 log "test container: pytest tests/service against server:50051 (log $LOGS/tests.log)"
-if ! podman run --rm --name "$RUN_ID-tests" --network "$RUN_ID" -e OGMAP_SERVER=server:50051 -e OGMAP_RECORD_DIR=/recordings \
+# --init: the tests' own servers start worker processes; those of a server killed outright pass to PID 1,
+# which must reap them (pytest does not: they would stay as zombies, alive to the test that waits for them).
+if ! podman run --rm --init --name "$RUN_ID-tests" --network "$RUN_ID" -e OGMAP_SERVER=server:50051 -e OGMAP_RECORD_DIR=/recordings \
     -v "$RUN_ID-recordings:/recordings" "${data_mount[@]}" "$TEST_IMAGE" -q -rs tests/service \
     > "$LOGS/tests.log" 2>&1; then
     tail -60 "$LOGS/tests.log"
