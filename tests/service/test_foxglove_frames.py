@@ -106,3 +106,10 @@ def test_the_forwarded_handshake_offers_no_compression() -> None:
     head = (b"GET /?key=k HTTP/1.1\r\nHost: h\r\nSec-WebSocket-Extensions: permessage-deflate; "
             b"client_max_window_bits\r\nsec-websocket-extensions: x\r\nUpgrade: websocket\r\n\r\n")
     assert without_extensions(head) == b"GET /?key=k HTTP/1.1\r\nHost: h\r\nUpgrade: websocket\r\n\r\n"
+
+
+def test_a_message_in_many_small_fragments_is_bounded_in_all() -> None:
+    data = fragment(TEXT, b"x" * 100, False, True) + b"".join(
+        fragment(CONTINUATION, b"x" * 100, False, True) for _ in range(20))
+    with pytest.raises(ProtocolError, match="a message over 1000 bytes"):
+        read_all(data, masked=True, max_bytes=1000)

@@ -63,6 +63,7 @@ class FrameReader:
         self._masked = masked
         self._max_bytes = max_bytes
         self._parts: list[bytes] = []  # a fragmented message so far
+        self._size = 0  # its bytes
         self._opcode = 0  # its opcode
 
     async def message(self) -> Message:
@@ -83,10 +84,11 @@ class FrameReader:
             else:
                 raise ProtocolError(f"unknown opcode {opcode:#x}")
             self._parts.append(payload)
-            if sum(len(part) for part in self._parts) > self._max_bytes:
+            self._size += len(payload)
+            if self._size > self._max_bytes:
                 raise ProtocolError(f"a message over {self._max_bytes} bytes")
             if fin:
-                whole, self._parts = b"".join(self._parts), []
+                whole, self._parts, self._size = b"".join(self._parts), [], 0
                 return Message(self._opcode, whole)
 
     async def _frame(self) -> tuple[bool, int, bytes]:
