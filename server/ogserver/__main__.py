@@ -127,8 +127,8 @@ def parser() -> argparse.ArgumentParser:
     live.add_argument("--no-record-views", dest="record_views", action="store_false", default=None,
                       help="keep keyframes' render and point cloud out of the recordings")
     live.add_argument("--foxglove-token-file", dest="foxglove_token_file", metavar="FILE",
-                      help="the secret Foxglove clients put in the URL (?token=...); without it a random one per "
-                           "server, printed in the log, when the gRPC port has API keys or TLS")
+                      help="the operator's Foxglove token (?token=...), which sees every session; other clients "
+                           "use the web view's credentials (?key=, ?token= a session token, a client certificate)")
     live.add_argument("--foxglove-origin", dest="foxglove_origins", action="append", metavar="ORIGIN",
                       help="a browser origin allowed on the Foxglove port, e.g. https://app.foxglove.dev "
                            "(repeatable; clients that send no Origin are always allowed)")

@@ -21,6 +21,8 @@ from ogmapping.warmup import warm_up
 from ogserver.access import transport
 from ogserver.access.call_gate import HEADROOM, CallGate
 from ogserver.access.callers import Callers
+from ogserver.access.failed_auth import FailedAuthentications
+from ogserver.access.viewers import Viewers
 from ogserver.api import reflection, wire
 from ogserver.api.servicer import MappingService
 from ogserver.event_loop import EventLoop
@@ -127,9 +129,11 @@ def build(settings: Settings) -> Server:
     endpoint = Endpoint.start(access.metrics_address, metrics, access.max_metrics_connections,
                               settings.live.web_hosts) \
         if access.metrics_address else None
-    live = _live_view(settings, registry) if isinstance(registry, Registry) else None
-    web = start_web(settings, registry, callers) \
-        if settings.live.web_port >= 0 and isinstance(registry, Registry) else None
+    viewers = Viewers(registry, callers, FailedAuthentications(
+        access.max_auth_failures, access.auth_failure_window_seconds, access.max_auth_failures_total)) \
+        if isinstance(registry, Registry) else None
+    live = _live_view(settings, viewers) if viewers is not None else None
+    web = start_web(settings, viewers) if settings.live.web_port >= 0 and viewers is not None else None
     loop.run(server.start())
     log.info("device %s, %d torch threads, record dir %s", device, torch.get_num_threads(), settings.record_dir)
     _announce_access(settings, f"{settings.address.rsplit(':', 1)[0]}:{port}", callers, credentials is not None,
@@ -180,24 +184,24 @@ def _host(settings: Settings, device: str) -> SessionHost:
     return registry
 
 
-def _live_view(settings: Settings, registry: Registry) -> LiveView | None:
+def _live_view(settings: Settings, viewers: Viewers) -> LiveView | None:
     """The live view's thread, with a Foxglove server when one is asked for; None when nothing would use it."""
-    live = settings.live
+    live, registry = settings.live, viewers.registry
     if not live.view_seconds or not (live.foxglove or live.record_views):
         return None
     if not live.foxglove:
         return LiveView(registry, live, None)
     port = port_access(settings)
-    foxglove = FoxgloveServer(live.foxglove_host, live.foxglove_port, port.gate, port.tls)
+    foxglove = FoxgloveServer(live.foxglove_host, live.foxglove_port, port.gate(viewers), port.tls)
     url = port.url(live.foxglove_host, foxglove.port)
-    if port.gate.token:
-        shown = url if port.token_generated else url.replace(port.gate.token, "TOKEN")
-        log.info("Foxglove live view on %s%s", shown, "" if port.token_generated
-                 else f" (TOKEN: the contents of {live.foxglove_token_file})")
-    else:
+    operator = f"; ?token= the contents of {live.foxglove_token_file} sees every session" if port.token else ""
+    if viewers.callers.open:
         local = live.foxglove_host in ("127.0.0.1", "localhost", "::1")
-        log.log(logging.INFO if local else logging.WARNING,
-                "Foxglove live view on %s (no token: anyone who reaches it sees every session's images and map)", url)
+        log.log(logging.INFO if local else logging.WARNING, "Foxglove live view on %s (an open server: anyone who "
+                "reaches it sees every session's images and map%s)", url, operator)
+    else:
+        log.info("Foxglove live view on %s (?key=API_KEY for the sessions it owns, ?token=SESSION_TOKEN for its one "
+                 "session%s)", url, operator)
     return LiveView(registry, live, foxglove)
 
 

@@ -117,9 +117,9 @@ class Live:
     view_seconds: float = ranged(1.0, 0)  # at most one render and point cloud per session this often; 0: views off
     view_points: int = ranged(50_000, 1)  # the point cloud's bound (Gaussians from anchors spread over the map)
     record_views: bool = True  # write keyframes' render and point cloud into the recordings
-    # --- the Foxglove port's gate (docs/foxglove.md, "Access"): a file holding the secret the URL's token
-    # carries ("" = a random one per server when the gRPC port has API keys or TLS, else none), and the
-    # browser origins allowed (clients that send no Origin always are)
+    # --- the Foxglove port's gate (docs/foxglove.md, "Access"): a file holding the operator's token, which
+    # sees every session ("" = none; every other client shows the web view's credentials), and the browser
+    # origins allowed (clients that send no Origin always are)
     foxglove_token_file: str = ""
     foxglove_origins: list[str] = formed(list, ORIGIN, "an origin such as https://app.foxglove.dev "
                                                        "(scheme://host[:port], no path) or null")

@@ -84,8 +84,10 @@ async def first_message(url: str, origin: str | None = None, tls: ssl.SSLContext
         return refused.response.status_code
 
 
-async def subscribe_unknown(url: str, messages: int, entries: int) -> None:
-    """Send ``messages`` subscribe requests of ``entries`` each, for a channel the server never had."""
+async def subscribe_unknown(url: str, messages: int, entries: int) -> int:
+    """Send ``messages`` subscribe requests of ``entries`` each, for a channel the server never had; the
+    number of unknown-channel statuses answered."""
+    statuses = 0
     async with _connect(url, None, None) as ws:
         await ws.recv()
         for _ in range(messages):
@@ -93,7 +95,10 @@ async def subscribe_unknown(url: str, messages: int, entries: int) -> None:
                 {"id": number, "channelId": 999_999} for number in range(entries)]}))
         with contextlib.suppress(TimeoutError, ConnectionClosed):
             while True:  # the server's answers (a status per bad entry), until it has none for a second
-                await asyncio.wait_for(ws.recv(), 1.0)
+                message = await asyncio.wait_for(ws.recv(), 1.0)
+                statuses += isinstance(message, str) and json.loads(message).get("message", "").startswith(
+                    UNKNOWN_CHANNEL)
+    return statuses
 
 
 async def watch(url: str, prefix: str, topics: list[str], wanted: set[str], seconds: float,
@@ -122,3 +127,56 @@ async def watch(url: str, prefix: str, topics: list[str], wanted: set[str], seco
                     {"id": number, "channelId": channel.id} for number, channel in subscribed.items()
                     if channel in fresh]}))
     return received
+
+
+async def topics(url: str, until, seconds: float = 20.0, settle: float = 1.0,
+                 tls: ssl.SSLContext | None = None) -> dict[str, int]:
+    """The channels advertised (and not withdrawn) to a client at ``url``, by topic: once ``until(topics)``
+    holds, after a further ``settle`` seconds of listening; or after ``seconds``."""
+    shown: dict[str, int] = {}
+    deadline, reached = time.monotonic() + seconds, False
+    async with _connect(url, None, tls) as ws:
+        while time.monotonic() < deadline:
+            try:
+                message = await asyncio.wait_for(ws.recv(), max(deadline - time.monotonic(), 0.01))
+            except (TimeoutError, ConnectionClosed):
+                break
+            data = json.loads(message) if isinstance(message, str) else {}
+            if data.get("op") == "advertise":
+                shown.update({channel["topic"]: channel["id"] for channel in data["channels"]})
+            elif data.get("op") == "unadvertise":
+                shown = {topic: number for topic, number in shown.items() if number not in data["channelIds"]}
+            if not reached and until(set(shown)):
+                deadline, reached = min(deadline, time.monotonic() + settle), True
+    return shown
+
+
+@dataclass
+class Answers:
+    statuses: list[str] = field(default_factory=list)  # the status messages' text
+    data_frames: int = 0  # binary message-data frames received
+
+
+async def subscribe_then(url: str, channel_ids: list[int], ready: set[int], check,
+                         listen: float = 1.0) -> tuple[Answers, object]:
+    """Once the channels ``ready`` are advertised, subscribe to ``channel_ids`` (subscription ids 1, 2, ...),
+    run ``check()`` in a thread while connected, then listen ``listen`` seconds: what came back, and what
+    ``check`` returned."""
+    answers, advertised = Answers(), set()
+    async with _connect(url, None, None) as ws:
+        while not ready <= advertised:
+            data = json.loads(await asyncio.wait_for(ws.recv(), 10))
+            if data["op"] == "advertise":
+                advertised.update(channel["id"] for channel in data["channels"])
+        await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+            {"id": number, "channelId": channel} for number, channel in enumerate(channel_ids, 1)]}))
+        checked = await asyncio.to_thread(check)
+        deadline = time.monotonic() + listen
+        with contextlib.suppress(TimeoutError, ConnectionClosed):
+            while (left := deadline - time.monotonic()) > 0:
+                message = await asyncio.wait_for(ws.recv(), left)
+                if isinstance(message, bytes):
+                    answers.data_frames += message[:1] == bytes([MESSAGE_DATA])
+                elif json.loads(message)["op"] == "status":
+                    answers.statuses.append(json.loads(message)["message"])
+    return answers, checked

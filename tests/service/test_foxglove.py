@@ -14,17 +14,18 @@ import numpy as np
 import pytest
 from ogapi import recording
 from ogapi.v1 import mapping_pb2 as pb
-from ogclient.connection import SessionRef
+from ogclient.connection import SessionRef, Transport, connect
 from ogclient.streaming import StreamResult, stream_frames
 from ogserver import apikeys
+from ogserver.live.channels import session_prefix
 from ogserver.live.port_access import port_access
-from ogserver.live.publisher import LIVE_TOPICS, REFINED_TOPICS, session_prefix
+from ogserver.live.publisher import LIVE_TOPICS, REFINED_TOPICS
 from ogserver.live.views import TOPIC_REFINED_TRAJECTORY, TOPIC_TRAJECTORY
 from ogserver.settings import load
 
 from .certificates import make_ca
 from .inprocess import serving, settings
-from .scene import TINY, create_request, messages, scene
+from .scene import FROZEN, TINY, create_request, messages, scene
 
 pytest.importorskip("foxglove", reason="the live extra (foxglove-sdk) is not installed")
 foxglove_client = pytest.importorskip("tests.service.foxglove_client", reason="websockets is not installed")
@@ -160,30 +161,118 @@ def test_without_the_port_no_foxglove_server_starts(tmp_path) -> None:
 
 # ---------------------------------------------------------------------------- who may connect
 
-def test_with_api_keys_only_the_token_opens_the_live_view(tmp_path) -> None:
-    """API keys on the gRPC port: without the Foxglove token no session id, image or pose is seen."""
+def session_topics(session_id: str) -> set[str]:
+    return {session_prefix(session_id) + topic for topic in LIVE_TOPICS}
+
+
+def shown(url: str, until=lambda topics: False, seconds: float = 20.0, tls: ssl.SSLContext | None = None) -> set[str]:
+    """The topics advertised to a client at ``url``."""
+    return set(asyncio.run(foxglove_client.topics(url, until, seconds, tls=tls)))
+
+
+def test_each_credential_is_shown_only_the_sessions_it_sees(tmp_path) -> None:
+    """The web view's credentials, with its owners: an API key sees its own sessions, a session token its one
+    session, the operator's Foxglove token every session; a wrong key is refused and counted."""
     configured = live_settings(tmp_path)
-    configured.access.api_keys = {"alice": apikeys.digest("alice-key")}
+    configured.access.api_keys = {"alice": apikeys.digest("alice-key"), "bob": apikeys.digest("bob-key")}
+    configured.access.max_auth_failures = 2
     token_file = tmp_path / "foxglove.token"
     token_file.write_text("a-secret-of-twenty-four-chars\n")
     configured.live.foxglove_token_file = str(token_file)
     frames = messages(scene())[:4]
     with serving(configured) as running:
         fox = running.server.live.foxglove
-        base = f"ws://127.0.0.1:{fox.port}"
-        url = base + "/?token=a-secret-of-twenty-four-chars"
-        assert asyncio.run(foxglove_client.first_message(base)) == 403
-        assert asyncio.run(foxglove_client.first_message(base + "/?token=a-secret-of-twenty-four-charX")) == 403
-        assert asyncio.run(foxglove_client.first_message(url)) == "serverInfo"
+        base = f"ws://127.0.0.1:{fox.port}/"
 
-        credentials = running.stub.CreateSession(create_request(TINY), metadata=(("x-api-key", "alice-key"),))
-        session = SessionRef.from_credentials(credentials)
-        received = watch_while_streaming(running, session, url, [recording.TOPIC_COLOR, recording.TOPIC_TRANSFORM],
-                                         frames)
-    prefix = session_prefix(session.session_id)
-    _, color = received.messages[prefix + recording.TOPIC_COLOR][-1]
-    assert color.data in {frame.color.data for frame in frames}
-    assert received.messages[prefix + recording.TOPIC_TRANSFORM]
+        def create(key: str) -> SessionRef:
+            return SessionRef.from_credentials(running.stub.CreateSession(create_request(FROZEN),
+                                                                          metadata=(("x-api-key", key),)))
+
+        alice, bob = create("alice-key"), create("bob-key")
+        mine, theirs = session_topics(alice.session_id), session_topics(bob.session_id)
+        assert shown(base + "?token=a-secret-of-twenty-four-chars", lambda topics: mine | theirs <= topics) >= \
+            mine | theirs, "the operator's token sees every session"
+        assert shown(base + "?key=alice-key", lambda topics: mine <= topics) == mine
+        assert shown(base + "?key=bob-key", lambda topics: theirs <= topics) == theirs
+        assert shown(f"{base}?token={alice.token}", lambda topics: mine <= topics) == mine
+
+        for url in (base, base + "?token=a-secret-of-twenty-four-charX"):
+            assert asyncio.run(foxglove_client.first_message(url)) == 401
+        failures = fox.gate.viewers.failures
+        assert len(failures) == 1, "the wrong token was counted against its address"
+        assert asyncio.run(foxglove_client.first_message(base + "?key=mallory-key")) == 401
+        assert asyncio.run(foxglove_client.first_message(base + "?key=mallory-key")) == 429, "past the limit"
+        assert asyncio.run(foxglove_client.first_message(base + "?key=alice-key")) == "serverInfo"
+
+        # A session opened later by another owner is never shown: alice sees her new one, not bob's.
+        async def later() -> tuple[dict[str, int], SessionRef]:
+            async def open_both() -> SessionRef:
+                await asyncio.sleep(1.0)
+                await asyncio.to_thread(create, "bob-key")
+                return await asyncio.to_thread(create, "alice-key")
+
+            opening = asyncio.create_task(open_both())
+            seen = await foxglove_client.topics(base + "?key=alice-key", lambda topics: len(topics) >= 2 * len(mine))
+            return seen, await opening
+
+        seen, newer = asyncio.run(later())
+        assert set(seen) == mine | session_topics(newer.session_id)
+
+        # A subscription to a channel the caller was not shown never reaches the server.
+        theirs_by_topic = asyncio.run(foxglove_client.topics(base + "?key=bob-key", lambda topics: theirs <= topics))
+        hidden, own = (theirs_by_topic[session_prefix(bob.session_id) + recording.TOPIC_COLOR],
+                       asyncio.run(foxglove_client.topics(base + "?key=alice-key", lambda topics: mine <= topics))
+                       [session_prefix(alice.session_id) + recording.TOPIC_COLOR])
+
+        def subscribed() -> tuple[bool, bool]:
+            wait_for(lambda: fox.wants(session_prefix(alice.session_id) + recording.TOPIC_COLOR))
+            return fox.wants(session_prefix(bob.session_id) + recording.TOPIC_COLOR), True
+
+        async def subscribe_and_stream() -> tuple[foxglove_client.Answers, object]:
+            def check() -> tuple[bool, bool]:
+                wanted = subscribed()
+                stream_frames(running.stub, bob, frames, None, False, None)
+                return wanted
+
+            return await foxglove_client.subscribe_then(base + "?key=alice-key", [hidden, own], {own}, check,
+                                                      listen=2.0)
+
+        answers, (hidden_wanted, _) = asyncio.run(subscribe_and_stream())
+        assert not hidden_wanted, "the hidden channel's subscription reached the SDK"
+        assert f"Unknown channel ID: {hidden}" in answers.statuses
+        assert answers.data_frames == 0, "bob's frames reached alice"
+
+
+def test_an_open_server_shows_every_session(tmp_path) -> None:
+    with serving(live_settings(tmp_path)) as running:
+        ids = [running.stub.CreateSession(create_request(FROZEN)).session_id for _ in range(2)]
+        every = session_topics(ids[0]) | session_topics(ids[1])
+        url = f"ws://127.0.0.1:{running.server.live.foxglove.port}"
+        assert shown(url, lambda topics: every <= topics) == every
+
+
+def test_under_mutual_tls_the_certificate_names_the_owner(tmp_path) -> None:
+    ca = make_ca(tmp_path / "pki", clients=("alice", "bob"))
+    configured = live_settings(tmp_path)
+    ca.serve(configured.access, mutual=True)
+    with serving(configured) as running:
+        def client(name: str | None) -> ssl.SSLContext:
+            trusting = ssl.create_default_context(cafile=str(ca.ca))
+            if name:
+                trusting.load_cert_chain(str(ca.clients[name].cert), str(ca.clients[name].key))
+            return trusting
+
+        opened = {}
+        for name in ("alice", "bob"):
+            pem = ca.clients[name]
+            channel, stub = connect(running.address, 10, Transport(ca=str(ca.ca), cert=str(pem.cert), key=str(pem.key)))
+            with channel:
+                opened[name] = session_topics(stub.CreateSession(create_request(FROZEN)).session_id)
+        url = f"wss://127.0.0.1:{running.server.live.foxglove.port}"
+        for name in ("alice", "bob"):
+            assert shown(url, lambda topics, name=name: opened[name] <= topics, tls=client(name)) == opened[name]
+        with pytest.raises(Exception):  # noqa: B017 (no certificate: the TLS handshake fails, however it shows)
+            asyncio.run(foxglove_client.first_message(url, tls=client(None)))
 
 
 def test_a_foreign_origin_is_refused(tmp_path) -> None:
@@ -204,13 +293,13 @@ def test_the_port_speaks_tls_when_grpc_does(tmp_path) -> None:
     ca.serve(configured.access)
     with serving(configured) as running:
         fox = running.server.live.foxglove
-        assert fox.tls and fox.gate.token, "TLS on gRPC asks for a token on the Foxglove port"
+        assert fox.tls
         trusting = ssl.create_default_context(cafile=str(ca.ca))
-        url = f"wss://127.0.0.1:{fox.port}/?token={fox.gate.token}"
-        assert asyncio.run(foxglove_client.first_message(url, tls=trusting)) == "serverInfo"
-        assert asyncio.run(foxglove_client.first_message(url.split("?")[0], tls=trusting)) == 403
+        url = f"wss://127.0.0.1:{fox.port}/"
+        assert asyncio.run(foxglove_client.first_message(url, tls=trusting)) == "serverInfo"  # open: no credential
+        assert asyncio.run(foxglove_client.first_message(url + "?token=not-a-session-token", tls=trusting)) == 401
         with pytest.raises(Exception):  # noqa: B017 (whatever a plain client makes of a TLS answer)
-            asyncio.run(foxglove_client.first_message(f"ws://127.0.0.1:{fox.port}/?token={fox.gate.token}"))
+            asyncio.run(foxglove_client.first_message(f"ws://127.0.0.1:{fox.port}/"))
 
 
 class Lines(logging.Handler):
@@ -225,17 +314,18 @@ class Lines(logging.Handler):
 
 
 def test_bad_subscribes_leave_a_bounded_log(tmp_path) -> None:
-    """The SDK logs a line per bad subscription entry; one client sending 2 000 gets a line or two."""
+    """2 000 subscriptions to a channel never shown: each answered as the SDK answers one, none logged."""
     root, log = logging.getLogger(), Lines()
     root.addHandler(log)
     try:
         with serving(live_settings(tmp_path)) as running:
             url = f"ws://127.0.0.1:{running.server.live.foxglove.port}"
-            asyncio.run(foxglove_client.subscribe_unknown(url, messages=10, entries=200))
+            statuses = asyncio.run(foxglove_client.subscribe_unknown(url, messages=10, entries=200))
     finally:
         root.removeHandler(log)
-    lines = [record for record in log.records if "unknown channel" in record.getMessage()]
-    assert 1 <= len(lines) <= 2, f"{len(lines)} lines, from {sorted({record.name for record in lines})}"
+    assert statuses == 2000
+    lines = [record for record in log.records if "unknown channel" in record.getMessage().lower()]
+    assert len(lines) <= 2, f"{len(lines)} lines, from {sorted({record.name for record in lines})}"
     assert sum(len(record.getMessage()) for record in log.records) < 20_000
 
 

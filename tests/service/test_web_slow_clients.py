@@ -10,11 +10,11 @@ import time
 import urllib.request
 from http import HTTPStatus
 
+from ogserver.access.transport import tls_context
 from ogserver.http import policy
 from ogserver.settings import Access
 from ogserver.web import http_server
 from ogserver.web.http_server import Answer, Pages
-from ogserver.web.serving import tls_context
 
 from .certificates import make_ca
 from .test_web_requests import HOST, exchange, status, web_server
@@ -74,7 +74,7 @@ def test_under_tls_a_handshake_that_drips_in_counts_against_the_head_deadline(tm
     ca = make_ca(tmp_path / "pki")
     access = Access()
     ca.serve(access, mutual=True)
-    with web_server(tls=tls_context(access), head_seconds=1.0) as server:
+    with web_server(tls=tls_context(access, "live.web_port"), head_seconds=1.0) as server:
         elapsed = open_seconds(socket.create_connection((HOST, server.port), timeout=10), b"\x16")  # a ClientHello
         assert elapsed < 2.5, f"the connection stayed open {elapsed:.1f} s while its TLS handshake dripped in"
         client = ca.clients["alice"]

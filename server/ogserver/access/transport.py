@@ -1,11 +1,13 @@
-"""How the port is opened: TLS (or mutual TLS) credentials, and HTTP/2 keepalive.
+"""How the ports are opened: TLS (or mutual TLS) credentials, and HTTP/2 keepalive.
 
 Keepalive pings let the server notice a client that vanished without closing its connection, so
-its frame stream ends and releases the session's stream slot.
+its frame stream ends and releases the session's stream slot. The viewers' ports (the web view, the
+Foxglove port) take the gRPC port's TLS, and its client CA, as an ``ssl.SSLContext``.
 """
 
 from __future__ import annotations
 
+import ssl
 from pathlib import Path
 
 import grpc
@@ -37,3 +39,29 @@ def keepalive_options(access: Access) -> list[tuple[str, int]]:
         ("grpc.keepalive_timeout_ms", round(access.keepalive_timeout_seconds * 1000)),
         ("grpc.http2.max_pings_without_data", 0),  # ping a client that has stopped sending, too
     ]
+
+
+def tls_context(access: Access, setting: str) -> ssl.SSLContext | None:
+    """The gRPC port's TLS for the viewer port ``setting`` (named in errors): its certificate, and its client
+    CA (mutual TLS) when it has one."""
+    if not access.tls_cert:
+        return None
+    tls = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    try:
+        tls.load_cert_chain(access.tls_cert, access.tls_key)
+        if access.tls_client_ca:
+            tls.load_verify_locations(access.tls_client_ca)
+            tls.verify_mode = ssl.CERT_REQUIRED
+    except (OSError, ssl.SSLError) as error:
+        raise ValueError(f"{setting}: cannot load the access.tls_* files: {error}") from None
+    return tls
+
+
+def certificate_names(certificate: dict | None) -> list[bytes]:
+    """A verified client certificate's names as gRPC reports them: its DNS/URI names, else its common name."""
+    if not certificate:
+        return []
+    alternatives = [value for kind, value in certificate.get("subjectAltName", ()) if kind in ("DNS", "URI")]
+    if alternatives:
+        return [name.encode() for name in alternatives]
+    return [value.encode() for rdn in certificate.get("subject", ()) for key, value in rdn if key == "commonName"]

@@ -4,8 +4,9 @@ Channels are advertised per topic on first use and carry protobuf messages with 
 recordings use, so Foxglove decodes the same bytes live and from a file. ``wants`` tells whether a
 client subscribes to a topic, so nothing is rendered or decoded for a view nobody watches. The
 server has its own ``foxglove.Context``: servers in one process do not see each other's channels.
-Clients reach the SDK's server only through the gate in ``front.py`` (origins, token, TLS), and the
-SDK's log lines, one per bad message a client sends, go through a throttle.
+Clients reach the SDK's server only through the gate in ``front.py`` (origins, credentials, TLS, and
+each client's view of the channels), and the SDK's log lines, one per bad message a client sends, go
+through a throttle.
 """
 
 from __future__ import annotations

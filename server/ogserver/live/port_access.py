@@ -1,14 +1,16 @@
-"""What the Foxglove port asks of a client, from the settings: the gRPC port's TLS, and a secret
-whenever the gRPC port has API keys or TLS, so the live view is never more open than the API."""
+"""What the Foxglove port asks of a client, from the settings: the gRPC port's TLS (and client CA), the
+origins allowed, and the operator's see-everything token when ``--foxglove-token-file`` sets one. Who
+sees which session is the web view's rule (``access/viewers.py``), given by the ``Viewers`` passed in."""
 
 from __future__ import annotations
 
 import re
-import secrets
 import ssl
 from dataclasses import dataclass
 from pathlib import Path
 
+from ogserver.access.transport import tls_context
+from ogserver.access.viewers import Viewers
 from ogserver.live.front import Gate
 from ogserver.settings import Settings
 
@@ -17,31 +19,21 @@ TOKEN = re.compile(r"[A-Za-z0-9._~-]{16,256}")  # long enough to guess in vain, 
 
 @dataclass(frozen=True)
 class PortAccess:
-    gate: Gate
+    origins: frozenset[str]
+    token: str  # the operator's, which sees every session ("" = none)
     tls: ssl.SSLContext | None
-    token_generated: bool  # a random per-server token, which the start-up log names in the URL
+
+    def gate(self, viewers: Viewers) -> Gate:
+        return Gate(viewers, self.origins, self.token)
 
     def url(self, host: str, port: int) -> str:
-        query = f"/?token={self.gate.token}" if self.gate.token else ""
-        return f"{'wss' if self.tls else 'ws'}://{host}:{port}{query}"
+        return f"{'wss' if self.tls else 'ws'}://{host}:{port}"
 
 
 def port_access(settings: Settings) -> PortAccess:
-    access, live = settings.access, settings.live
-    token, generated = "", False
-    if live.foxglove_token_file:
-        token = _read_token(Path(live.foxglove_token_file))
-    elif access.tls_cert or not access.open:
-        token, generated = secrets.token_urlsafe(24), True
-    tls = None
-    if access.tls_cert:
-        tls = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
-        try:
-            tls.load_cert_chain(access.tls_cert, access.tls_key)
-        except (OSError, ssl.SSLError) as error:
-            raise ValueError(f"live.foxglove_port: cannot load access.tls_cert and access.tls_key: {error}") \
-                from None
-    return PortAccess(Gate(frozenset(live.foxglove_origins), token), tls, generated)
+    live = settings.live
+    token = _read_token(Path(live.foxglove_token_file)) if live.foxglove_token_file else ""
+    return PortAccess(frozenset(live.foxglove_origins), token, tls_context(settings.access, "live.foxglove_port"))
 
 
 def _read_token(path: Path) -> str:

@@ -27,6 +27,7 @@ from ogapi import recording as layout
 
 from ogmapping.persist.export import ColoredPoints, default_viewpoint, point_cloud
 from ogserver.errors import ServiceError
+from ogserver.live.channels import session_prefix
 from ogserver.live.foxglove_ws import FoxgloveServer
 from ogserver.live.views import (
     TOPIC_REFINED_TRAJECTORY,
@@ -53,11 +54,6 @@ LIVE_TOPICS: dict[str, type[Message]] = {
 REFINED_TOPICS: dict[str, type[Message]] = {
     layout.TOPIC_REFINED_TRANSFORM: FrameTransform, TOPIC_REFINED_TRAJECTORY: PosesInFrame,
 }
-
-
-def session_prefix(session_id: str) -> str:
-    """Live topics of one session: the recording's topic names under this prefix."""
-    return f"/session/{session_id}"
 
 
 @dataclass

@@ -1,43 +1,23 @@
-"""Which maps a web caller may see: the same rules as the gRPC port.
+"""Which maps a web caller may see: the viewers' rules (``access/viewers.py``), the gRPC port's own.
 
-A caller presents an API key (``key``), a session token (``token``), a client certificate (mutual
-TLS), or nothing on an open server. A key or a certificate names a caller, who sees the sessions it
-created or restored, as ListSessions shows them; a session token shows that one session, as every
-gRPC call that names a session allows; an open server's anonymous caller sees every session. Wrong
-credentials count against the address like the gRPC port's (``FailedAuthentications``).
+``Sessions`` shows a server's open sessions by the caller's credential; ``OneMap`` a single map (``ogserver
+view``) to whoever holds its one token.
 """
 
 from __future__ import annotations
 
 import hmac
 import threading
-from dataclasses import dataclass, field
 from typing import Protocol
-from urllib.parse import urlencode
 
 import grpc
 import numpy as np
 
-from ogserver.access.callers import Callers
-from ogserver.access.failed_auth import FailedAuthentications
+from ogserver.access.viewers import Credential, Viewers
 from ogserver.errors import ServiceError
 from ogserver.live.views import MappedFrame
-from ogserver.sessions.registry import Registry
 from ogserver.sessions.session import Session
 from ogserver.web.maps import Busy, MapView, keyframe_path
-
-
-@dataclass(frozen=True)
-class Credential:
-    key: str = ""
-    token: str = ""
-    certificate_names: list[bytes] = field(default_factory=list)
-    address: str = ""  # the client's, for counting failures
-
-    def query(self) -> str:
-        """The credential as the page's links carry it ("" for none, else "?key=..." or "?token=...")."""
-        pairs = {"key": self.key} if self.key else {"token": self.token} if self.token else {}
-        return f"?{urlencode(pairs)}" if pairs else ""
 
 
 class Catalogue(Protocol):
@@ -91,11 +71,9 @@ class SessionSource:
 class Sessions:
     """The server's open sessions, each with its ``MapView`` while it is open."""
 
-    def __init__(self, registry: Registry, callers: Callers, failures: FailedAuthentications,
-                 min_seconds: float) -> None:
-        self.registry = registry
-        self.callers = callers
-        self.failures = failures
+    def __init__(self, viewers: Viewers, min_seconds: float) -> None:
+        self.viewers = viewers
+        self.registry = viewers.registry
         self.min_seconds = min_seconds
         self.busy = Busy()
         self._lock = threading.Lock()
@@ -103,7 +81,7 @@ class Sessions:
 
     @property
     def asks_credential(self) -> bool:
-        return not self.callers.open
+        return not self.viewers.callers.open
 
     def _view(self, session: Session) -> MapView:
         """The session's view, made on first sight; closed sessions' views are dropped then."""
@@ -116,23 +94,7 @@ class Sessions:
             return view
 
     def _sessions(self, credential: Credential) -> list[Session]:
-        with self.failures.guard(credential.address):
-            if credential.token:
-                return self._held(credential.token)
-            try:
-                owner = self.callers.identify(credential.key, credential.certificate_names or None)
-            except ServiceError:
-                if not credential.key:
-                    raise
-                return self._held(credential.key)  # a session token, typed into the page's one field
-        return self.registry.sessions(owner)
-
-    def _held(self, token: str) -> list[Session]:
-        """The session whose token this is."""
-        held = [session for session in self.registry.sessions() if session.token.matches(token)]
-        if not held:
-            raise ServiceError(grpc.StatusCode.UNAUTHENTICATED, "not an API key or session token this server accepts")
-        return held
+        return self.viewers.scope(credential).sessions(self.registry)
 
     def visible(self, credential: Credential) -> list[MapView]:
         return [self._view(session) for session in self._sessions(credential)]

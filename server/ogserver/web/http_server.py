@@ -30,6 +30,7 @@ import grpc
 import numpy as np
 from aiohttp import web
 
+from ogserver.access.transport import certificate_names
 from ogserver.errors import ServiceError
 from ogserver.http.policy import HEAD_SECONDS, PER_ADDRESS, Policy
 from ogserver.http.server import HttpServer
@@ -212,16 +213,6 @@ def center(text: str) -> np.ndarray | None:
     if values.shape != (3,) or not np.isfinite(values).all():
         raise ValueError(f"center: {text[:100]!r} is not three finite numbers x,y,z")
     return values
-
-
-def certificate_names(certificate: dict | None) -> list[bytes]:
-    """A verified client certificate's names as gRPC reports them: its DNS/URI names, else its common name."""
-    if not certificate:
-        return []
-    alternatives = [value for kind, value in certificate.get("subjectAltName", ()) if kind in ("DNS", "URI")]
-    if alternatives:
-        return [name.encode() for name in alternatives]
-    return [value.encode() for rdn in certificate.get("subject", ()) for key, value in rdn if key == "commonName"]
 
 
 LOGIN = """<h1>OG-Mapping</h1><p>{reason}</p><form method="get" action="/">
