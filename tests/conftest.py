@@ -1,10 +1,20 @@
 """Shared test fixtures: where the real data lives, and small mapper configs."""
 
+import os
 from pathlib import Path
 
 import pytest
 
 import ogmapping  # noqa: F401 (first, so its OpenMP settings precede torch in any test module)
+
+# isort: split
+import torch
+
+# Without a GPU the Triton kernels run interpreted on CPU tensors. Triton reads this when it defines a
+# kernel, its own library's included, so it is set before anything in the session imports triton
+# (torch.compile's Inductor does, whatever the device).
+if not torch.cuda.is_available():
+    os.environ.setdefault("TRITON_INTERPRET", "1")
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 SEVEN_SCENES = SHARED_DATA / "7scenes-redkitchen"

@@ -22,14 +22,13 @@ def intrinsics_matrix(
 
 
 def world_to_camera(c2w: torch.Tensor) -> torch.Tensor:
-    """Invert a rigid camera-to-world transform without a general matrix inverse."""
-    rotation = c2w[..., :3, :3]
-    translation = c2w[..., :3, 3:]
-    w2c = torch.zeros_like(c2w)
-    w2c[..., :3, :3] = rotation.transpose(-1, -2)
-    w2c[..., :3, 3:] = -rotation.transpose(-1, -2) @ translation
-    w2c[..., 3, 3] = 1.0
-    return w2c
+    """Invert a rigid camera-to-world transform without a general matrix inverse: [R^T, -R^T t; 0 0 0 1]
+    (assembled by concatenation, a few operators however many poses are stacked)."""
+    rotation, translation = c2w[..., :3, :].split((3, 1), dim=-1)
+    inverse_rotation = rotation.transpose(-1, -2)
+    top = torch.cat([inverse_rotation, -inverse_rotation @ translation], dim=-1)
+    bottom = c2w.new_tensor((0.0, 0.0, 0.0, 1.0)).expand(*c2w.shape[:-2], 1, 4)
+    return torch.cat([top, bottom], dim=-2)
 
 
 def pixel_rays(intrinsics: Intrinsics, device: torch.device | str = "cpu") -> torch.Tensor:

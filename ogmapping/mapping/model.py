@@ -167,12 +167,6 @@ class MapModel:
         return Camera(world_to_camera(c2w), intrinsics_matrix(intrinsics, self.device), intrinsics.width,
                       intrinsics.height, blur)
 
-    def cameras(self, c2w: torch.Tensor, intrinsics: list[Intrinsics]) -> list[Camera]:
-        """``camera`` of each stacked camera-to-world pose ``c2w`` (V, 4, 4), inverted together."""
-        viewmats = world_to_camera(c2w).unbind(0)
-        return [Camera(viewmat, intrinsics_matrix(view, self.device), view.width, view.height)
-                for viewmat, view in zip(viewmats, intrinsics, strict=True)]
-
     def decode(self, center: torch.Tensor, rows: torch.Tensor) -> GaussianSet:
         """The Gaussians of anchors ``rows`` as seen from the camera centre ``center``."""
         return generate(self.anchors, self.features, self.decoders, center, rows, compiled=self.profile.compiled)

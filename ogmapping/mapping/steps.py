@@ -105,9 +105,7 @@ class MappingSteps:
             decoded = self.decode_static(views) if static else self.decode(views)
             window_gaussians = decoded.views() if static else decoded
         with model.timed("rasterize"):
-            intrinsics = [drawn.intrinsics for drawn in window]
-            cameras = model.cameras(torch.stack(poses), intrinsics) if static else [
-                model.camera(pose, drawn.intrinsics) for pose, drawn in views]
+            cameras = [model.camera(pose, drawn.intrinsics) for pose, drawn in views]
             outputs = rasterize_batch(decoded, cameras, backend=model.backend)
         renders = list(zip(window_gaussians, outputs, window, strict=True))
         total = torch.zeros((), device=model.device)
