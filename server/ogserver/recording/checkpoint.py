@@ -22,6 +22,7 @@ import json
 import logging
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -223,6 +224,22 @@ class Checkpoints:
         self.seconds += elapsed
         log.debug("session %s: checkpoint at sequence %d in %.3f s", self.identity.session_id, position.sequence,
                   elapsed)
+
+    def write_if_due(self, position: Position, capture: Callable[[], MapState]) -> None:
+        """A checkpoint at ``position`` of the map ``capture`` takes, when one is due. A failed write is logged
+        and the previous checkpoint stands (a resume replays more frames); so does any other failure, logged
+        with its traceback instead of ending the session's worker thread, which would leave every later frame
+        of the session waiting for ever."""
+        if not self.due(position.sequence):
+            return
+        session = self.identity.session_id
+        try:
+            self.write(capture(), position)
+        except OSError as error:
+            log.error("session %s: cannot write its checkpoint at sequence %d: %s", session, position.sequence,
+                      error.strerror or error)
+        except Exception:  # a defect in capturing the state must not stop the session's mapping
+            log.exception("session %s: cannot capture its checkpoint at sequence %d", session, position.sequence)
 
     def remove(self) -> None:
         """The session closed cleanly: nothing to resume."""

@@ -10,6 +10,8 @@ applies again at the same point.
 
 from __future__ import annotations
 
+import logging
+from contextlib import suppress
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,9 +19,16 @@ from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.mapper import Mapper
 from ogmapping.mapping.corrections import jump
-from ogserver.errors import invalid
-from ogserver.sessions.ledger import Resolved
+from ogserver.api import validation
+from ogserver.api.validation import CorrectionEntry
+from ogserver.errors import ServiceError, invalid
+from ogserver.recording.disk import StorageError
+from ogserver.recording.recorder import Recorder
+from ogserver.sessions.backlog import RecordedCorrections
+from ogserver.sessions.ledger import FrameLedger, Resolved
 from ogserver.settings import Limits
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -62,3 +71,33 @@ def apply(mapper: Mapper, resolved: list[Resolved], limits: Limits, after_sequen
     response = pb.CorrectPosesResponse(keyframes=len(corrected), frames=len(resolved) - len(corrected),
                                        anchors_moved=moved_anchors, after_sequence=after_sequence)
     return Applied(record, response)
+
+
+@dataclass(frozen=True)
+class Corrections:
+    """A session's corrections: a client's batch applied and recorded, a recorded one applied again on resume.
+    The caller holds the session between two frames."""
+
+    session_id: str
+    mapper: Mapper
+    ledger: FrameLedger
+    limits: Limits
+    recorder: Recorder
+
+    def live(self, entries: list[CorrectionEntry], after_sequence: int) -> pb.CorrectPosesResponse:
+        if self.recorder.failure is not None:  # a correction the recording cannot keep would not replay
+            raise self.recorder.failure
+        applied = apply(self.mapper, self.ledger.resolve(entries), self.limits, after_sequence)
+        with suppress(StorageError):  # logged by the recorder, which then refuses further frames
+            self.recorder.write_corrections(applied.record)
+        return applied.response
+
+    def again(self, item: RecordedCorrections) -> None:
+        """A recorded batch after the checkpoint; one a restarted server's tighter bounds refuse is logged."""
+        try:
+            entries = validation.pose_corrections(pb.CorrectPosesRequest(poses=item.message.poses),
+                                                  len(item.message.poses))
+            apply(self.mapper, self.ledger.resolve(entries), self.limits, item.message.after_sequence)
+        except ServiceError as refusal:
+            log.error("session %s: the pose corrections recorded after frame %d are refused on resume: %s",
+                      self.session_id, item.message.after_sequence, refusal.message)

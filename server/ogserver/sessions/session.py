@@ -1,31 +1,28 @@
 """One mapping session: its map, a bounded frame queue and the worker thread that maps it.
 
-Frames are mapped strictly in arrival order by the session's own thread, so sessions map in
-parallel while renders, stats and snapshots (other threads) are served by the mapper between
-optimisation iterations. A second thread prepares the next queued frame (depth registration,
-``Mapper.prepare``) while the worker maps the one before it, so that work is off the mapping path.
-The worker records each frame as it takes it up, before mapping it, so
-the recording holds exactly the frames the session mapped (or tried to): frames still queued when
-the session closes are dropped unrecorded, and a replay maps what the original did. Every
-``checkpoints.interval`` recorded frames the worker, once the ack of the first frame it maps at or past
-that point is sent, writes a checkpoint of the map (``recording/checkpoint.py``). A session resumed after
-a crash starts from its last checkpoint with a backlog: the recorded frames after it that the session
-mapped (a realtime session's skipped ones stay skipped), which the worker maps (they are already
-recorded) before any new frame. The session answers in engine results and its own counters; the
-messages module turns them into ogapi messages.
+Frames are mapped strictly in arrival order by the session's own thread, so sessions map in parallel while renders,
+stats and snapshots (other threads) are served by the mapper between optimisation iterations. A second thread
+prepares the next queued frame (depth registration, ``Mapper.prepare``) while the worker maps the one before it, so
+that work is off the mapping path. The worker records each frame as it takes it up, before mapping it, so the
+recording holds exactly the frames the session mapped (or tried to): frames still queued when the session closes are
+dropped unrecorded, and a replay maps what the original did. Every ``checkpoints.interval`` recorded frames the
+worker, once the ack of the first frame it maps at or past that point is sent, writes a checkpoint of the map
+(``recording/checkpoint.py``). A session resumed after a crash starts from its last checkpoint with a backlog: the
+recorded frames after it that the session mapped (a realtime session's skipped ones stay skipped), which the worker
+maps (they are already recorded) before any new frame. The session answers in engine results and its own counters;
+the messages module turns them into ogapi messages.
 
-A realtime session never makes the stream wait: beyond ``realtime_queue_depth`` waiting frames, the
-oldest waiting one is skipped at once (acknowledged as skipped, never mapped, and recorded while the
-session's ``SkippedBudget`` covers it). Taking a frame out of the queue and recording it happen under one
-lock, on either path, so the recording keeps arrival order and a replay maps every recorded frame,
-skipped ones included, in that order. Sequences number the recorded frames: a skipped frame left out
-of the recording gives its number to the frames queued after it.
+A realtime session never makes the stream wait: beyond ``realtime_queue_depth`` waiting frames, the oldest waiting
+one is skipped at once (acknowledged as skipped, never mapped, and recorded while the session's ``SkippedBudget``
+covers it). Taking a frame out of the queue and recording it happen under one lock, on either path, so the recording
+keeps arrival order and a replay maps every recorded frame, skipped ones included, in that order. Sequences number
+the recorded frames: a skipped frame left out of the recording gives its number to the frames queued after it.
 
-Pose corrections (CorrectPoses) reach the map between two frames: the worker holds ``_mapping`` while it maps
-a frame, acknowledges it and writes any checkpoint due, and a correction takes it too, so the batch lands
-after the last frame mapped, a checkpoint holds either all of it or none, and the recording says after which
-frame (a replay and a resume apply it there again). The session keeps the frames it mapped
-(``ledger.FrameLedger``) to resolve what a correction names.
+Pose corrections (CorrectPoses) reach the map between two frames: the worker holds ``_mapping`` while it maps a
+frame, acknowledges it and writes any checkpoint due, and a correction takes it too, so the batch lands after the
+last frame mapped, a checkpoint holds either all of it or none, and the recording says after which frame (a replay
+and a resume apply it there again). The session keeps the frames it mapped (``ledger.FrameLedger``) to resolve what
+a correction names.
 """
 
 from __future__ import annotations
@@ -39,7 +36,6 @@ from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager, suppress
-from dataclasses import dataclass
 from pathlib import Path
 
 import grpc
@@ -48,6 +44,7 @@ from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.frames.frame import Frame
 from ogmapping.mapper import Mapper, PreparedFrame
+from ogmapping.persist.state import MapState
 from ogmapping.queries import Rendered
 from ogmapping.runtime.time_budget import Budget
 from ogmapping.stats import MapStats
@@ -62,6 +59,7 @@ from ogserver.recording.skipped_budget import SkippedBudget
 from ogserver.sessions import pose_corrections
 from ogserver.sessions.backlog import Recorded, RecordedCorrections
 from ogserver.sessions.counters import SessionCounters
+from ogserver.sessions.jobs import Job, prepare_next
 from ogserver.sessions.ledger import TENSOR, FrameLedger
 from ogserver.sessions.queued_bytes import ByteBudget, frame_bytes
 from ogserver.sessions.stream_events import Acked, SessionClosed, StreamEvent
@@ -70,17 +68,6 @@ from ogserver.throttled_log import ThrottledLog
 
 log = logging.getLogger(__name__)
 CLAMPED_LOG_SECONDS = 10.0
-
-
-@dataclass
-class Job:
-    frame: Frame
-    record: FrameRecord
-    sequence: int  # its place among the session's recorded frames
-    received: float  # time.monotonic() when the frame was read
-    sink: queue.SimpleQueue[StreamEvent] | None  # where the stream that sent it waits for its ack
-    size: int  # bytes it holds of the session's max_queued_bytes (0 in a realtime session, which holds none)
-    prepared: Future[PreparedFrame] | None = None  # made ready to map while the frame before it mapped
 
 
 class Session:
@@ -101,6 +88,7 @@ class Session:
         self.checkpoints = checkpoints
         self._backlog = list(backlog or ())
         self._ledger = ledger or FrameLedger()
+        self._corrections = pose_corrections.Corrections(self.id, mapper, self._ledger, limits, recorder)
         self._mapping = threading.Lock()  # held while a frame is mapped or the map corrected (never inside _lock)
         start = start or Position()
         recorded = recorded or start
@@ -251,7 +239,7 @@ class Session:
             item = self._backlog.pop(0)
             with self._mapping:
                 if isinstance(item, RecordedCorrections):
-                    self._correct_again(item)
+                    self._corrections.again(item)
                     continue
                 try:
                     frame = validation.frame(item.message, self.limits.max_image_pixels, self.mapper.config.octree)
@@ -272,26 +260,19 @@ class Session:
             self._backlog.clear()
 
     def _checkpoint_if_due(self) -> None:
-        """After a frame is recorded, mapped and acknowledged: a checkpoint when one is due. Its position
-        is the last mapped frame's, so a resume maps the recorded frames after it that this session
-        mapped (a realtime session's frames skipped since then stay skipped). A failed write is logged
-        and the previous checkpoint stands (a resume replays more frames). So does any other failure of
-        the write: it is logged with its traceback instead of ending the session's worker thread, which
-        would leave every later frame of the session waiting for ever."""
+        """After a frame is recorded, mapped and acknowledged: a checkpoint when one is due
+        (``Checkpoints.write_if_due``). Its position is the last mapped frame's, so a resume maps the recorded
+        frames after it that this session mapped (a realtime session's frames skipped since then stay skipped)."""
         with self._lock:
             position = self._mapped_position
-        if (self.checkpoints is None or not self.checkpoints.due(position.sequence) or self.recorder.failure
-                or self._closed.is_set()):
+        if self.checkpoints is None or self.recorder.failure or self._closed.is_set():
             return
-        try:
-            state = self.mapper.state(training_state=True)
-            state.tensors[TENSOR] = self._ledger.tensor()
-            self.checkpoints.write(state, position)
-        except OSError as error:
-            log.error("session %s: cannot write its checkpoint at sequence %d: %s", self.id, position.sequence,
-                      error.strerror or error)
-        except Exception:  # a defect in capturing the state must not stop the session's mapping
-            log.exception("session %s: cannot capture its checkpoint at sequence %d", self.id, position.sequence)
+        self.checkpoints.write_if_due(position, self._checkpoint_state)
+
+    def _checkpoint_state(self) -> MapState:
+        state = self.mapper.state(training_state=True)
+        state.tensors[TENSOR] = self._ledger.tensor()
+        return state
 
     def _skip(self, job: Job) -> pb.FrameAck:
         """Record a frame passed over for a newer one, and its skipped ack (or why it could not be recorded);
@@ -350,9 +331,7 @@ class Session:
             job = self._jobs.popleft()
             if job is None:
                 return None
-            upcoming = self._jobs[0] if self._jobs else None
-            if upcoming is not None and upcoming.prepared is None:
-                upcoming.prepared = self._preparer.submit(self.mapper.prepare, upcoming.frame)
+            prepare_next(self._jobs, self._preparer, self.mapper)
             return job, self._record(job)
 
     def _run(self) -> None:
@@ -412,25 +391,9 @@ class Session:
         with self._mapping:
             if self._closed.is_set():
                 raise ServiceError(grpc.StatusCode.NOT_FOUND, f"session_id: session {self.id} is closed")
-            if self.recorder.failure is not None:  # a correction the recording cannot keep would not replay
-                raise self.recorder.failure
             with self._lock:
                 after = self._mapped_position.sequence
-            applied = pose_corrections.apply(self.mapper, self._ledger.resolve(entries), self.limits, after)
-            with suppress(StorageError):  # logged by the recorder, which then refuses further frames
-                self.recorder.write_corrections(applied.record)
-        return applied.response
-
-    def _correct_again(self, item: RecordedCorrections) -> None:
-        """A recorded batch after the checkpoint, applied again on resume (the caller holds ``_mapping``)."""
-        try:
-            entries = validation.pose_corrections(pb.CorrectPosesRequest(poses=item.message.poses),
-                                                  len(item.message.poses))
-            pose_corrections.apply(self.mapper, self._ledger.resolve(entries), self.limits,
-                                   item.message.after_sequence)
-        except ServiceError as refusal:  # a server restarted with tighter bounds than the batch was taken under
-            log.error("session %s: the pose corrections recorded after frame %d are refused on resume: %s",
-                      self.id, item.message.after_sequence, refusal.message)
+            return self._corrections.live(entries, after)
 
     # ------------------------------------------------------------------ queries
 
