@@ -27,7 +27,8 @@ def world_to_camera(c2w: torch.Tensor) -> torch.Tensor:
     rotation, translation = c2w[..., :3, :].split((3, 1), dim=-1)
     inverse_rotation = rotation.transpose(-1, -2)
     top = torch.cat([inverse_rotation, -inverse_rotation @ translation], dim=-1)
-    bottom = c2w.new_tensor((0.0, 0.0, 0.0, 1.0)).expand(*c2w.shape[:-2], 1, 4)
+    bottom = torch.zeros_like(top[..., :1, :])  # made on the device: a tensor of host values would be a copy to it
+    bottom[..., 3] = 1.0
     return torch.cat([top, bottom], dim=-2)
 
 

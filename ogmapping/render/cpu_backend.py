@@ -205,9 +205,9 @@ class _Project(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_means2d, grad_conics, grad_depths, _grad_radii):
         camera = ctx.needs_input_grad[4]
-        grads = _project_backward(*ctx.saved_tensors, grad_means2d, grad_conics, grad_depths, *ctx.layout.arguments,
-                                  camera)
-        device = ctx.saved_tensors[0].device
+        saved = ctx.saved_tensors
+        grads = _project_backward(*saved, grad_means2d, grad_conics, grad_depths, *ctx.layout.arguments, camera)
+        device = saved[0].device
         means, quats, scales, viewmats = (_like(g, dtype, device) for g, dtype in zip(grads, ctx.dtypes, strict=True))
         return means, quats, scales, None, viewmats if camera else None, None, None
 
