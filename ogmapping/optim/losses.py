@@ -17,6 +17,7 @@ import torch
 from ogmapping.config import LossConfig
 from ogmapping.optim.fused_loss import image_terms
 from ogmapping.optim.ssim import ReferenceStatistics, ssim_map
+from ogmapping.render.views import grouped
 
 
 def depth_l1(render_depth: torch.Tensor, gt_depth: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -107,10 +108,7 @@ def window_mapping_loss(
 
 def same_size_groups(images: list[torch.Tensor]) -> list[list[int]]:
     """The positions of ``images`` grouped by shape, each group in order, the groups by first appearance."""
-    groups: dict[tuple[int, ...], list[int]] = {}
-    for position, image in enumerate(images):
-        groups.setdefault(tuple(image.shape), []).append(position)
-    return list(groups.values())
+    return grouped(tuple(image.shape) for image in images)
 
 
 def tracking_loss(

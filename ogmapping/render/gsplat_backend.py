@@ -46,7 +46,7 @@ from torch.nn.utils.rnn import pad_sequence
 
 from ogmapping.render.output import RenderOutput
 from ogmapping.render.rules import NEAR_PLANE
-from ogmapping.render.views import Camera, Splats, check_batch, parameters
+from ogmapping.render.views import Camera, Splats, check_batch, grouped, parameters
 
 INSTALL_HINT = (
     "the gsplat backend needs gsplat 1.5.x (1.5.3 or later) with its CUDA kernels and a CUDA build of PyTorch: after "
@@ -161,10 +161,7 @@ def rasterize_batch(scenes: list[Splats], cameras: list[Camera],
 def same_size_groups(cameras: list[Camera]) -> list[list[int]]:
     """Indices of the cameras, grouped by image size and blur in order of first appearance: gsplat
     renders a batch into images of one size with one ``eps2d``."""
-    groups: dict[tuple[int, int, float], list[int]] = {}
-    for index, camera in enumerate(cameras):
-        groups.setdefault((*camera.size, camera.blur), []).append(index)
-    return list(groups.values())
+    return grouped((*camera.size, camera.blur) for camera in cameras)
 
 
 def batch_rows(counts: list[int]) -> int:

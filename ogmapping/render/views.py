@@ -7,6 +7,7 @@ together so a backend can render them in as few calls as it can (gsplat: one per
 
 from __future__ import annotations
 
+from collections.abc import Hashable, Iterable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -72,3 +73,12 @@ def check_batch(scenes: list[Splats], cameras: list[Camera]) -> None:
                          f"{len(cameras)} cameras")
     if not scenes:
         raise ValueError("rasterize_batch needs at least one view")
+
+
+def grouped(keys: Iterable[Hashable]) -> list[list[int]]:
+    """The positions of ``keys`` grouped by equal key, each group in order, the groups by first appearance: a
+    batch's views split into the runs one kernel call takes (one image size, one blur)."""
+    groups: dict[Hashable, list[int]] = {}
+    for position, key in enumerate(keys):
+        groups.setdefault(key, []).append(position)
+    return list(groups.values())
