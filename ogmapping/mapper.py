@@ -41,13 +41,16 @@ from ogmapping.optim.poses import PoseCorrection, PoseReport
 from ogmapping.persist import map_io, snapshot
 from ogmapping.persist.state import MapState
 from ogmapping.queries import KeyframePose, Rendered
+from ogmapping.runtime.host_read import read
+from ogmapping.runtime.late_value import LateValue
 from ogmapping.runtime.profile import ExecutionProfile, execution_profile
 from ogmapping.runtime.stage_timer import StageTimer
 from ogmapping.runtime.streams import handed_in, handed_out, on_stream, session_stream
 from ogmapping.runtime.threads import torch_threads
 from ogmapping.runtime.time_budget import Budget, Stop
 from ogmapping.stats import MapStats
-from ogmapping.structure import allocation
+from ogmapping.structure import allocation, extent
+from ogmapping.structure.footprint import Footprint
 
 
 @dataclass(frozen=True)
@@ -67,13 +70,22 @@ class FrameResult:
     index: int
     keyframe: bool
     anchors: int
-    gaussians: int
     iterations: int
     new_anchors: int
-    loss: float
     seconds: float
+    # Read from the device when asked for, so the mapper queues the frame's work without waiting for it.
+    late_gaussians: LateValue  # Gaussians the frame's last step drew
+    late_loss: LateValue  # the frame's last loss (NaN without steps)
     stopped: Stop | None = None  # why optimisation ended before ``iterations`` reached the planned count
     pose: PoseReport | None = None  # the frame's pose after its steps (``poses.refine``; else the client's)
+
+    @property
+    def gaussians(self) -> int:
+        return int(self.late_gaussians.value())
+
+    @property
+    def loss(self) -> float:
+        return float(self.late_loss.value())
 
 
 class Mapper:
@@ -156,19 +168,30 @@ class Mapper:
         if correction is not None:
             self.tracker.track(frame, correction, budget, start)
             placed = correction.refined(c2w).detach()
-        with self.lock, model.timed("allocate"):
-            sampled = allocation.sampled_depth(self.config.octree, depth, frame.color_intrinsics)
-            new_codes = allocation.allocate(self.config.octree.allocation, model.octree, sampled,
-                                            frame.color_intrinsics, placed,
-                                            lambda: model.render(placed, frame.color_intrinsics)[1])
-            first_new = len(model.anchors)
-            model.add_coarse_anchors(new_codes, rgb, depth, frame.color_intrinsics, placed, len(self.keyframes) - 1)
+        # The host reads the device once before the steps: how many coarse cells the frame adds, with its
+        # keyframe test (the octree stays padded in between, so all of it holds the lock).
+        with self.lock:
+            with model.timed("allocate"):
+                settings = self.config.octree
+                extent.check_frame(frame.c2w, frame.color_intrinsics, settings)
+                stride = allocation.allocation_stride(settings, frame.color_intrinsics)
+                sampled = allocation.sampled_depth(settings, depth, frame.color_intrinsics)
+                cells = allocation.allocate(settings.allocation, model.octree, sampled, frame.color_intrinsics, placed,
+                                            lambda: model.render(placed, frame.color_intrinsics)[1], stride)
+            with model.timed("keyframes"):
+                keys = model.octree.keys(0)
+                seen = model.octree.seen_mask(keys, depth, frame.color_intrinsics, placed)
+                added, overlap = read(cells.count, self.keyframes.overlap_with_last(Footprint(keys, seen)))
+            with model.timed("allocate"):
+                new_codes = cells.settle(model.octree, int(added))
+                first_new = len(model.anchors)
+                model.add_coarse_anchors(new_codes, rgb, depth, frame.color_intrinsics, placed, len(self.keyframes) - 1)
         with model.timed("keyframes"):
-            codes = model.octree.seen_from(depth, frame.color_intrinsics, placed)
-            is_keyframe = self.keyframes.should_insert(codes)
+            is_keyframe = self.keyframes.inserts(overlap)
             iterations = self.config.keyframes.step_multiple * self.iterations_for(is_keyframe)
             if is_keyframe:
-                self.keyframes.insert(Keyframe.capture(frame.index, rgb, depth, frame.color_intrinsics, c2w, codes,
+                footprint = Footprint(model.octree.keys(0), seen[: model.octree.count(0)])
+                self.keyframes.insert(Keyframe.capture(frame.index, rgb, depth, frame.color_intrinsics, c2w, footprint,
                                                        pinned=self.device.type == "cuda", correction=correction))
                 with self.lock:  # the anchors this frame allocated belong to it, not to the keyframe before
                     model.anchors.keyframe[first_new:] = len(self.keyframes) - 1
@@ -183,11 +206,11 @@ class Mapper:
             index=frame.index,
             keyframe=is_keyframe,
             anchors=len(model.anchors),
-            gaussians=model.last_gaussians,
             iterations=done,
             new_anchors=int(new_codes.numel()) + grown,
-            loss=loss,
             seconds=time.perf_counter() - start,
+            late_gaussians=model.drawn.snapshot(),
+            late_loss=LateValue.of(loss),
             stopped=stopped,
             pose=pose,
         )
@@ -212,9 +235,11 @@ class Mapper:
             if resolved.restarts_average:
                 model.restart_average()
 
-    def _footprint(self, keyframe: Keyframe) -> torch.Tensor:
+    def _footprint(self, keyframe: Keyframe) -> Footprint:
+        """``keyframe``'s footprint on the map as it is now."""
         depth = keyframe.depth.to(self.device, non_blocking=keyframe.pinned).to(torch.float32)
-        return self.model.octree.seen_from(depth, keyframe.intrinsics, keyframe.c2w)
+        keys = self.model.octree.keys(0)
+        return Footprint(keys, self.model.octree.seen_mask(keys, depth, keyframe.intrinsics, keyframe.c2w))
 
     def iterations_for(self, is_keyframe: bool) -> int:
         """k for a keyframe (more for the very first), ``frame_iterations`` for any other frame, but

@@ -1,15 +1,17 @@
 """Map densification strategies (``octree.allocation``): octree, naive unique, projection."""
 
+import pytest
 import torch
 
-from ogmapping.config import resolve
+from ogmapping.config import OctreeConfig, resolve
 from ogmapping.datasets.synthetic import SyntheticSource
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.geometry import backproject
 from ogmapping.mapper import Mapper
 from ogmapping.render.output import RenderOutput
 from ogmapping.structure.allocation import allocate, projection_allocation, unexplained_pixels
-from ogmapping.structure.octree import SparseVoxelOctree
+from ogmapping.structure.extent import check_frame
+from ogmapping.structure.octree import PAD, SparseVoxelOctree
 
 VOXEL = 0.1
 # 8 x 4 pixels looking down +z; at depth 1 a pixel spans 0.1 m (one coarse cell).
@@ -32,8 +34,8 @@ def test_unique_allocation_gives_the_octree_allocation():
         depth[0, step % 8] = 0.0
         pose = torch.eye(4)
         pose[:3, 3] = torch.rand(3, generator=generator) * 0.3 * step
-        expected = allocate("octree", fast, depth, INTRINSICS, pose)
-        got = allocate("unique", naive, depth, INTRINSICS, pose)
+        expected = allocate("octree", fast, depth, INTRINSICS, pose).settle(fast)
+        got = allocate("unique", naive, depth, INTRINSICS, pose).settle(naive)
         assert torch.equal(got, expected) and torch.equal(naive.keys(0), fast.keys(0))
 
 
@@ -51,7 +53,8 @@ def test_unique_and_octree_mappers_build_the_same_map():
 
 def test_projection_on_an_empty_map_allocates_every_observed_cell():
     depth = torch.ones(4, 8)
-    expected = allocate("octree", SparseVoxelOctree(VOXEL, 2), depth, INTRINSICS, POSE)
+    octree = SparseVoxelOctree(VOXEL, 2)
+    expected = allocate("octree", octree, depth, INTRINSICS, POSE).settle(octree)
     never = render_of(torch.zeros(4, 8), torch.zeros(4, 8))
     assert torch.equal(projection_allocation(SparseVoxelOctree(VOXEL, 2), depth, INTRINSICS, POSE, never), expected)
 
@@ -61,7 +64,7 @@ def test_projection_adds_where_the_map_is_empty_and_duplicates_at_edges():
     octree = SparseVoxelOctree(VOXEL, 2)
     left = depth.clone()
     left[:, 4:] = 0
-    mapped = allocate("octree", octree, left, INTRINSICS, POSE)  # the map covers the left half
+    mapped = allocate("octree", octree, left, INTRINSICS, POSE).settle(octree)  # the map covers the left half
     alpha = torch.ones(4, 8)
     alpha[:, 4:] = 0.0  # ...and renders nothing on the right
     alpha[:, 3] = 0.3  # its edge column renders faint
@@ -98,3 +101,30 @@ def test_mapper_runs_every_switch_off_the_defaults():
     assert all(result.keyframe for result in results)
     assert len(mapper.model.anchors) >= mapper.model.octree.count(0) > 0
     assert max(mapper.model.anchors.level_counts(2)[1:]) > 0, "error-based growth added finer anchors"
+
+
+def test_octree_allocation_waits_for_nothing_until_settled():
+    """The new cells and the octree's keys keep a size the frame alone sets (padded with PAD) until the
+    host reads the count; settling trims both to what a checked insert gives."""
+    depth = torch.ones(4, 8)
+    depth[:, 6:] = 0.0
+    padded, checked = SparseVoxelOctree(VOXEL, 2), SparseVoxelOctree(VOXEL, 2)
+    checked.insert(checked.observed(backproject(depth, INTRINSICS, POSE)))
+    cells = allocate("octree", padded, depth, INTRINSICS, POSE)
+    assert cells.padded.numel() == 32 and padded.keys(0).numel() == 32
+    assert (cells.padded[cells.count:] == PAD).all()
+    assert torch.equal(cells.settle(padded), checked.keys(0)) and torch.equal(padded.keys(0), checked.keys(0))
+    again = allocate("octree", padded, torch.ones(4, 8), INTRINSICS, POSE)  # only the two right columns are new
+    assert int(again.count) == 8 and padded.keys(0).numel() == 24 + 32
+    assert torch.equal(padded.keys(0)[-24:], torch.full((24,), PAD))
+    again.settle(padded)
+    assert padded.count(0) == 32
+
+
+def test_a_frame_beyond_the_octree_range_is_refused_before_allocation():
+    settings = OctreeConfig(voxel_size=VOXEL, max_level=2, depth_max=5.0)
+    far = torch.eye(4).numpy()
+    far[0, 3] = 2e4  # 20 km out: past the finest cells' Morton range at 0.1 m and level 2
+    with pytest.raises(ValueError, match="the map reaches"):
+        check_frame(far, INTRINSICS, settings)
+    check_frame(torch.eye(4).numpy(), INTRINSICS, settings)

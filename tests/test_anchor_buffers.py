@@ -44,7 +44,7 @@ def test_rows_past_the_count_are_inert_after_pruning() -> None:
     with torch.no_grad():
         anchors.offsets.fill_(1.0)
     anchors.max_opacity[:] = 0.5
-    anchors.keep(torch.tensor([True, False, True, False, True]), None)
+    anchors.keep(torch.tensor([True, False, True, False, True]), None, 3)
     assert len(anchors) == 3 and anchors.positions[:, 0].tolist() == [0, 2, 4]
     assert not anchors.buffer("offsets")[3:].any() and anchors.buffer("max_opacity")[3:].eq(-torch.inf).all()
     assert not anchors.live[3:].any()

@@ -66,7 +66,7 @@ def test_rows_grown_later_average_only_their_own_steps_and_pruning_keeps_rows_in
     average.update()
     assert anchors.average_steps.tolist() == [2, 2, 1]
     assert anchors.averages["offsets"][2].eq(3.0).all()  # its first update copied the value
-    anchors.keep(torch.tensor([False, True, True]), None)
+    anchors.keep(torch.tensor([False, True, True]), None, 2)
     assert anchors.average_steps.tolist() == [2, 1]
     assert anchors.averages["offsets"].shape == anchors.offsets.shape
 

@@ -18,6 +18,8 @@ import torch
 from steady_step import mapped
 from torch.utils._python_dispatch import TorchDispatchMode
 
+from ogmapping.quality.evaluation import open_frames
+from ogmapping.runtime.host_read import reads
 from ogmapping.runtime.threads import torch_threads
 
 WAITING = {"aten.nonzero.default", "aten._local_scalar_dense.default", "aten._unique2.default",
@@ -88,11 +90,32 @@ def test_a_steady_step_with_static_shapes_never_waits(preset: str) -> None:
     assert not per_step, f"{preset}: host waits per steady step with static shapes: {per_step}"
 
 
-def test_growth_and_pruning_wait_within_their_bar() -> None:
-    """Growth and pruning reallocate the rows (a few times per ``refine.interval`` steps): their waits are
-    counted apart from the steady step's: 14 on this map (sparse), most in growth's proposals."""
-    mapper, _, _ = mapped("sparse", {"refine.interval": "1"})
-    waits = HostWaits()
-    with torch_threads(mapper.profile.threads), waits:
-        mapper.steps._refine()
-    assert 0 < sum(waits.sites.values()) <= 20, dict(waits.sites)
+def test_growth_and_pruning_read_the_device_once():
+    """Growth and pruning select with fixed sizes and read how many anchors each level gains and how many go
+    in one read (``host_read``), whatever they find."""
+    overrides = {"refine.interval": "10000", "refine.grad_threshold": "1e-6", "refine.min_observations": "1"}
+    mapper, view, window = mapped("sparse", overrides, step="static")
+    with torch_threads(mapper.profile.threads):
+        mapper.steps.step(view, window)  # gradients on record
+        waits, before, anchors = HostWaits(), reads(), len(mapper.model.anchors)
+        with waits:
+            grown = mapper.steps._refine()
+    assert grown > 0 and len(mapper.model.anchors) != anchors, "the map grew or shrank: the counted pass did its work"
+    assert not waits.sites and reads() - before == 1, dict(waits.sites)
+
+
+def test_a_frame_reads_the_device_once_before_its_steps():
+    """Per frame: one read for its new cells and keyframe test, one for a keyframe's overlap weights, one per
+    refinement; no operator that waits (``static`` step, as on a GPU)."""
+    mapper, _, _ = mapped("sparse", {"refine.interval": "2"}, step="static")
+    frames = open_frames("synthetic", "synthetic", "4:8", scale=0.25)
+    waits, before, expected = HostWaits(), reads(), 0
+    with torch_threads(mapper.profile.threads):
+        for position in frames.selection.streamed:
+            iterations = mapper.model.iterations
+            with waits:
+                result = mapper.process(frames.load(position))
+            refines = (mapper.model.iterations // 2) - (iterations // 2)
+            expected += 1 + int(result.keyframe) + refines
+    assert not waits.sites, dict(waits.sites)
+    assert reads() - before == expected

@@ -4,14 +4,25 @@ import torch
 
 from ogmapping.config import KeyframeConfig
 from ogmapping.frames.camera import Intrinsics
-from ogmapping.optim.keyframes import Keyframe, KeyframeSet, overlap_ratio
+from ogmapping.optim.keyframes import Keyframe, KeyframeSet
+from ogmapping.runtime.host_read import read
+from ogmapping.structure.footprint import Footprint, overlap
 
 INTRINSICS = Intrinsics(10, 10, 4, 3, 8, 6)
 
 
 def keyframe(index: int, codes: list[int]) -> Keyframe:
     return Keyframe.capture(index, torch.zeros(6, 8, 3), torch.zeros(6, 8), INTRINSICS, torch.eye(4),
-                            torch.tensor(sorted(set(codes)), dtype=torch.int64))
+                            footprint(codes))
+
+
+def footprint(codes: list[int]) -> Footprint:
+    return Footprint.of_codes(torch.tensor(sorted(set(codes)), dtype=torch.int64))
+
+
+def inserts(frames: KeyframeSet, codes: list[int]) -> bool:
+    """Whether a frame seeing ``codes`` becomes a keyframe."""
+    return frames.inserts(read(frames.overlap_with_last(footprint(codes)))[0])
 
 
 def test_overlap_ratio_matches_set_arithmetic():
@@ -20,16 +31,25 @@ def test_overlap_ratio_matches_set_arithmetic():
         a = set(torch.randint(0, 50, (30,), generator=generator).tolist())
         b = set(torch.randint(0, 50, (30,), generator=generator).tolist())
         expected = len(a & b) / len(a | b)
-        got = overlap_ratio(torch.tensor(sorted(a)), torch.tensor(sorted(b)))
+        got = float(overlap(footprint(list(a)), footprint(list(b))))
         assert abs(got - expected) < 1e-12
+        keys = torch.tensor(sorted(a | b | {60, 61}))  # the same keys: compared by masks alone
+        on_keys = float(overlap(Footprint(keys, torch.isin(keys, torch.tensor(sorted(a)))),
+                                Footprint(keys, torch.isin(keys, torch.tensor(sorted(b))))))
+        assert on_keys == got
+
+
+def test_overlap_of_empty_footprints():
+    assert float(overlap(footprint([]), footprint([]))) == 1.0
+    assert float(overlap(footprint([1]), footprint([]))) == 0.0
 
 
 def test_insertion_follows_the_threshold():
     frames = KeyframeSet(KeyframeConfig(overlap_threshold=0.5))
-    assert frames.should_insert(torch.tensor([1, 2, 3]))
+    assert inserts(frames, [1, 2, 3])
     frames.insert(keyframe(0, [1, 2, 3, 4]))
-    assert not frames.should_insert(torch.tensor([1, 2, 3, 4, 5]))  # 4/5 overlap
-    assert frames.should_insert(torch.tensor([3, 4, 5, 6, 7]))  # 2/7 overlap
+    assert not inserts(frames, [1, 2, 3, 4, 5])  # 4/5 overlap
+    assert inserts(frames, [3, 4, 5, 6, 7])  # 2/7 overlap
 
 
 def test_local_and_global_split_by_overlap_weight():
@@ -91,7 +111,7 @@ def test_downscaled_keyframe_matches_a_resized_camera():
     area = stored.reshape(3, 2, 4, 2, 3).mean(dim=(1, 3))
     assert float((half.rgb.float() / 255.0 - area).abs().max()) <= 0.5 / 255.0 + 1e-6  # area average, rounded
     assert set(half.depth.flatten().tolist()) <= set(original.depth.flatten().tolist())  # measured values only
-    assert half.index == 3 and torch.equal(half.codes, original.codes)
+    assert half.index == 3 and half.footprint is original.footprint
     assert original.downscaled(0.5) is half and original.downscaled(1.0) is original
 
 
@@ -116,10 +136,10 @@ def test_a_frame_between_keyframes_draws_the_newest_keyframe_as_local():
 def test_footprints_are_refreshed_on_the_current_map():
     """With a footprint function, the newest keyframe is compared as it sees the map now."""
     seen = {0: [1, 2, 3, 4]}
-    frames = KeyframeSet(KeyframeConfig(overlap_threshold=0.8), footprint=lambda kf: torch.tensor(seen[kf.index]))
+    frames = KeyframeSet(KeyframeConfig(overlap_threshold=0.8), footprint=lambda kf: footprint(seen[kf.index]))
     frames.insert(keyframe(0, [1, 2]))
-    assert not frames.should_insert(torch.tensor([1, 2, 3, 4])), "cells allocated later count for the keyframe too"
-    assert frames.keyframes[0].codes.tolist() == [1, 2, 3, 4]
+    assert not inserts(frames, [1, 2, 3, 4]), "cells allocated later count for the keyframe too"
+    assert frames.keyframes[0].footprint.codes().tolist() == [1, 2, 3, 4]
 
 
 # Fixed windows (``keyframes.window``): chosen once per inserted keyframe, the same at every draw.

@@ -1,14 +1,16 @@
 """Progressive refinement rules (paper 3.2) and pruning, on hand-built maps."""
 
+import dataclasses
 import math
 
 import torch
 
 from ogmapping.config import RefineConfig
 from ogmapping.model.gaussians import GaussianSet
-from ogmapping.optim.refine import accumulate, grow, propose, propose_error, prune
+from ogmapping.optim.refine import Proposals, accumulate, propose, propose_error, refine
+from ogmapping.runtime.host_read import read, reads
 from ogmapping.structure.anchors import AnchorMap
-from ogmapping.structure.octree import SparseVoxelOctree
+from ogmapping.structure.octree import PAD, SparseVoxelOctree
 
 VOXEL = 0.4
 CONFIG = RefineConfig(grad_threshold=1.0, min_observations=1, max_new_anchors=100)
@@ -32,6 +34,21 @@ def build_map(positions: list[list[float]], levels: list[int], n_offsets: int = 
     return anchors, octree
 
 
+def proposed(anchors: AnchorMap, octree: SparseVoxelOctree, config: RefineConfig = CONFIG) -> Proposals:
+    """The proposals of anchor-based growth, their counts read."""
+    proposals = propose(anchors, octree, config)
+    return proposals.settled([int(count) for count in read(proposals.counts)])
+
+
+def grow(anchors: AnchorMap, octree: SparseVoxelOctree, config: RefineConfig, voxel: float, optimizer) -> int:
+    return refine(anchors, octree, config, voxel, optimizer).grown
+
+
+def prune(anchors: AnchorMap, config: RefineConfig, optimizer) -> int:
+    no_growth = dataclasses.replace(config, growth="none")
+    return refine(anchors, SparseVoxelOctree(VOXEL, 2), no_growth, VOXEL, optimizer).pruned
+
+
 def set_gradient(anchors: AnchorMap, row: int, slot: int, value: float) -> None:
     anchors.grad_sum[row, slot] = value
     anchors.grad_count[row, slot] = 1
@@ -40,7 +57,7 @@ def set_gradient(anchors: AnchorMap, row: int, slot: int, value: float) -> None:
 def test_gradient_below_threshold_grows_nothing():
     anchors, octree = build_map([[0.1, 0.1, 0.1]], [0])
     set_gradient(anchors, 0, 0, 0.99)
-    assert propose(anchors, octree, CONFIG).codes.numel() == 0
+    assert proposed(anchors, octree).codes.numel() == 0
 
 
 def test_occupied_cell_promotes_to_the_next_level():
@@ -66,9 +83,9 @@ def test_free_cell_gets_an_anchor_of_the_same_level():
 def test_threshold_doubles_per_level():
     anchors, octree = build_map([[0.1, 0.1, 0.1], [1.01, 1.01, 1.01]], [0, 1])
     set_gradient(anchors, 1, 0, 1.5)  # above tau_0 but below tau_1 = 2 tau_0
-    assert propose(anchors, octree, CONFIG).codes.numel() == 0
+    assert proposed(anchors, octree).codes.numel() == 0
     set_gradient(anchors, 1, 0, 2.5)
-    proposals = propose(anchors, octree, CONFIG)
+    proposals = proposed(anchors, octree)
     assert proposals.levels.tolist() == [2]
 
 
@@ -88,7 +105,7 @@ def test_a_gaussian_grows_at_most_once():
 def test_finest_level_never_promotes_past_max_level():
     anchors, octree = build_map([[0.01, 0.01, 0.01]], [2])
     set_gradient(anchors, 0, 0, 100.0)
-    assert propose(anchors, octree, CONFIG).codes.numel() == 0
+    assert proposed(anchors, octree).codes.numel() == 0
 
 
 def test_duplicate_proposals_become_one_anchor():
@@ -149,7 +166,7 @@ def test_error_growth_ignores_the_anchor_level_and_may_go_coarser():
     set_gradient(anchors, 0, 0, 1.5)  # over tau_0 only: the anchor-based rule would need 4 tau_0 here
     proposals = propose_error(anchors, octree, ERROR)
     assert proposals.levels.tolist() == [0]
-    assert propose(anchors, octree, CONFIG).codes.numel() == 0
+    assert proposed(anchors, octree).codes.numel() == 0
 
 
 def test_error_growth_spawns_again_in_a_later_interval():
@@ -184,3 +201,37 @@ def test_accumulate_adds_the_scaled_gradient_norms_of_visible_gaussians_only():
     torch.testing.assert_close(anchors.grad_sum, torch.tensor([[2.0, 2.0], [0.0, math.hypot(6.0, 4.0)]]))
     assert anchors.grad_count.tolist() == [[1, 1], [0, 1]]
     assert anchors.observations.tolist() == [1, 1]
+
+
+def test_proposals_are_padded_to_a_fixed_size_and_counted_on_the_device():
+    anchors, octree = build_map([[0.1, 0.1, 0.1], [1.0, 1.0, 1.0]], [0, 0])
+    set_gradient(anchors, 0, 0, 3.0)  # promoted to level 1
+    set_gradient(anchors, 1, 0, 3.0)
+    set_gradient(anchors, 1, 1, 3.0)  # the same level-1 cell as its sibling: one anchor
+    proposals = propose(anchors, octree, CONFIG)
+    assert proposals.codes.numel() == 4, "every Gaussian of the map is a slot: the size never depends on the data"
+    assert proposals.counts.tolist() == [0, 2, 0]
+    assert proposals.levels.tolist() == [1, 1, 3, 3] and proposals.codes[2:].tolist() == [PAD, PAD]
+    assert proposals.parents[:2].sort().values.tolist() == [0, 1]
+
+
+def test_the_strongest_proposals_win_when_there_are_more_than_the_limit():
+    anchors, octree = build_map([[0.1, 0.1, 0.1], [1.0, 1.0, 1.0], [2.0, 2.0, 2.0]], [0, 0, 0])
+    for row, value in enumerate((2.0, 5.0, 3.0)):
+        set_gradient(anchors, row, 0, value)
+    proposals = proposed(anchors, octree, dataclasses.replace(CONFIG, max_new_anchors=2))
+    assert sorted(proposals.parents.tolist()) == [1, 2]
+    assert anchors.spawned[:, 0].tolist() == [False, True, True]
+
+
+def test_a_refinement_reads_the_device_once():
+    anchors, octree = build_map([[0.1, 0.1, 0.1], [1.0, 1.0, 1.0], [2.0, 2.0, 2.0]], [0, 0, 0])
+    set_gradient(anchors, 0, 0, 3.0)
+    anchors.observations[:] = 20
+    anchors.max_opacity[:] = torch.tensor([0.5, 0.001, 0.5])
+    before = reads()
+    config = dataclasses.replace(CONFIG, prune_opacity=0.01, prune_min_observations=10)
+    refined = refine(anchors, octree, config, VOXEL, None)
+    assert reads() - before == 1
+    assert (refined.grown, refined.pruned) == (1, 1) and len(anchors) == 3
+    assert anchors.levels.tolist() == [0, 0, 1], "the faint anchor went, the grown one came after the others"

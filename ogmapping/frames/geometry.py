@@ -55,6 +55,19 @@ def backproject(depth: torch.Tensor, intrinsics: Intrinsics, c2w: torch.Tensor) 
     return points_camera @ c2w[:3, :3].T.to(points_camera) + c2w[:3, 3].to(points_camera)
 
 
+def grid_points(depth: torch.Tensor, intrinsics: Intrinsics, c2w: torch.Tensor,
+                stride: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """World points (M, 3) of every ``stride``-th pixel per axis (from ``stride // 2``), row-major, and which
+    have a valid depth: ``backproject``'s points of those pixels with the invalid ones kept in place, at a
+    fixed size (dropping them would make the host wait for the device)."""
+    start = stride // 2
+    sampled = depth[start::stride, start::stride]
+    rays = pixel_rays(intrinsics, depth.device)[start::stride, start::stride].reshape(-1, 3)
+    valid = valid_depth(sampled).reshape(-1)
+    points_camera = rays * torch.where(valid, sampled.reshape(-1), 0.0).unsqueeze(-1)
+    return points_camera @ c2w[:3, :3].T.to(points_camera) + c2w[:3, 3].to(points_camera), valid
+
+
 def project(points: torch.Tensor, intrinsics: Intrinsics, c2w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Pixel coordinates (M, 2) and camera depth (M,) of world points."""
     w2c = world_to_camera(c2w.to(points))

@@ -29,7 +29,7 @@ from ogmapping.optim.lazy_adam import LazyAdam
 from ogmapping.render import Camera, rasterize
 from ogmapping.render.output import RenderOutput
 from ogmapping.render.rules import COVARIANCE_BLUR
-from ogmapping.runtime.late_count import LateCount
+from ogmapping.runtime.late_value import LateValue
 from ogmapping.runtime.profile import ExecutionProfile
 from ogmapping.runtime.stage_timer import StageTimer
 from ogmapping.structure.anchor_colour import cell_colour_logits, colour_sample_stride
@@ -48,7 +48,7 @@ class MapModel:
         self.build(config)
         self.frames = 0
         self.iterations = 0
-        self.drawn = LateCount()  # Gaussians the newest step drew in its view
+        self.drawn = LateValue()  # Gaussians the newest step drew in its view
         # Sum of the mapped frames' camera centres (float64): their mean is where a .ply export
         # bakes view-dependent colour by default, and it survives snapshots.
         self.camera_position_sum = torch.zeros(3, dtype=torch.float64)
@@ -96,7 +96,7 @@ class MapModel:
 
     @property
     def last_gaussians(self) -> int:
-        return self.drawn.value()
+        return int(self.drawn.value())
 
     @property
     def device(self) -> torch.device:

@@ -34,32 +34,32 @@ class MappingSteps:
         self.lock = lock
 
     def run(self, iterations: int, view: View | None, view_is_newest: bool, budget: Budget,
-            started: float) -> tuple[float, int, int, Stop | None]:
+            started: float) -> tuple[torch.Tensor, int, int, Stop | None]:
         """Up to ``iterations`` steps, each on ``view`` and a freshly drawn window of keyframes (the
         newest one is ``view`` itself when ``view_is_newest``); grow and prune every
         ``refine.interval`` steps of the whole session (frames may get fewer steps than that).
-        Returns the last loss (read from the device once, after the loop), the anchors grown, the
-        steps done and why they stopped short, if they did."""
+        Returns the last loss (a tensor on the device: NaN without steps), the anchors grown, the steps
+        done and why they stopped short, if they did."""
         model = self.model
         loss, grown = torch.full((), float("nan")), 0
         for done in range(iterations):
             if (stopped := budget.stop(started)) is not None:
-                return float(loss), grown, done, stopped
+                return loss, grown, done, stopped
             with self.lock:
                 loss = self.step(view, self.keyframes.draw_window(view_is_newest))
                 model.iterations += 1
                 if model.iterations % model.config.refine.interval == 0:
                     grown += self._refine()
-        return float(loss), grown, iterations, None
+        return loss, grown, iterations, None
 
     def _refine(self) -> int:
         """Grow anchors where the gradients ask for them, prune the faint ones; returns the anchors grown."""
         model, config = self.model, self.model.config
         with model.timed("refine"):
-            grown = refine.grow(model.anchors, model.octree, config.refine, config.octree.voxel_size, model.optimizer)
-            refine.prune(model.anchors, config.refine, model.optimizer)
+            refined = refine.refine(model.anchors, model.octree, config.refine, config.octree.voxel_size,
+                                    model.optimizer)
             refine.end_interval(model.anchors)
-        return grown
+        return refined.grown
 
     def step(self, view: View, keyframes: list[Keyframe]) -> torch.Tensor:
         """One optimisation step on ``view`` and ``keyframes``; returns its loss as a tensor on the

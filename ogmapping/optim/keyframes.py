@@ -10,10 +10,11 @@ Keyframes whose poses a client corrected (``revisit``) join every window drawn a
 the keyframes drawn as above, ``REVISIT_PER_DRAW`` at a time in turn until each has joined
 ``REVISIT_DRAWS`` windows: the map they moved is settled where it moved to.
 
-A frame's footprint is the set of occupied coarsest-level octree cells it sees (sorted Morton
-codes, ``SparseVoxelOctree.seen_from``): each cell is tested once at its centre's pixel against the
-measured depth, so the footprint, and with it keyframe insertion, does not change with the image
-resolution.
+A frame's footprint is the set of occupied coarsest-level octree cells it sees (``Footprint``, a mask
+over the octree's sorted Morton codes, ``SparseVoxelOctree.seen_mask``): each cell is tested once at its
+centre's pixel against the measured depth, so the footprint, and with it keyframe insertion, does not
+change with the image resolution. Overlaps stay on the device until the host reads them: the keyframe
+test with the frame's allocation, an insertion's weights all at once.
 """
 
 from __future__ import annotations
@@ -31,6 +32,8 @@ from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.preprocess import resize_depth
 from ogmapping.optim.poses import PoseCorrection
 from ogmapping.optim.ssim import ReferenceStatistics, reference_statistics
+from ogmapping.runtime.host_read import read
+from ogmapping.structure.footprint import Footprint, overlap
 
 
 @dataclass
@@ -71,20 +74,20 @@ class Keyframe:
     depth: torch.Tensor  # (H, W) float16 metres, 0 = invalid, host memory
     intrinsics: Intrinsics
     c2w: torch.Tensor  # (4, 4), the client's pose, on the mapper's device
-    codes: torch.Tensor  # sorted unique occupied coarsest-cell codes this frame sees
+    footprint: Footprint  # the occupied coarsest cells this frame sees
     pinned: bool = False
     correction: PoseCorrection | None = None  # with ``poses.refine``, every keyframe's but the first
     _downscaled: dict[float, Keyframe] = field(default_factory=dict, repr=False)
 
     @classmethod
     def capture(cls, index: int, rgb: torch.Tensor, depth: torch.Tensor, intrinsics: Intrinsics,
-                c2w: torch.Tensor, codes: torch.Tensor, *, pinned: bool = False,
+                c2w: torch.Tensor, footprint: Footprint, *, pinned: bool = False,
                 correction: PoseCorrection | None = None) -> Keyframe:
         """Store float ``rgb`` in [0, 1] (rounded to 1/255: exact for 8-bit images at their own size)
         and ``depth`` in metres (float16: steps of 2 mm from 2 to 4 m, 4 mm from 4 to 8 m) from any device."""
         colour = (rgb.detach() * 255.0).round_().clamp_(0.0, 255.0).to("cpu", torch.uint8)
         return cls(index, _host(colour, pinned), _host(depth.detach().to("cpu", torch.float16), pinned),
-                   intrinsics, c2w, codes, pinned, correction)
+                   intrinsics, c2w, footprint, pinned, correction)
 
     def view(self, device: torch.device, *, compiled: bool, images: Callable | None = None) -> View:
         """This keyframe as float32 images on ``device`` (copied there now), with SSIM statistics;
@@ -107,7 +110,7 @@ class Keyframe:
             rgb = cv2.resize(self.rgb.numpy().astype("float32") / 255.0, size, interpolation=cv2.INTER_AREA)
             depth = torch.from_numpy(resize_depth(self.depth.numpy(), *size))
             self._downscaled[scale] = Keyframe.capture(self.index, torch.from_numpy(rgb), depth, intrinsics,
-                                                       self.c2w, self.codes, pinned=self.pinned,
+                                                       self.c2w, self.footprint, pinned=self.pinned,
                                                        correction=self.correction)
         return self._downscaled[scale]
 
@@ -121,17 +124,6 @@ def view_images(rgb: torch.Tensor, depth: torch.Tensor) -> tuple[torch.Tensor, t
 
 def _host(tensor: torch.Tensor, pinned: bool) -> torch.Tensor:
     return tensor.pin_memory() if pinned else tensor
-
-
-def overlap_ratio(first: torch.Tensor, second: torch.Tensor) -> float:
-    """N_overlap / N_union of two sorted unique code sets."""
-    if first.numel() == 0 and second.numel() == 0:
-        return 1.0
-    if first.numel() == 0 or second.numel() == 0:
-        return 0.0
-    positions = torch.searchsorted(second, first).clamp_max(second.numel() - 1)
-    overlap = int((second[positions] == first).sum())
-    return overlap / (first.numel() + second.numel() - overlap)
 
 
 def _count_missing(sorted_codes: torch.Tensor, codes: torch.Tensor) -> int:
@@ -160,13 +152,14 @@ def coverage_window(earlier: list[Keyframe], new: Keyframe, weights: list[float]
                     rng: random.Random) -> list[int]:
     """Greedy coverage (H2-Mapping-like): repeatedly the earlier keyframe that sees the most coarse
     cells not yet covered by K_new and the keyframes already picked (ties: the newer)."""
-    covered, chosen = new.codes, []
+    covered, chosen = new.footprint.codes(), []
     remaining = list(range(len(earlier)))
     for _ in range(min(count, len(earlier))):
-        _, best = max((_count_missing(covered, earlier[position].codes), position) for position in remaining)
+        _, best = max((_count_missing(covered, earlier[position].footprint.codes()), position)
+                      for position in remaining)
         chosen.append(best)
         remaining.remove(best)
-        covered = torch.unique(torch.cat([covered, earlier[best].codes]))
+        covered = torch.unique(torch.cat([covered, earlier[best].footprint.codes()]))
     return chosen
 
 
@@ -190,7 +183,7 @@ class KeyframeSet:
     """
 
     def __init__(self, config: KeyframeConfig, seed: int = 0,
-                 footprint: Callable[[Keyframe], torch.Tensor] | None = None) -> None:
+                 footprint: Callable[[Keyframe], Footprint] | None = None) -> None:
         self.config = config
         self.keyframes: list[Keyframe] = []
         self.local: list[int] = []
@@ -207,24 +200,26 @@ class KeyframeSet:
     def _refresh(self, keyframes: list[Keyframe]) -> None:
         if self.footprint is not None:
             for keyframe in keyframes:
-                keyframe.codes = self.footprint(keyframe)
+                keyframe.footprint = self.footprint(keyframe)
 
-    def should_insert(self, codes: torch.Tensor) -> bool:
-        """A frame is a keyframe when it overlaps the last keyframe less than the threshold."""
+    def overlap_with_last(self, footprint: Footprint) -> torch.Tensor:
+        """How much a frame's footprint overlaps the last keyframe's (on the device; -1 without keyframes)."""
         if not self.keyframes:
-            return True
+            return torch.full((), -1.0, dtype=torch.float64, device=footprint.seen.device)
         self._refresh(self.keyframes[-1:])
-        return overlap_ratio(codes, self.keyframes[-1].codes) < self.config.overlap_threshold
+        return overlap(footprint, self.keyframes[-1].footprint)
+
+    def inserts(self, overlap_with_last: float) -> bool:
+        """A frame is a keyframe when it overlaps the last keyframe less than the threshold (any frame, first)."""
+        return overlap_with_last < 0 or overlap_with_last < self.config.overlap_threshold
 
     def insert(self, keyframe: Keyframe) -> None:
         """Add K_new and split the earlier keyframes into local and global sets by overlap weight
         (or, with a fixed window, choose that window once)."""
         self._refresh(self.keyframes)
         self.local, self.global_ = [], []
-        weights = []
-        for position, other in enumerate(self.keyframes):
-            weight = overlap_ratio(keyframe.codes, other.codes)
-            weights.append(weight)
+        weights = read(*(overlap(keyframe.footprint, other.footprint) for other in self.keyframes))
+        for position, weight in enumerate(weights):
             (self.local if weight >= self.config.local_threshold else self.global_).append(position)
         if self.config.window != "dynamic":
             choose = FIXED_WINDOWS[self.config.window]

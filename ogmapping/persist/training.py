@@ -22,6 +22,7 @@ from ogmapping.optim.keyframes import Keyframe, KeyframeSet
 from ogmapping.optim.lazy_adam import LazyAdam
 from ogmapping.optim.poses import PoseCorrection
 from ogmapping.structure.anchors import LEARNABLE, MOMENTS, AnchorMap
+from ogmapping.structure.footprint import Footprint
 
 PREFIX = "training."
 STATISTICS = ("positions", "grad_sum", "grad_count", "max_opacity")
@@ -91,7 +92,7 @@ def capture(mapper: Optimisation) -> dict[str, torch.Tensor]:
             f"keyframes.{position}.intrinsics": torch.tensor(
                 [camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height], dtype=torch.float64),
             f"keyframes.{position}.c2w": keyframe.c2w,
-            f"keyframes.{position}.codes": keyframe.codes,
+            f"keyframes.{position}.codes": keyframe.footprint.codes(),
         })
         if keyframe.correction is not None:
             tensors[f"keyframes.{position}.correction"] = keyframe.correction.state()
@@ -179,7 +180,8 @@ def _restore_keyframes(mapper: Optimisation, section: dict[str, torch.Tensor]) -
         restored.append(Keyframe(
             _frame_index_from_int64(section[prefix + "index"]), rgb.pin_memory() if pinned else rgb,
             depth.pin_memory() if pinned else depth, Intrinsics(fx, fy, cx, cy, int(width), int(height)),
-            section[prefix + "c2w"].to(mapper.device), section[prefix + "codes"].to(mapper.device), pinned,
+            section[prefix + "c2w"].to(mapper.device), Footprint.of_codes(section[prefix + "codes"].to(mapper.device)),
+            pinned,
             _correction(section.get(prefix + "correction"), section[prefix + "c2w"], mapper.device),
         ))
     keyframes.keyframes = restored

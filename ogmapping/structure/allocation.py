@@ -2,7 +2,9 @@
 densification").
 
 - ``octree`` (the paper's method): the frame's observed coarse cells are looked up in the sorted
-  level-0 codes by binary search and merged in, O(frame + map) with no sort of the map.
+  level-0 codes by binary search and merged in, O(frame + map) with no sort of the map, and without
+  the host reading anything (``SparseVoxelOctree.insert_unread``): how many cells are new is read
+  once, with the frame's keyframe test (``NewCells.settle``).
 - ``unique`` ("Naive Unique"): the same anchors, found by one ``torch.unique`` over the map's
   existing coarse codes concatenated with the frame's (new = seen once, and from the frame), so
   every frame sorts the whole map.
@@ -20,14 +22,16 @@ densification").
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 
 from ogmapping.config import OctreeConfig
 from ogmapping.frames.camera import Intrinsics
-from ogmapping.frames.geometry import backproject
+from ogmapping.frames.geometry import backproject, grid_points
 from ogmapping.render.output import RenderOutput
-from ogmapping.structure.octree import SparseVoxelOctree
+from ogmapping.runtime.host_read import read
+from ogmapping.structure.octree import PAD, SparseVoxelOctree
 
 SILHOUETTE_THRESHOLD = 0.5  # SplaTAM's sil_thres
 DEPTH_ERROR_FACTOR = 50.0  # SplaTAM: depth error above 50x its median marks a pixel as unexplained
@@ -53,24 +57,44 @@ def sampled_depth(settings: OctreeConfig, depth: torch.Tensor, intrinsics: Intri
     return kept
 
 
+@dataclass
+class NewCells:
+    """The codes that get a new coarse anchor: ``padded`` holds them sorted (then ``PAD``s), ``count`` says
+    how many (a 0-dim tensor: with ``octree`` allocation, on the device until the host reads it)."""
+
+    padded: torch.Tensor
+    count: torch.Tensor
+
+    def settle(self, octree: SparseVoxelOctree, count: int | None = None) -> torch.Tensor:
+        """The new codes, exactly, once ``count`` is read (here, unless the caller read it with other values);
+        the octree's level 0 loses its padding."""
+        count = int(read(self.count)[0]) if count is None else count
+        octree.trim(0, count)
+        return self.padded[:count]
+
+
 def allocate(strategy: str, octree: SparseVoxelOctree, depth: torch.Tensor, intrinsics: Intrinsics,
-             c2w: torch.Tensor, render: Callable[[], RenderOutput] | None = None) -> torch.Tensor:
-    """Occupy the coarse cells ``strategy`` picks for this frame; returns the codes that get a new
-    coarse anchor (sorted, unique within the frame)."""
+             c2w: torch.Tensor, render: Callable[[], RenderOutput] | None = None, stride: int = 1) -> NewCells:
+    """Occupy the coarse cells ``strategy`` picks for this frame (``depth`` holds valid values only on the
+    ``stride`` grid, ``sampled_depth``); returns the codes that get a new coarse anchor (unique)."""
     if strategy == "octree":
-        return octree_allocation(octree, backproject(depth, intrinsics, c2w))
+        return octree_allocation(octree, *grid_points(depth, intrinsics, c2w, stride))
     if strategy == "unique":
-        return unique_allocation(octree, backproject(depth, intrinsics, c2w))
-    if strategy == "projection":
+        new = unique_allocation(octree, backproject(depth, intrinsics, c2w))
+    elif strategy == "projection":
         if render is None:
             raise ValueError("projection allocation needs a render of the current map")
-        return projection_allocation(octree, depth, intrinsics, c2w, render)
-    raise ValueError(f"unknown allocation strategy {strategy!r}")
+        new = projection_allocation(octree, depth, intrinsics, c2w, render)
+    else:
+        raise ValueError(f"unknown allocation strategy {strategy!r}")
+    return NewCells(new, torch.tensor(new.numel()))
 
 
-def octree_allocation(octree: SparseVoxelOctree, points: torch.Tensor) -> torch.Tensor:
-    """Observed coarse cells not in the octree yet (binary search and a linear merge)."""
-    return octree.insert(octree.observed(points), 0)
+def octree_allocation(octree: SparseVoxelOctree, points: torch.Tensor, valid: torch.Tensor) -> NewCells:
+    """Observed coarse cells not in the octree yet (a sort of the frame's codes, binary search and a linear
+    merge), from the frame's ``points`` where ``valid``; the octree is left padded until ``NewCells.settle``."""
+    codes = torch.where(valid, octree.codes_of(torch.where(valid.unsqueeze(-1), points, 0.0), 0, checked=False), PAD)
+    return NewCells(*octree.insert_unread(codes, 0))
 
 
 def unique_allocation(octree: SparseVoxelOctree, points: torch.Tensor) -> torch.Tensor:

@@ -195,10 +195,10 @@ class AnchorMap:
         new[: self.count] = old[: self.count]
         return new
 
-    def keep(self, mask: torch.Tensor, optimizer: torch.optim.Optimizer | None) -> None:
-        """Keep only the live rows where ``mask`` is True (pruning), compacted in place in the buffers."""
-        kept = torch.nonzero(mask).squeeze(-1)
-        total = int(kept.numel())
+    def keep(self, mask: torch.Tensor, optimizer: torch.optim.Optimizer | None, total: int) -> None:
+        """Keep only the live rows where ``mask`` is True (pruning), compacted in place in the buffers;
+        ``total`` is how many are (read by the caller with other values: counting here would wait)."""
+        kept = torch.nonzero_static(mask, size=total).squeeze(-1)
         with torch.no_grad():
             buffers = [(self.buffer(name), spec.inert) for name, spec in self.specs.items()]
             buffers += [(average, 0) for average in self.average_rows.values()]

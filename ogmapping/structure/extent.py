@@ -34,3 +34,12 @@ def frame_radius(c2w: np.ndarray, intrinsics: Intrinsics, depth_max: float) -> f
     ray_y = np.abs((corners_v - intrinsics.cy) / intrinsics.fy).max()
     longest_ray = float(np.sqrt(ray_x**2 + ray_y**2 + 1.0))
     return float(np.abs(c2w[:3, 3]).max()) + depth_max * longest_ray
+
+
+def check_frame(c2w: np.ndarray, intrinsics: Intrinsics, config: OctreeConfig) -> None:
+    """ValueError for a frame whose points could land beyond ``map_radius``: the engine codes a frame's cells
+    without testing each (a test on the device would make the host wait), so the pose is checked instead."""
+    reach, radius = frame_radius(c2w, intrinsics, config.depth_max), map_radius(config)
+    if reach > radius:
+        raise ValueError(f"the frame's points can land up to {reach:.0f} m from the origin along an axis; the map "
+                         f"reaches {radius:.0f} m (set by octree.voxel_size and octree.max_level)")

@@ -43,35 +43,39 @@ def _compact(values: torch.Tensor) -> torch.Tensor:
     return values
 
 
-def encode(coords: torch.Tensor) -> torch.Tensor:
-    """Morton codes (M,) of signed integer cell coordinates (M, 3); out-of-range raises ValueError."""
+def encode(coords: torch.Tensor, checked: bool = True) -> torch.Tensor:
+    """Morton codes (M,) of signed integer cell coordinates (M, 3); out-of-range raises ValueError.
+    ``checked=False`` skips the range test (it makes the host wait for the device), for coordinates
+    known to be in range: out-of-range ones then get wrong codes, not an error."""
     if coords.ndim != 2 or coords.shape[1] != 3:
         raise ValueError(f"coords must have shape (M, 3), got {tuple(coords.shape)}")
     if coords.is_floating_point() or coords.is_complex():
         raise ValueError(f"coords must be integers, got {coords.dtype}")
     coords = coords.to(torch.int64)
-    if coords.numel() and bool(((coords < COORD_MIN) | (coords > COORD_MAX)).any()):
+    if checked and coords.numel() and bool(((coords < COORD_MIN) | (coords > COORD_MAX)).any()):
         raise ValueError(f"cell coordinates must lie in [{COORD_MIN}, {COORD_MAX}]")
     shifted = coords + COORD_OFFSET
     return _spread(shifted[:, 0]) | (_spread(shifted[:, 1]) << 1) | (_spread(shifted[:, 2]) << 2)
 
 
-def decode(codes: torch.Tensor) -> torch.Tensor:
-    """Signed cell coordinates (M, 3) of Morton codes (M,); negative codes raise ValueError."""
+def decode(codes: torch.Tensor, checked: bool = True) -> torch.Tensor:
+    """Signed cell coordinates (M, 3) of Morton codes (M,); negative codes raise ValueError, unless
+    ``checked=False`` (codes known to be valid, such as an octree's own: the test makes the host wait)."""
     if codes.ndim != 1:
         raise ValueError(f"codes must be one-dimensional, got shape {tuple(codes.shape)}")
     codes = codes.to(torch.int64)
-    if codes.numel() and bool((codes < 0).any()):
+    if checked and codes.numel() and bool((codes < 0).any()):
         raise ValueError("Morton codes must be non-negative")
     axes = [_compact(codes >> axis) for axis in range(3)]
     return torch.stack(axes, dim=-1) - COORD_OFFSET
 
 
-def cell_coords(points: torch.Tensor, cell_size: float) -> torch.Tensor:
-    """Integer coordinates (M, 3) of the cells of size ``cell_size`` holding each point (floor)."""
+def cell_coords(points: torch.Tensor, cell_size: float, checked: bool = True) -> torch.Tensor:
+    """Integer coordinates (M, 3) of the cells of size ``cell_size`` holding each point (floor);
+    non-finite points raise ValueError unless ``checked=False`` (then their coordinates are meaningless)."""
     if cell_size <= 0:
         raise ValueError(f"cell_size must be positive, got {cell_size}")
     scaled = torch.floor(points / cell_size)
-    if scaled.numel() and not bool(torch.isfinite(scaled).all()):
+    if checked and scaled.numel() and not bool(torch.isfinite(scaled).all()):
         raise ValueError("points must be finite")
     return scaled.to(torch.int64)

@@ -4,7 +4,9 @@ Anchor level l has cells of size gamma_l = voxel_size / 4**l, so a level-l cell 
 level-(l+1) cells (two octree depths per anchor level). Keeping each level's occupied codes sorted
 makes membership a ``searchsorted`` and insertion a linear merge, so per-frame allocation costs
 O(frame points + map size) with no sort or unique over the whole map. All work stays on the
-tensors' device; the only host syncs are input validation and sizing the result of a merge.
+tensors' device. ``insert_unread`` inserts without the host reading anything (the level's keys stay
+padded with ``PAD`` until ``trim`` is told how many were new), so a frame's allocation and its
+keyframe test share one read; ``insert`` reads the count at once.
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ from ogmapping.config import OctreeConfig
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.geometry import in_frustum, project
 from ogmapping.structure import morton
+
+PAD = torch.iinfo(torch.int64).max  # no cell: sorts after every Morton code
 
 
 class SparseVoxelOctree:
@@ -30,6 +34,7 @@ class SparseVoxelOctree:
         self.max_level = int(max_level)
         self.device = torch.device(device)
         self._keys = [self._empty() for _ in range(self.levels)]
+        self._unsettled: dict[int, int] = {}  # level -> its key count before an ``insert_unread``
 
     @classmethod
     def from_config(cls, config: OctreeConfig, device: torch.device | str = "cpu") -> SparseVoxelOctree:
@@ -54,9 +59,11 @@ class SparseVoxelOctree:
         self._check_level(level)
         return int(self._keys[level].numel())
 
-    def codes_of(self, points: torch.Tensor, level: int = 0) -> torch.Tensor:
-        """Code (M,) of the level-``level`` cell holding each point, duplicates kept."""
-        return morton.encode(morton.cell_coords(points, self.cell_size(level)))
+    def codes_of(self, points: torch.Tensor, level: int = 0, checked: bool = True) -> torch.Tensor:
+        """Code (M,) of the level-``level`` cell holding each point, duplicates kept; ``checked=False`` for
+        points known to be codable (``holds``), without the tests that make the host wait."""
+        cell = self.cell_size(level)
+        return morton.encode(morton.cell_coords(points, cell, checked), checked)
 
     def holds(self, points: torch.Tensor) -> torch.Tensor:
         """Which points (M, 3) every level can code: finite, and within the finest level's Morton range."""
@@ -64,17 +71,16 @@ class SparseVoxelOctree:
         return (torch.isfinite(scaled) & (scaled >= morton.COORD_MIN) & (scaled <= morton.COORD_MAX)).all(-1)
 
     def centers(self, codes: torch.Tensor, level: int = 0, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-        """World-space centres (M, 3) of cells, in metres."""
-        coords = morton.decode(codes)
+        """World-space centres (M, 3) of cells, in metres (any codes decode: ``PAD``'s centre is meaningless)."""
+        coords = morton.decode(codes, checked=False)
         return ((coords.to(torch.float64) + 0.5) * self.cell_size(level)).to(dtype)
 
     def centers_by_level(self, codes: torch.Tensor, levels: torch.Tensor) -> torch.Tensor:
-        """World-space centres (M, 3) of cells whose levels differ per code."""
+        """World-space centres (M, 3) of cells whose levels differ per code (each level's centres of every
+        code, kept where it is the code's level: no host wait)."""
         positions = torch.zeros(codes.numel(), 3, device=codes.device)
         for level in range(self.levels):
-            at_level = levels == level
-            if bool(at_level.any()):
-                positions[at_level] = self.centers(codes[at_level], level).to(positions)
+            positions = torch.where((levels == level).unsqueeze(-1), self.centers(codes, level), positions)
         return positions
 
     def contains(self, codes: torch.Tensor, level: int = 0) -> torch.Tensor:
@@ -92,6 +98,35 @@ class SparseVoxelOctree:
         if new.numel():
             self._keys[level] = _merge(self._keys[level], new)
         return new
+
+    def insert_sorted(self, codes: torch.Tensor, level: int = 0) -> None:
+        """Add cells known to be sorted, unique and unoccupied (growth's proposals), unchecked: no host wait."""
+        self._check_level(level)
+        self._keys[level] = _merge(self._keys[level], codes)
+
+    def insert_unread(self, codes: torch.Tensor, level: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+        """``insert`` without the host reading anything: ``codes`` (any order, repeats, ``PAD`` for none)
+        go into the level's keys, which end in ``PAD`` padding until ``trim``. Returns the new codes
+        (sorted, then ``PAD``) and how many there are (a 0-dim tensor on the device)."""
+        self._check_level(level)
+        ordered = torch.sort(codes.to(self.device, torch.int64)).values
+        first = torch.ones_like(ordered, dtype=torch.bool)
+        first[1:] = ordered[1:] != ordered[:-1]
+        new = first & (ordered != PAD) & ~_member(self._keys[level], ordered)
+        # Each new code to its rank among the new ones, the others to a slot past the end, then cut off.
+        slots = torch.where(new, torch.cumsum(new, 0) - 1, ordered.numel())
+        fresh = torch.full((ordered.numel() + 1,), PAD, dtype=torch.int64, device=self.device)
+        fresh.index_put_((slots,), ordered)
+        fresh = fresh[: ordered.numel()]
+        self._unsettled[level] = self._keys[level].numel()
+        self._keys[level] = _merge(self._keys[level], fresh)
+        return fresh, new.sum()
+
+    def trim(self, level: int, added: int) -> None:
+        """Drop the ``PAD`` padding ``insert_unread`` left on a level, now the host knows ``added``."""
+        before = self._unsettled.pop(level, None)
+        if before is not None:
+            self._keys[level] = self._keys[level][: before + added]
 
     def remove(self, codes: torch.Tensor, level: int = 0) -> torch.Tensor:
         """Drop cells; returns the sorted codes that were occupied and are now gone."""
@@ -142,15 +177,19 @@ class SparseVoxelOctree:
         ray); pixels without a measurement see nothing.
         """
         keys = self.keys(0)
+        return keys[self.seen_mask(keys, depth, intrinsics, c2w)]
+
+    def seen_mask(self, keys: torch.Tensor, depth: torch.Tensor, intrinsics: Intrinsics,
+                  c2w: torch.Tensor) -> torch.Tensor:
+        """Which of ``keys`` (coarsest codes, ``PAD`` never) ``seen_from`` keeps: a mask, so no host wait."""
         if keys.numel() == 0:
-            return keys
+            return torch.zeros_like(keys, dtype=torch.bool)
         uv, z = project(self.centers(keys, 0), intrinsics, c2w.to(self.device, torch.float32))
         column = torch.floor(uv[:, 0]).to(torch.int64)
         row = torch.floor(uv[:, 1]).to(torch.int64)
         inside = (z > 0) & (column >= 0) & (column < intrinsics.width) & (row >= 0) & (row < intrinsics.height)
         measured = depth[row.clamp(0, intrinsics.height - 1), column.clamp(0, intrinsics.width - 1)]
-        seen = inside & (measured > 0) & (z <= measured + 2.0 * self.voxel_size)
-        return keys[seen]
+        return inside & (measured > 0) & (z <= measured + 2.0 * self.voxel_size) & (keys != PAD)
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         """Plain tensors only, so the map can go into a safetensors file."""
@@ -198,11 +237,10 @@ def _member(sorted_keys: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
 
 
 def _merge(sorted_keys: torch.Tensor, sorted_new: torch.Tensor) -> torch.Tensor:
-    """Linear merge of two sorted, disjoint code tensors: each new code's slot is its rank in the union."""
-    slots = torch.searchsorted(sorted_keys, sorted_new) + torch.arange(sorted_new.numel(), device=sorted_new.device)
-    merged = torch.empty(sorted_keys.numel() + sorted_new.numel(), dtype=torch.int64, device=sorted_keys.device)
-    is_new = torch.zeros(merged.numel(), dtype=torch.bool, device=merged.device)
-    is_new[slots] = True
-    merged[slots] = sorted_new
-    merged[~is_new] = sorted_keys
+    """Linear merge of two sorted, disjoint code tensors (``sorted_new`` may end in ``PAD``s): each code's
+    slot is its rank in the union, its index plus the other tensor's codes below it."""
+    device = sorted_keys.device
+    merged = torch.empty(sorted_keys.numel() + sorted_new.numel(), dtype=torch.int64, device=device)
+    merged[torch.searchsorted(sorted_new, sorted_keys) + torch.arange(sorted_keys.numel(), device=device)] = sorted_keys
+    merged[torch.searchsorted(sorted_keys, sorted_new) + torch.arange(sorted_new.numel(), device=device)] = sorted_new
     return merged
