@@ -11,14 +11,12 @@ from __future__ import annotations
 
 import json
 import os
-import statistics
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 import torch
 from test_fused_loss import _reference_terms
-from triton_kernels import HAS_TRITON, NO_TRITON, interpreted
+from triton_kernels import HAS_TRITON, NO_TRITON, interpreted, median_ms
 
 from ogmapping.config import LossConfig
 from ogmapping.optim.losses import mapping_loss, window_mapping_loss
@@ -94,20 +92,6 @@ def test_the_compiled_step_graph_traces_the_kernels() -> None:
         _close(compiled, eager.double(), "compiled against eager")
 
 
-def _median_ms(step: Callable[[], None], repeats: int = 20) -> float:
-    for _ in range(3):
-        step()
-    times = []
-    for _ in range(repeats):
-        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        start.record()
-        step()
-        end.record()
-        end.synchronize()
-        times.append(start.elapsed_time(end))
-    return statistics.median(times)
-
-
 def _timings(color, depth, gt_color, gt_depth) -> dict[str, float]:
     """One view's mapping loss, forward and backward, through the kernels and through the reference."""
     statistics_y = reference_statistics(gt_color, compiled=False)
@@ -122,7 +106,7 @@ def _timings(color, depth, gt_color, gt_depth) -> dict[str, float]:
         total, _ = mapping_loss(x, d, gt_color, gt_depth, no_scales, LossConfig(), statistics_y, compiled=False)
         torch.autograd.grad(total, [x, d])
 
-    return {"triton_ms": _median_ms(fused), "reference_ms": _median_ms(reference)}
+    return {"triton_ms": median_ms(fused), "reference_ms": median_ms(reference)}
 
 
 def test_the_kernels_beat_the_reference() -> None:

@@ -47,14 +47,21 @@ def test_compiled_kernels_run_on_the_cpu_with_the_cpu_backend_only(monkeypatch):
         execution_profile("cpu", "vulkan", "anchor")
 
 
-def test_the_triton_loss_runs_on_cuda_with_gsplat_where_triton_imports(monkeypatch):
+def test_the_triton_kernels_run_on_cuda_with_gsplat_where_triton_imports(monkeypatch):
+    """The loss's kernels there; the decode's there too, for the static-shape step."""
     assert not execution_profile("cpu", "auto", "anchor").triton_loss
+    assert not execution_profile("cpu", "auto", "anchor", "static").triton_decode
     monkeypatch.setattr(gsplat_backend, "unavailable_reason", lambda: None)
     monkeypatch.setattr(profile, "triton_unavailable_reason", lambda: None)
-    assert execution_profile("cuda", "auto", "anchor").triton_loss
+    cuda = execution_profile("cuda", "auto", "anchor")
+    assert cuda.triton_loss and cuda.triton_decode and cuda.step_mode == "compiled"
+    assert execution_profile("cuda", "auto", "anchor", "static").triton_decode
+    assert not execution_profile("cuda", "auto", "anchor", "dynamic").triton_decode
     assert not execution_profile("cuda", "torch", "anchor").triton_loss
+    assert not execution_profile("cuda", "torch", "anchor").triton_decode
     monkeypatch.setattr(profile, "triton_unavailable_reason", lambda: "triton is not installed")
     assert not execution_profile("cuda", "auto", "anchor").triton_loss
+    assert not execution_profile("cuda", "auto", "anchor").triton_decode
 
 
 def test_device_resolution(monkeypatch):

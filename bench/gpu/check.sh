@@ -131,7 +131,8 @@ install_with_fallback_suite() {
     return $status
 }
 
-# pytest -m gpu; the step test's figures (step-time.json, sync-sites.json) and the output go to gpu-tests/.
+# pytest -m gpu; the step test's figures (step-time.json, sync-sites.json), the Triton kernels' timings
+# (triton-loss.json, triton-decode.json) and the output go to gpu-tests/.
 gpu_tests() {
     set -o pipefail
     mkdir -p "$RESULTS/gpu-tests"
@@ -230,7 +231,7 @@ done
 ogmap_run() {
     step "$1-$2" "$3" "$4,gpu" env FORMAT="$5" FRAMES="$6" SCALE="$7" bench/gpu/run.sh preset "$2" "$8" "$RESULTS/$1"
 }
-step gpu-tests 90 gpu gpu_tests
+step gpu-tests 150 gpu gpu_tests
 ogmap_run 640 sparse-fast 60 7scenes:300 7scenes 0:300 1 "$DATA"
 ogmap_run 640 sparse 90 7scenes:300 7scenes 0:300 1 "$DATA"
 # the same map with the step eager and sized by the data, as before compiled graphs: quality and speed side by side

@@ -3,8 +3,9 @@
 Usage: ``python bench/gpu/table.py OUT/dense OUT/sparse OUT/sparse-fast`` (folders or results.json): one
 table; ``python bench/gpu/table.py --tree RESULTS`` (a folder that ``check.sh`` filled): the machine, one
 table of every results.json below it, labelled by its folder, then the load tables (``load/load.md``), the
-mapping step's figures (``gpu-tests/step-time.json``, ``gpu-tests/sync-sites.json``), the loss kernels'
-timing (``gpu-tests/triton-loss.json``) and the GPU tests' summary (``gpu-tests/pytest.txt``).
+mapping step's figures (``gpu-tests/step-time.json``, ``gpu-tests/sync-sites.json``), the Triton kernels'
+timings (``gpu-tests/triton-loss.json``, ``gpu-tests/triton-decode.json``) and the GPU tests' summary
+(``gpu-tests/pytest.txt``).
 The paper's processing FPS were measured on Replica at 1200x680 with an RTX 4090 (its Table "key
 performance metrics on Replica"); beside other data, resolutions or GPUs they are context only.
 """
@@ -18,6 +19,11 @@ from pathlib import Path
 from typing import Any
 
 PAPER_REPLICA_FPS = {"dense": 5.6, "sparse": 8.5, "sparse-fast": 16.1}
+KERNEL_TIMINGS = {
+    "triton-loss.json": "The loss forward and backward, Triton kernels against torch (tests/test_gpu_triton_loss.py)",
+    "triton-decode.json": "The decode forward and backward, Triton kernels against torch "
+                          "(tests/test_gpu_triton_decode.py)",
+}
 COLUMNS = (
     "run",
     "preset",
@@ -117,7 +123,7 @@ def natural(text: str) -> list[Any]:
 
 
 def step_figures(report: Path) -> list[str]:
-    """The mapping step's figures (tests/test_gpu_step.py), the loss kernels' timing and how the
+    """The mapping step's figures (tests/test_gpu_step.py), the Triton kernels' timings and how the
     synchronisation check fared."""
     lines = []
     timing = report / "step-time.json"
@@ -125,11 +131,12 @@ def step_figures(report: Path) -> list[str]:
         lines += ["## One mapping step in steady state (tests/test_gpu_step.py)", ""]
         lines += [f"- {key}: {described(value)}" for key, value in json.loads(timing.read_text()).items()]
         lines.append("")
-    loss = report / "triton-loss.json"
-    if loss.exists():
-        lines += ["## The loss forward and backward, Triton kernels against torch (tests/test_gpu_triton_loss.py)", ""]
-        lines += [f"- {key}: {described(value)}" for key, value in json.loads(loss.read_text()).items()]
-        lines.append("")
+    for name, title in KERNEL_TIMINGS.items():
+        kernels = report / name
+        if kernels.exists():
+            lines += [f"## {title}", ""]
+            lines += [f"- {key}: {described(value)}" for key, value in json.loads(kernels.read_text()).items()]
+            lines.append("")
     sync = report / "sync-sites.json"
     if sync.exists():
         lines += ["Host synchronisations per step under `torch.cuda.set_sync_debug_mode(\"warn\")`, by site:", "",

@@ -141,11 +141,13 @@ class MappingSteps:
         return [losses[position] for position in range(len(renders))]
 
     def decode_static(self, views: list[tuple[torch.Tensor, View]]) -> DrawnWindow:
-        """The Gaussians of every buffer row seen from each (pose, view), stacked, the ones not drawn inert."""
+        """The Gaussians of every buffer row seen from each (pose, view), stacked, the ones not drawn inert: from
+        the Triton kernels where the profile says so (``profile.triton_decode``)."""
         model = self.model
         poses = torch.stack([pose.detach() for pose, _ in views])
         cameras = torch.stack([frustum_camera(drawn.intrinsics, model.device) for _, drawn in views])
-        return model.graphs.decode(model.anchors, model.buffer_features(), model.decoders, poses, cameras, model.far)
+        return model.graphs.decode(model.anchors, model.buffer_features(), model.decoders, poses, cameras, model.far,
+                                   fused=model.profile.triton_decode)
 
     def decode(self, views: list[tuple[torch.Tensor, View]]) -> list[GaussianSet]:
         """The Gaussians of the anchors in view of each (pose, view)."""

@@ -90,28 +90,49 @@ def frustum_masks(anchors: AnchorMap, poses: torch.Tensor, cameras: torch.Tensor
 
 
 def decode_views(anchors: AnchorMap, features: torch.Tensor, decoders: Decoders, poses: torch.Tensor,
-                 cameras: torch.Tensor, far: float) -> DrawnWindow:
+                 cameras: torch.Tensor, far: float, *, fused: bool = False) -> DrawnWindow:
     """The Gaussians of every buffer row as seen from each camera-to-world ``poses[i]`` with ``cameras[i]``
-    (``frustum_camera``), those of anchors in its frustum (out to ``far``) drawn."""
-    return generate_drawn(anchors, features, decoders, poses[:, :3, 3], frustum_masks(anchors, poses, cameras, far))
+    (``frustum_camera``), those of anchors in its frustum (out to ``far``) drawn; ``fused`` as ``generate_drawn``."""
+    return generate_drawn(anchors, features, decoders, poses[:, :3, 3], frustum_masks(anchors, poses, cameras, far),
+                          fused=fused)
 
 
 def generate_drawn(anchors: AnchorMap, features: torch.Tensor, decoders: Decoders, camera_centers: torch.Tensor,
-                   in_view: torch.Tensor) -> DrawnWindow:
+                   in_view: torch.Tensor, *, fused: bool = False) -> DrawnWindow:
     """Each view's Gaussians of every buffer row, view i seen from ``camera_centers[i]`` (V, 3) with the
     anchors of ``in_view[i]`` (V, capacity) drawn; ``features`` holds every row's decoder features. The
-    decoders run once over all (row, view) pairs."""
+    decoders run once over all (row, view) pairs: as torch operators, or with ``fused`` in the Triton
+    kernels of ``triton_decode`` (the same values and gradients; CUDA, or CPU tensors when interpreted)."""
+    capacity, n = anchors.capacity, anchors.n_offsets
+    colours = anchors.parameter("colours") if anchors.with_colours else None
+    if fused:
+        from ogmapping.model.triton_decode import decode_window
+
+        decoded = decode_window(features, anchors.buffer("positions"), anchors.parameter("offsets"),
+                                anchors.parameter("log_scales"), colours, camera_centers, in_view, decoders)
+    else:
+        decoded = _torch_decode(anchors, features, decoders, camera_centers, in_view, colours)
+    means, quats, scales, opacities, colors, drawn, anchor_opacity = decoded
+    index = torch.arange(capacity * n, device=means.device)
+    return DrawnWindow(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, drawn=drawn,
+                       anchor_opacity=anchor_opacity, in_view=in_view, rows=index // n, slots=index % n,
+                       anchor_rows=index[:capacity])
+
+
+def _torch_decode(anchors: AnchorMap, features: torch.Tensor, decoders: Decoders, camera_centers: torch.Tensor,
+                  in_view: torch.Tensor, colours: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
+    """``generate_drawn``'s values in torch operators: means, quats, scales, opacities, colours, drawn
+    (V, capacity * n, ...) and each anchor's largest opacity (V, capacity)."""
     views, capacity = camera_centers.shape[0], anchors.capacity
     positions = anchors.buffer("positions")
     all_positions = positions.repeat(views, 1)
     centers = camera_centers.to(positions).unsqueeze(1).expand(views, capacity, 3).reshape(-1, 3)
-    rows = torch.arange(capacity, device=positions.device).repeat(views)
     opacity, color, cov = decoded_logits(decoders, features.repeat(views, 1), all_positions, centers)
-    if anchors.with_colours:
-        color = with_anchor_colours(color, anchors.parameter("colours"), rows)
+    if colours is not None:
+        color = with_anchor_colours(color, colours, torch.arange(capacity, device=positions.device).repeat(views))
     n = anchors.n_offsets
     decoded = activate(opacity, color, cov, n)
-    # repeated rather than gathered by ``rows`` (as gaussians.gaussian_values does): the same values, and the
+    # repeated rather than gathered by rows (as gaussians.gaussian_values does): the same values, and the
     # compiled graph's rounding that tests/test_step_graphs.py holds equal to the eager one
     anchor_scale = torch.exp(anchors.parameter("log_scales")).repeat(views, 1)  # (V * C, 3)
     means = all_positions.unsqueeze(1) + anchors.parameter("offsets").repeat(views, 1, 1) * anchor_scale.unsqueeze(1)
@@ -120,11 +141,7 @@ def generate_drawn(anchors: AnchorMap, features: torch.Tensor, decoders: Decoder
     # where, not a product: a Gaussian not drawn passes no gradient back, as one left out would not
     opacities = torch.where(drawn, decoded.opacity, 0.0)
     per_view = capacity * n
-    index = torch.arange(per_view, device=positions.device)
-    return DrawnWindow(
-        means=means.reshape(views, per_view, 3), quats=decoded.quat.reshape(views, per_view, 4),
-        scales=scales.reshape(views, per_view, 3), opacities=opacities.reshape(views, per_view),
-        colors=decoded.color.reshape(views, per_view, 3), drawn=drawn.reshape(views, per_view),
-        anchor_opacity=decoded.opacity.detach().amax(dim=1).view(views, capacity), in_view=in_view,
-        rows=index // n, slots=index % n, anchor_rows=rows[:capacity],
-    )
+    return (means.reshape(views, per_view, 3), decoded.quat.reshape(views, per_view, 4),
+            scales.reshape(views, per_view, 3), opacities.reshape(views, per_view),
+            decoded.color.reshape(views, per_view, 3), drawn.reshape(views, per_view),
+            decoded.opacity.detach().amax(dim=1).view(views, capacity))

@@ -9,7 +9,8 @@ iff the device is the CPU and the backend resolves to ``cpu``, so ``backend="tor
 runs the pure-torch reference end to end. ``auto`` resolves as ``render.resolve_backend`` does:
 ``cpu`` on the CPU, ``gsplat`` on CUDA when it can render there, else ``torch`` (with a warning).
 The GPU's counterpart of the fused loss, its Triton kernels, runs iff the device is CUDA, the backend
-``gsplat`` and triton importable; ``backend="torch"`` there too keeps the reference end to end.
+``gsplat`` and triton importable; ``backend="torch"`` there too keeps the reference end to end. The fused
+decode's Triton kernels (``ogmapping.model.triton_decode``) run by the same rule, for the static-shape step.
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ class ExecutionProfile:
     graphs: bool = False
     # The loss's image terms come from the Triton kernels (``ogmapping.optim.triton_loss``), not autograd.
     triton_loss: bool = False
+    # The static-shape decode comes from the Triton kernels (``ogmapping.model.triton_decode``), not autograd.
+    triton_decode: bool = False
 
     @property
     def step_mode(self) -> str:
@@ -56,6 +59,7 @@ def execution_profile(device: str | torch.device, backend: str, encoding: str,
     concrete = resolve_backend(backend, device)
     step = ("compiled" if device.type == "cuda" else "dynamic") if step == "auto" else step
     static = step in ("static", "compiled")
+    triton = device.type == "cuda" and concrete == "gsplat" and triton_unavailable_reason() is None
     return ExecutionProfile(
         device=device,
         backend=concrete,
@@ -64,13 +68,14 @@ def execution_profile(device: str | torch.device, backend: str, encoding: str,
         shared_decode=device.type == "cuda" or static,
         static_shapes=static,
         graphs=step == "compiled",
-        triton_loss=device.type == "cuda" and concrete == "gsplat" and triton_unavailable_reason() is None,
+        triton_loss=triton,
+        triton_decode=triton and static,
     )
 
 
 def triton_unavailable_reason() -> str | None:
-    """Why the Triton fused loss (``ogmapping.optim.triton_loss``) cannot run here, or None: it needs triton
-    (on CUDA, torch's own)."""
+    """Why the Triton kernels (the loss's, ``ogmapping.optim.triton_loss``, and the decode's,
+    ``ogmapping.model.triton_decode``) cannot run here, or None: they need triton (on CUDA, torch's own)."""
     try:
         import triton  # noqa: F401
     except ImportError as error:
