@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 from concurrent import futures
@@ -129,9 +130,10 @@ def build(settings: Settings) -> Server:
     endpoint = Endpoint.start(access.metrics_address, metrics, access.max_metrics_connections,
                               settings.live.web_hosts) \
         if access.metrics_address else None
+    # The live views see the sessions of this process or of its workers (cluster mode has none).
     viewers = Viewers(registry, callers, FailedAuthentications(
         access.max_auth_failures, access.auth_failure_window_seconds, access.max_auth_failures_total)) \
-        if isinstance(registry, Registry) else None
+        if not settings.cluster else None
     live = _live_view(settings, viewers) if viewers is not None else None
     web = start_web(settings, viewers) if settings.live.web_port >= 0 and viewers is not None else None
     loop.run(server.start())
@@ -185,8 +187,11 @@ def _host(settings: Settings, device: str) -> SessionHost:
 
 
 def _live_view(settings: Settings, viewers: Viewers) -> LiveView | None:
-    """The live view's thread, with a Foxglove server when one is asked for; None when nothing would use it."""
+    """The live view's thread, with a Foxglove server when one is asked for; None when nothing would use it.
+    With worker processes, each worker records its own sessions' views, and this one only publishes."""
     live, registry = settings.live, viewers.registry
+    if settings.workers:
+        live = dataclasses.replace(live, record_views=False)
     if not live.view_seconds or not (live.foxglove or live.record_views):
         return None
     if not live.foxglove:

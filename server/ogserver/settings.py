@@ -204,10 +204,6 @@ def conflict(settings: Settings) -> str:
         return "live.web_port: the web view is not available in cluster mode yet"
     if settings.workers and settings.cluster:
         return "workers and cluster do not go together (cluster mode's sessions are Ray actors already)"
-    if settings.workers and live.foxglove:
-        return "live.foxglove_port: the live view is not available with worker processes yet"
-    if settings.workers and live.web_port >= 0:
-        return "live.web_port: the web view is not available with worker processes yet"
     if settings.shared_storage and not settings.cluster:
         return f"shared_storage is for cluster mode only (got {settings.shared_storage!r} without cluster)"
     return ""

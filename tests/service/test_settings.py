@@ -30,6 +30,11 @@ def test_live_view_flags() -> None:
     assert not load().live.foxglove
 
 
+def test_worker_processes_go_with_both_live_views() -> None:
+    settings = load(None, {"workers": 2, "foxglove_port": 0, "web_port": 0})
+    assert settings.workers == 2 and settings.live.foxglove and settings.live.web_port == 0
+
+
 def test_skipped_recording_flags_reach_the_limits() -> None:
     from ogserver.__main__ import parser
 
@@ -66,8 +71,6 @@ def test_the_test_server_config_loads() -> None:
         ("live:\n  view_points: 0\n", "live.view_points is out of range: must be >= 1, got 0"),
         ("workers: -1\n", "workers is out of range: must be >= 0, got -1"),
         ("workers: 2\ncluster: auto\n", "workers and cluster do not go together"),
-        ("workers: 2\nlive:\n  foxglove_port: 0\n", "live.foxglove_port: the live view is not available with worker"),
-        ("workers: 2\nlive:\n  web_port: 0\n", "live.web_port: the web view is not available with worker"),
     ],
 )
 def test_bad_settings_are_refused(tmp_path: Path, text: str, message: str) -> None:

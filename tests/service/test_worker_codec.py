@@ -8,13 +8,19 @@ from pathlib import Path
 import grpc
 import numpy as np
 import pytest
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from ogapi.v1 import mapping_pb2 as pb
+from ogserver.access.tokens import TokenHash
 from ogserver.errors import ServiceError
+from ogserver.live.map_look import Splats
+from ogserver.live.views import MappedFrame, Pending, Shown
 from ogserver.recording.disk import StorageError
 from ogserver.sessions.counters import SessionCounters
 from ogserver.sessions.hosting import Closed
 from ogserver.workers import codec
 
+from ogmapping.frames.camera import Intrinsics
+from ogmapping.persist.export import ColoredPoints
 from ogmapping.queries import Rendered
 from ogmapping.stats import MapStats
 
@@ -33,6 +39,25 @@ def test_values_come_back_as_they_were() -> None:
     assert all(np.array_equal(getattr(rendered_back, name), getattr(rendered, name)) for name in ("color", "depth"))
     assert stats_back == stats and isinstance(stats_back.anchors_per_level, tuple)
     assert (counters, path, data, nothing, closed) == value[3][3:]
+
+
+def test_what_the_live_views_read_of_a_worker_comes_back_as_it_was() -> None:
+    refined = np.eye(4)
+    refined[:3, 3] = (0.1, 0.2, 0.3)
+    frame = MappedFrame(7, np.eye(4), Intrinsics(50.0, 50.0, 40.0, 30.0, 80, 60),
+                        CompressedImage(data=b"jpeg", format="jpeg", frame_id="camera"), True, refined)
+    points = ColoredPoints(np.random.rand(5, 3).astype(np.float32), np.full((5, 4), 9, np.uint8))
+    value = (Pending(frame, [(7, frame.c2w)], frame, [(7, refined)]), Shown(frame, b"render", 3), Splats(b"ply", 2),
+             points, TokenHash("ab" * 16, "cd" * 32))
+    pending, shown, splats, points_back, token = codec.loads(codec.dumps(value))
+    for back in (pending.latest, pending.keyframe, shown.frame):
+        assert (back.sensor_ns, back.intrinsics, back.color, back.keyframe) == \
+            (frame.sensor_ns, frame.intrinsics, frame.color, frame.keyframe)
+        assert isinstance(back.color, CompressedImage) and np.array_equal(back.pose, refined)
+    assert [sensor_ns for sensor_ns, _ in pending.poses + pending.refined] == [7, 7]
+    assert np.array_equal(pending.refined[0][1], refined)
+    assert (shown.render, shown.keyframes, splats, token) == (b"render", 3, value[2], value[4])
+    assert np.array_equal(points_back.positions, points.positions) and np.array_equal(points_back.rgba, points.rgba)
 
 
 def test_refusals_keep_their_kind_code_and_message() -> None:

@@ -18,8 +18,7 @@ import grpc
 from ogserver.access.callers import Callers
 from ogserver.access.failed_auth import FailedAuthentications
 from ogserver.errors import ServiceError
-from ogserver.sessions.registry import Registry
-from ogserver.sessions.session import Session
+from ogserver.sessions.hosting import ViewedHost, ViewedSession
 
 
 @dataclass(frozen=True)
@@ -47,12 +46,12 @@ class Scope:
     owner: str | None = None
     session_id: str | None = None
 
-    def sessions(self, registry: Registry) -> list[Session]:
+    def sessions(self, registry: ViewedHost) -> list[ViewedSession]:
         if self.session_id is not None:
             return [session for session in registry.sessions() if session.id == self.session_id]
         return registry.sessions(self.owner)
 
-    def sees(self, registry: Registry, session_id: str | None) -> bool:
+    def sees(self, registry: ViewedHost, session_id: str | None) -> bool:
         """Whether the session is one this scope shows (None, a topic of no session: only to everything)."""
         if session_id is None:
             return self.owner is None and self.session_id is None
@@ -65,7 +64,7 @@ EVERYTHING = Scope()
 class Viewers:
     """The checks both viewers make of a credential, against the gRPC port's callers and the registry."""
 
-    def __init__(self, registry: Registry, callers: Callers, failures: FailedAuthentications) -> None:
+    def __init__(self, registry: ViewedHost, callers: Callers, failures: FailedAuthentications) -> None:
         self.registry = registry
         self.callers = callers
         self.failures = failures

@@ -9,6 +9,10 @@ recording (once more when the session closes, so its recording ends with the fin
 and decoding hold the mapper's lock like a Render call, between optimisation iterations; nothing is
 rendered or decoded that no client watches and no recording wants, and the rate bounds the rest
 (``bench/RESULTS.md`` measures what it costs the mapping).
+
+With worker processes, each worker's own ``LiveView`` records its sessions' views, and the server's
+(Foxglove only) reads the sessions through their workers (``workers/views.py``); a session whose worker
+is gone is left out, and its topics withdrawn, from the next look on.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
 from google.protobuf.message import Message
 from ogapi import recording as layout
 
-from ogmapping.persist.export import ColoredPoints, default_viewpoint, point_cloud
+from ogmapping.persist.export import ColoredPoints
 from ogserver.errors import ServiceError
 from ogserver.live.channels import session_prefix
 from ogserver.live.foxglove_ws import FoxgloveServer
@@ -38,10 +42,9 @@ from ogserver.live.views import (
     Trajectory,
     image,
     points_message,
-    render_jpeg,
 )
 from ogserver.recording.recorder import transform
-from ogserver.sessions.registry import Registry
+from ogserver.sessions.hosting import ViewedHost, ViewedSession
 from ogserver.sessions.session import Session
 from ogserver.settings import Live
 
@@ -60,25 +63,28 @@ REFINED_TOPICS: dict[str, type[Message]] = {
 class Looks:
     """One session's renders and point cloud, each made at most once per look."""
 
-    session: Session
+    session: ViewedSession
     max_points: int
     renders: dict[int, bytes] = field(default_factory=dict)  # by id() of the frame, alive for the look
     points: ColoredPoints | None = None
 
     def render(self, frame: MappedFrame) -> bytes:
+        """The map rendered from the frame's pose and camera, to show beside the input image."""
         if id(frame) not in self.renders:
-            self.renders[id(frame)] = render_jpeg(self.session.mapper, frame)
+            self.renders[id(frame)] = self.session.look.render_jpeg(frame.pose, frame.intrinsics)
         return self.renders[id(frame)]
 
     def map(self) -> ColoredPoints:
         if self.points is None:
-            mapper = self.session.mapper
-            self.points = point_cloud(mapper, default_viewpoint(mapper).center, self.max_points)
+            self.points = self.session.look.points(self.max_points)
         return self.points
 
 
 class LiveView:
-    def __init__(self, registry: Registry, settings: Live, foxglove: FoxgloveServer | None) -> None:
+    """``registry``: the sessions to look at; with ``settings.record_views`` the in-process ``Registry``,
+    whose sessions' recordings it writes."""
+
+    def __init__(self, registry: ViewedHost, settings: Live, foxglove: FoxgloveServer | None) -> None:
         self.registry = registry
         self.settings = settings
         self.foxglove = foxglove
@@ -110,18 +116,21 @@ class LiveView:
     def look(self) -> None:
         """Publish and record what every session mapped since the last look."""
         sessions = self.registry.sessions()
-        self._advertise({session.id: session.mapper.config.poses.refine for session in sessions})
+        self._advertise(sessions)
         for session in sessions:
-            pending = session.latest.take()
-            if pending is None:
-                continue
-            looks = Looks(session, self.settings.view_points)
             start = time.perf_counter()
             try:
+                pending = session.latest.take()
+                if pending is None:
+                    continue
+                looks = Looks(session, self.settings.view_points)
                 if self.foxglove is not None:
                     self._publish(session.id, pending, looks, self.foxglove)
                 if self.settings.record_views and pending.keyframe is not None:
                     self._record(session, pending.keyframe, looks)
+            except ServiceError as gone:  # closed meanwhile, or its worker process stopped: the next look drops it
+                log.debug("session %s: no view (%s)", session.id, gone.message)
+                continue
             except Exception:  # one session's view must not stop the others'
                 log.exception("session %s: the live view failed", session.id)
             self.busy_seconds += time.perf_counter() - start
@@ -137,16 +146,23 @@ class LiveView:
         except Exception:  # the session closes regardless
             log.exception("session %s: its last view could not be recorded", session.id)
 
-    def _advertise(self, refines: dict[str, bool]) -> None:
-        """Offer every open session's topics to Foxglove clients (``refines``: by session id, whether it
-        refines poses), and withdraw those of closed ones."""
+    def _advertise(self, sessions: list[ViewedSession]) -> None:
+        """Offer every open session's topics to Foxglove clients (those of poses refined where the session
+        refines them), and withdraw those of closed ones."""
         if self.foxglove is None:
             return
-        open_ids = set(refines)
-        for session_id in open_ids - self._advertised:
-            for topic, message_type in (LIVE_TOPICS | (REFINED_TOPICS if refines[session_id] else {})).items():
-                self.foxglove.advertise(session_prefix(session_id) + topic, message_type)
-            self._paths[session_id] = (Trajectory(), Trajectory())
+        open_ids = {session.id for session in sessions}
+        for session in sessions:
+            if session.id in self._advertised:
+                continue
+            try:
+                refines = session.look.refines()
+            except ServiceError:  # gone before it was shown
+                open_ids.discard(session.id)
+                continue
+            for topic, message_type in (LIVE_TOPICS | (REFINED_TOPICS if refines else {})).items():
+                self.foxglove.advertise(session_prefix(session.id) + topic, message_type)
+            self._paths[session.id] = (Trajectory(), Trajectory())
         for session_id in self._advertised - open_ids:
             self.foxglove.withdraw(session_prefix(session_id) + "/")
             self._paths.pop(session_id, None)

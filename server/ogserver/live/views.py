@@ -2,8 +2,9 @@
 
 The session's worker only hands over references (``LatestFrame.offer``: the frame's pose, its
 recorded colour image); rendering and decoding the map happen later, on the live view's thread
-(``publisher.py``), between the mapper's optimisation iterations like any render call. The messages are
-Foxglove's schemas, the same bytes for the Foxglove WebSocket server and the session recording.
+(``publisher.py``), between the mapper's optimisation iterations like any render call (``map_look.py``).
+The messages are Foxglove's schemas, the same bytes for the Foxglove WebSocket server and the session
+recording.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import threading
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
@@ -21,19 +23,15 @@ from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
 from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
 from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
 from ogapi import recording as layout
-from ogapi.images import encode_color
-from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.rotation import matrix_to_quaternion
-from ogmapping.mapper import Mapper
 from ogmapping.optim.poses import PoseReport
 from ogmapping.persist.export import ColoredPoints
 from ogserver.recording.recorder import FrameRecord, timestamp
 
-RENDER_JPEG_QUALITY = 90
-MAX_POSES = 1000  # poses kept between two looks of the live view; older ones are dropped
+MAX_POSES = 1000  # poses kept between two looks of a reader; older ones are dropped
 MAX_TRAJECTORY_POSES = 5000  # the newest poses a live trajectory shows
 # Live only (foxglove.PosesInFrame): the session's camera path so far, as the client sent it and as refined.
 TOPIC_TRAJECTORY = "/ogmap/trajectory"
@@ -70,6 +68,11 @@ class MappedFrame:
     keyframe: bool
     refined: np.ndarray | None = None  # (4, 4) the pose refinement left (``poses.refine``), else None
 
+    @property
+    def pose(self) -> np.ndarray:
+        """The pose its map views are rendered from: the refined one, where the session refines poses."""
+        return self.c2w if self.refined is None else self.refined
+
     @classmethod
     def of(cls, frame: Frame, record: FrameRecord, keyframe: bool, pose: PoseReport | None = None) -> MappedFrame:
         """``pose``: the frame's refined pose, in a session that refines poses."""
@@ -88,39 +91,70 @@ class Pending:
     refined: list[tuple[int, np.ndarray]] = field(default_factory=list)  # (sensor ns, refined c2w), likewise
 
 
+@dataclass(frozen=True)
+class Shown:
+    """What the web view shows beside a session's map: the keyframe the recording's views rendered last, with
+    that render, else the newest keyframe (views not recorded; the web view renders it); and the keyframes
+    mapped so far, the map's version."""
+
+    frame: MappedFrame | None
+    render: bytes | None
+    keyframes: int
+
+
+class Latest(Protocol):
+    """What the views read of the frames a session mapped: its ``LatestFrame``, or one in a worker process
+    through calls."""
+
+    def take(self) -> Pending | None: ...
+
+    def shown(self) -> Shown: ...
+
+
 class LatestFrame:
-    """A one-slot mailbox from the session's worker to the live view: offering costs a lock and an append.
-    ``keyframe``, ``keyframes`` and ``rendered`` stay when the live view takes: the web view reads them."""
+    """A mailbox from the session's worker to its readers: offering costs a lock and an append. Each reader
+    (``take(reader)``: the live view's thread; and the server's, for a session in a worker process) gets what
+    was mapped since it last took, the newest ``MAX_POSES`` poses of it."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
+        self._offered = 0  # frames offered so far: each reader's place counts them
+        self._taken: dict[str, int] = {}  # reader -> frames offered when it last took
         self._latest: MappedFrame | None = None
-        self._keyframe: MappedFrame | None = None
-        self._poses: deque[tuple[int, np.ndarray]] = deque(maxlen=MAX_POSES)
-        self._refined: deque[tuple[int, np.ndarray]] = deque(maxlen=MAX_POSES)
-        self.keyframe: MappedFrame | None = None  # the newest keyframe mapped
-        self.keyframes = 0  # keyframes offered so far: the web view's map version
+        # (number, sensor ns, c2w, refined c2w or None) of the newest frames: their poses, not their images
+        self._poses: deque[tuple[int, int, np.ndarray, np.ndarray | None]] = deque(maxlen=MAX_POSES)
+        self._keyframe_number = 0  # the number of the newest keyframe
+        self._keyframe: MappedFrame | None = None  # the newest keyframe mapped
+        self._keyframes = 0  # keyframes offered so far: the web view's map version
         self.rendered: tuple[MappedFrame, bytes] | None = None  # the keyframe the live view last recorded, its JPEG
 
     def offer(self, frame: MappedFrame) -> None:
         with self._lock:
+            self._offered += 1
             self._latest = frame
-            self._poses.append((frame.sensor_ns, frame.c2w))
-            if frame.refined is not None:
-                self._refined.append((frame.sensor_ns, frame.refined))
+            self._poses.append((self._offered, frame.sensor_ns, frame.c2w, frame.refined))
             if frame.keyframe:
-                self._keyframe = self.keyframe = frame
-                self.keyframes += 1
+                self._keyframe = frame
+                self._keyframes += 1
+                self._keyframe_number = self._offered
 
-    def take(self) -> Pending | None:
+    def take(self, reader: str = "") -> Pending | None:
         with self._lock:
-            if self._latest is None:
+            seen = self._taken.get(reader, 0)
+            if self._offered == seen or self._latest is None:
                 return None
-            pending = Pending(self._latest, list(self._poses), self._keyframe, list(self._refined))
-            self._latest = self._keyframe = None
-            self._poses.clear()
-            self._refined.clear()
-            return pending
+            self._taken[reader] = self._offered
+            poses = [(sensor_ns, c2w, refined) for number, sensor_ns, c2w, refined in self._poses if number > seen]
+            keyframe = self._keyframe if self._keyframe_number > seen else None
+            return Pending(self._latest, [(sensor_ns, c2w) for sensor_ns, c2w, _ in poses], keyframe,
+                           [(sensor_ns, refined) for sensor_ns, _, refined in poses if refined is not None])
+
+    def shown(self) -> Shown:
+        with self._lock:
+            rendered = self.rendered
+            if rendered is not None:
+                return Shown(rendered[0], rendered[1], self._keyframes)
+            return Shown(self._keyframe, None, self._keyframes)
 
 
 class Trajectory:
@@ -139,13 +173,6 @@ class Trajectory:
 
     def message(self, frames: FrameIds) -> PosesInFrame:
         return PosesInFrame(timestamp=timestamp(self.sensor_ns), frame_id=frames.world, poses=list(self.poses))
-
-
-def render_jpeg(mapper: Mapper, frame: MappedFrame) -> bytes:
-    """The map rendered from the frame's pose (refined, where the session refines poses) and camera, to
-    show beside the input image."""
-    c2w = frame.c2w if frame.refined is None else frame.refined
-    return encode_color(mapper.render(c2w, frame.intrinsics).color, pb.COLOR_JPEG, RENDER_JPEG_QUALITY)
 
 
 def image(jpeg: bytes, sensor_ns: int, frames: FrameIds) -> CompressedImage:

@@ -2,9 +2,12 @@
 
 The servicer, the frame stream, metrics and expiry talk to a ``SessionHost`` and the
 ``HostedSession`` objects it hands out, never to how they are placed. ``Registry`` (sessions in
-this process, each a ``Session`` with its own worker thread) is one host; ``cluster.host.ClusterHost``
-(each session a ``Registry`` of one inside a named Ray actor, reached through a proxy) is the other.
-The registry and session logic are written once; only their placement differs.
+this process, each a ``Session`` with its own worker thread) is one host; ``workers.host.WorkerHost``
+(sessions in worker processes of the server) and ``cluster.host.ClusterHost`` (each session a
+``Registry`` of one inside a named Ray actor, reached through a proxy) are the others. The registry
+and session logic are written once; only their placement differs. The live views (the web view, the
+Foxglove view) need a little more of a session (``ViewedSession``), which the in-process and the
+worker hosts give.
 """
 
 from __future__ import annotations
@@ -20,7 +23,10 @@ from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.queries import Rendered
 from ogmapping.stats import MapStats
+from ogserver.access.tokens import TokenHash
 from ogserver.api.validation import RenderSpec
+from ogserver.live.map_look import MapLook
+from ogserver.live.views import Latest
 from ogserver.sessions.counters import FrameTotals, SessionCounters
 from ogserver.sessions.stream_events import StreamEvent
 from ogserver.settings import Settings
@@ -70,6 +76,21 @@ class HostedSession(Protocol):
     def snapshot(self) -> bytes: ...
 
     def correct_poses(self, message: pb.CorrectPosesRequest) -> pb.CorrectPosesResponse: ...
+
+
+class ViewedSession(HostedSession, Protocol):
+    """A session as the live views see it: its token (a viewer may present it), the frames it mapped and
+    its map's answers."""
+
+    token: TokenHash
+    latest: Latest
+    look: MapLook
+
+
+class ViewedHost(Protocol):
+    """The sessions the live views look at, the same ones ``SessionHost.sessions`` lists."""
+
+    def sessions(self, owner: str | None = None) -> list[ViewedSession]: ...
 
 
 @dataclass(frozen=True)

@@ -51,6 +51,7 @@ from ogmapping.stats import MapStats
 from ogserver.access.tokens import TokenHash
 from ogserver.api import messages, validation
 from ogserver.errors import ServiceError
+from ogserver.live.map_look import MapperLook
 from ogserver.live.views import LatestFrame, MappedFrame
 from ogserver.recording.checkpoint import Checkpoints, Position
 from ogserver.recording.disk import StorageError
@@ -108,6 +109,7 @@ class Session:
         self._jobs: deque[Job | None] = deque()
         self._lock = threading.Lock()
         self.latest = LatestFrame()  # what the live view and the recording's map views show next
+        self.look = MapperLook(mapper)  # the map's answers to the live views
         self._clamped_log = ThrottledLog(log, CLAMPED_LOG_SECONDS)  # poses.refine: corrections held at the bound
         self._closed = threading.Event()
         # Each frame's optimisation stops after frame_seconds (0: no limit), or at once when the session closes.

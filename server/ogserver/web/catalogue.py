@@ -15,9 +15,9 @@ import numpy as np
 
 from ogserver.access.viewers import Credential, Viewers
 from ogserver.errors import ServiceError
-from ogserver.live.views import MappedFrame
-from ogserver.sessions.session import Session
-from ogserver.web.maps import Busy, MapView, keyframe_path
+from ogserver.live.views import Shown
+from ogserver.sessions.hosting import ViewedSession
+from ogserver.web.maps import Busy, MapView
 
 
 class Catalogue(Protocol):
@@ -38,29 +38,19 @@ class Catalogue(Protocol):
 
 
 class SessionSource:
-    """A session as a ``maps.Source``."""
+    """A session as a ``maps.Source``, in this process or in a worker process (each answer then a call to it)."""
 
-    def __init__(self, session: Session) -> None:
+    def __init__(self, session: ViewedSession) -> None:
         self.session = session
         self.id = session.id
         self.label = session.config.label
-        self.mapper = session.mapper
+        self.look = session.look
 
-    def latest(self) -> MappedFrame | None:
-        """The keyframe whose render the recording's views made last (no render of the web view's own), else
-        the newest keyframe (where views are not recorded)."""
-        rendered = self.session.latest.rendered
-        return rendered[0] if rendered is not None else self.session.latest.keyframe
-
-    def render_of(self, frame: MappedFrame) -> bytes | None:
-        rendered = self.session.latest.rendered
-        return rendered[1] if rendered is not None and rendered[0] is frame else None
-
-    def version(self) -> int:
-        return self.session.latest.keyframes
+    def shown(self) -> Shown:
+        return self.session.latest.shown()
 
     def keyframe_path(self) -> np.ndarray:
-        return keyframe_path(self.mapper)
+        return self.look.keyframe_path()
 
     def counters(self) -> dict[str, float]:
         counters = self.session.counters()
@@ -83,7 +73,7 @@ class Sessions:
     def asks_credential(self) -> bool:
         return not self.viewers.callers.open
 
-    def _view(self, session: Session) -> MapView:
+    def _view(self, session: ViewedSession) -> MapView:
         """The session's view, made on first sight; closed sessions' views are dropped then."""
         with self._lock:
             view = self._views.get(session.id)
@@ -93,7 +83,7 @@ class Sessions:
                 view = self._views[session.id] = MapView(SessionSource(session), self.min_seconds, self.busy)
             return view
 
-    def _sessions(self, credential: Credential) -> list[Session]:
+    def _sessions(self, credential: Credential) -> list[ViewedSession]:
         return self.viewers.scope(credential).sessions(self.registry)
 
     def visible(self, credential: Credential) -> list[MapView]:

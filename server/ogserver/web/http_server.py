@@ -49,6 +49,8 @@ MAP_PATH = re.compile(r"/(map|api/map)/([A-Za-z0-9_-]{1,64})(/[a-z.]+)?")
 # (a NUL, a name the file system refuses as too long) is not looked up at all.
 FILE_NAME = re.compile(r"(?:[A-Za-z0-9_-][A-Za-z0-9_.-]{0,99}/){0,7}[A-Za-z0-9_-][A-Za-z0-9_.-]{0,99}")
 _failures = ThrottledLog(log, 10.0)
+# What a session's calls answer once it is closed, or its worker process has stopped (worker mode).
+GONE = (grpc.StatusCode.NOT_FOUND, grpc.StatusCode.UNAVAILABLE)
 
 
 @dataclass
@@ -140,6 +142,8 @@ class Pages:
             return Answer(HTTPStatus.INTERNAL_SERVER_ERROR, b"the server failed; its log says why\n")
 
     def _refused(self, refusal: ServiceError, api: bool) -> Answer:
+        if refusal.code in GONE:  # closed meanwhile, or its worker process stopped: no map any more
+            return Answer(HTTPStatus.NOT_FOUND, f"the map is gone: {refusal.message}\n".encode())
         status = HTTPStatus.TOO_MANY_REQUESTS if refusal.code == grpc.StatusCode.RESOURCE_EXHAUSTED \
             else HTTPStatus.UNAUTHORIZED
         if api:
@@ -175,7 +179,7 @@ class Pages:
             return Answer(HTTPStatus.OK, decoded.ply, "application/octet-stream",
                           {"X-Map-Version": str(decoded.version), "X-Gaussians": str(decoded.count)})
         if part == "/frame":
-            frame = view.source.latest()
+            frame = view.source.shown().frame
             if frame is None:
                 return Answer(HTTPStatus.NOT_FOUND, b"no frame mapped yet\n")
             return Answer(HTTPStatus.OK, frame.color.data, f"image/{frame.color.format or 'jpeg'}")

@@ -5,6 +5,7 @@ The Gaussians are decoded as seen from one point (colours and opacities depend o
 ``ogmap export``: the page's camera when it asks for one, else the mapped cameras' centroid. Decoding
 holds the mapper's lock like a Render call, so it is done at most once per ``min_seconds`` for a map
 and kept until the map has a new keyframe: however many pages watch, mapping pays for one decode.
+The map answers through its ``MapLook``: a mapper in this process, or a session's in a worker process.
 """
 
 from __future__ import annotations
@@ -17,12 +18,9 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
-from ogapi.images import encode_color
-from ogapi.v1 import mapping_pb2 as pb
 
-from ogmapping.mapper import Mapper
-from ogmapping.persist.export import default_viewpoint, ply_bytes
-from ogserver.live.views import RENDER_JPEG_QUALITY, MappedFrame
+from ogserver.live.map_look import MapLook
+from ogserver.live.views import Shown
 from ogserver.web.horizon import world_up
 
 CENTER_DECIMALS = 3  # a viewpoint to the millimetre: pages at one pose share one decode
@@ -33,18 +31,12 @@ class Source(Protocol):
 
     id: str
     label: str
-    mapper: Mapper
+    look: MapLook
 
-    def latest(self) -> MappedFrame | None:
-        """The keyframe whose input image the page shows beside the render from its pose; None for none."""
-        ...
-
-    def render_of(self, frame: MappedFrame) -> bytes | None:
-        """The JPEG of the map rendered from ``frame``'s pose where one was made already (the recording's views)."""
-        ...
-
-    def version(self) -> int:
-        """Changes when the map has changed enough to be fetched again (each keyframe)."""
+    def shown(self) -> Shown:
+        """The keyframe whose input image the page shows beside the render from its pose (with that render
+        where one was made already: the recording's views), and the map's version, which changes when the
+        map has changed enough to be fetched again (each keyframe)."""
         ...
 
     def keyframe_path(self) -> np.ndarray:
@@ -70,7 +62,8 @@ class Busy:
     def holding(self, lock: AbstractContextManager[Any]) -> Iterator[None]:
         """Hold ``lock`` (the mapper's) for one decode or render and count it, with the CPU that the process's
         other threads (the compiled kernels' pool) spent meanwhile: mapping waits on the lock, so that is the
-        work's too. The calling thread's own CPU is counted with its request (``request``)."""
+        work's too. The calling thread's own CPU is counted with its request (``request``). For a map in a
+        worker process ``lock`` is none (the worker holds its mapper's), and the time is the call's."""
         with lock:
             wall, process, thread = time.perf_counter(), time.process_time(), time.thread_time()
             try:
@@ -111,61 +104,59 @@ class MapView:
         self.busy = busy or Busy()
         self._lock = threading.Lock()
         self._decoded: Decoded | None = None
-        self._render: tuple[int, bytes] | None = None  # id() of the frame rendered, the JPEG
+        self._render: tuple[int, bytes] | None = None  # the version whose newest keyframe it renders, the JPEG
 
     def splats(self, center: np.ndarray | None) -> Decoded:
         """The map's Gaussians seen from ``center`` (None: the default viewpoint), decoded again only when
         the map has a new keyframe or another viewpoint is asked for, and not sooner than ``min_seconds``
         after the last decode (what is asked for meanwhile waits, or gets the last decode of that viewpoint)."""
+        look = self.source.look
         with self._lock:
             if center is None:
-                center = default_viewpoint(self.source.mapper).center
+                center = look.viewpoint()
             key = tuple(np.round(np.asarray(center, dtype=np.float64), CENTER_DECIMALS).tolist())
-            version, last = self.source.version(), self._decoded
+            version, last = self.source.shown().keyframes, self._decoded
             if last is not None and last.center == key:
                 if last.version == version or time.monotonic() - last.at < self.min_seconds:
                     return last
             elif last is not None:
                 time.sleep(max(0.0, last.at + self.min_seconds - time.monotonic()))
-            with self.busy.holding(self.source.mapper.lock):
-                gaussians = self.source.mapper.decode_at(np.asarray(key))
-            self._decoded = Decoded(version, key, ply_bytes(gaussians), int(gaussians.means.shape[0]),
-                                    time.monotonic())
+            with self.busy.holding(look.lock):
+                splats = look.splats(np.asarray(key))
+            self._decoded = Decoded(version, key, splats.ply, splats.count, time.monotonic())
             return self._decoded
 
     def render_jpeg(self) -> bytes | None:
         """The map rendered from the shown keyframe's pose: the recording's render of it, else one of its own."""
-        frame = self.source.latest()
-        if frame is None:
+        shown, look = self.source.shown(), self.source.look
+        if shown.frame is None:
             return None
-        made = self.source.render_of(frame)
-        if made is not None:
-            return made
+        if shown.render is not None:
+            return shown.render
         with self._lock:
-            if self._render is None or self._render[0] != id(frame):
-                c2w = frame.c2w if frame.refined is None else frame.refined
-                with self.busy.holding(self.source.mapper.lock):
-                    color = self.source.mapper.render(c2w, frame.intrinsics).color
-                self._render = (id(frame), encode_color(color, pb.COLOR_JPEG, RENDER_JPEG_QUALITY))
+            if self._render is None or self._render[0] != shown.keyframes:
+                with self.busy.holding(look.lock):
+                    jpeg = look.render_jpeg(shown.frame.pose, shown.frame.intrinsics)
+                self._render = (shown.keyframes, jpeg)
             return self._render[1]
 
     def state(self) -> dict[str, Any]:
         """What the page polls: the map's version, statistics, the keyframes' path, the world's up (which
         the page keeps its horizon level to) and the newest keyframe."""
-        mapper, frame = self.source.mapper, self.source.latest()
-        stats = mapper.stats()
+        look, shown = self.source.look, self.source.shown()
+        stats, frame = look.stats(), shown.frame
         decoded = self._decoded
         poses = self.source.keyframe_path()
         latest = None
         if frame is not None:
             intrinsics = frame.intrinsics
             latest = {"sensor_ns": frame.sensor_ns, "keyframe": frame.keyframe,
-                      "c2w": np.asarray(frame.c2w if frame.refined is None else frame.refined).ravel().tolist(),
+                      "c2w": np.asarray(frame.pose).ravel().tolist(),
                       "fx": intrinsics.fx, "fy": intrinsics.fy, "cx": intrinsics.cx, "cy": intrinsics.cy,
                       "width": intrinsics.width, "height": intrinsics.height, "format": frame.color.format}
-        start = latest["c2w"] if latest else path_pose(mapper, poses)
+        start = latest["c2w"] if latest else path_pose(look, poses)
         return {
-            "id": self.source.id, "label": self.source.label, "version": self.source.version(), "start": start,
+            "id": self.source.id, "label": self.source.label, "version": shown.keyframes, "start": start,
             "up": world_up(poses),
             "stats": {"frames": stats.frames, "keyframes": len(poses), "anchors": stats.anchors,
                       "gaussians_in_map": decoded.count if decoded else 0, "device": stats.device,
@@ -174,17 +165,12 @@ class MapView:
         }
 
 
-def keyframe_path(mapper: Mapper) -> np.ndarray:
-    """A mapper's keyframes' refined camera-to-world poses (n, 4, 4), in mapping order."""
-    return np.array([pose.refined_c2w for pose in mapper.keyframe_poses()]).reshape(-1, 4, 4)
-
-
-def path_pose(mapper: Mapper, poses: np.ndarray) -> list[float]:
+def path_pose(look: MapLook, poses: np.ndarray) -> list[float]:
     """Where a page without a keyframe's input starts: the last keyframe's pose, else at the default viewpoint
     looking at the anchors' mean (world +y down in the image, as in OpenCV-style datasets)."""
     if len(poses):
         return poses[-1].ravel().tolist()
-    eye, target = default_viewpoint(mapper).center, mapper.anchor_centroid()
+    eye, target = look.viewpoint(), look.anchor_centroid()
     forward = target - eye if np.linalg.norm(target - eye) > 1e-6 else np.array([0.0, 0.0, 1.0])
     forward = forward / np.linalg.norm(forward)
     right = np.cross([0.0, 1.0, 0.0], forward)

@@ -25,12 +25,13 @@ from ogmapping.persist import map_io, snapshot
 from ogmapping.runtime.profile import resolve_device
 from ogserver.api import validation
 from ogserver.errors import ServiceError
-from ogserver.live.views import MappedFrame
+from ogserver.live.map_look import MapperLook, keyframe_path
+from ogserver.live.views import Shown
 from ogserver.sessions.registry import requested_config
 from ogserver.settings import Settings
 from ogserver.web.catalogue import OneMap
 from ogserver.web.http_server import WebServer
-from ogserver.web.maps import MapView, keyframe_path
+from ogserver.web.maps import MapView
 
 HOST = "127.0.0.1"
 MIN_SECONDS = 0.2
@@ -46,14 +47,12 @@ class StillMap:
     mapper: Mapper
     path: np.ndarray  # the keyframes' camera-to-world poses (n, 4, 4)
 
-    def latest(self) -> MappedFrame | None:
-        return None
+    @property
+    def look(self) -> MapperLook:
+        return MapperLook(self.mapper)
 
-    def render_of(self, frame: MappedFrame) -> bytes | None:
-        return None
-
-    def version(self) -> int:
-        return 0
+    def shown(self) -> Shown:
+        return Shown(None, None, 0)
 
     def keyframe_path(self) -> np.ndarray:
         return self.path

@@ -3,8 +3,8 @@
 A message is a JSON header and binary blobs: bytes, numpy arrays and protobuf messages travel as
 blobs (a client's frame or snapshot crosses as the protobuf bytes the front already parsed, and the
 worker parses them again with protobuf); everything else is JSON. Only the types named here can be
-built on the way back in: plain values, tuples, paths, status codes, the service's own protobuf
-messages, the dataclasses in ``DATACLASSES`` and refusals (``ServiceError``). Unlike pickle, reading a
+built on the way back in: plain values, tuples, paths, status codes, the protobuf messages in
+``MESSAGES``, the dataclasses in ``DATACLASSES`` and refusals (``ServiceError``). Unlike pickle, reading a
 message never runs code a message chooses.
 
 On the wire each message is an 8-byte length and then the message, so a stream socket carries them
@@ -22,14 +22,19 @@ from typing import Any
 
 import grpc
 import numpy as np
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from google.protobuf.message import Message
 from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.frames.camera import Intrinsics
+from ogmapping.persist.export import ColoredPoints
 from ogmapping.queries import Rendered
 from ogmapping.stats import MapStats, PoseSummary
+from ogserver.access.tokens import TokenHash
 from ogserver.api.validation import RenderSpec
 from ogserver.errors import ServiceError
+from ogserver.live.map_look import Splats
+from ogserver.live.views import MappedFrame, Pending, Shown
 from ogserver.recording.disk import StorageError
 from ogserver.sessions.counters import FrameTotals, SessionCounters
 from ogserver.sessions.hosting import Closed, Upload
@@ -37,9 +42,11 @@ from ogserver.sessions.stream_events import Acked, SessionClosed
 
 DATACLASSES: dict[str, type] = {cls.__name__: cls for cls in (
     Intrinsics, Rendered, MapStats, PoseSummary, RenderSpec, SessionCounters, FrameTotals, Closed, Upload, Acked,
-    SessionClosed,
+    SessionClosed, TokenHash, MappedFrame, Pending, Shown, Splats, ColoredPoints,
 )}
-MESSAGES: dict[str, type[Message]] = {name: getattr(pb, name) for name in pb.DESCRIPTOR.message_types_by_name}
+# By full name: the service's messages, and the Foxglove image a mapped frame carries for the live views.
+MESSAGES: dict[str, type[Message]] = {message.DESCRIPTOR.full_name: message for message in (
+    *(getattr(pb, name) for name in pb.DESCRIPTOR.message_types_by_name), CompressedImage)}
 ERRORS: dict[str, type[ServiceError]] = {cls.__name__: cls for cls in (ServiceError, StorageError)}
 LENGTH = struct.Struct("!Q")
 HEADER = struct.Struct("!II")
@@ -95,7 +102,7 @@ def _encode(value: Any, blobs: list[bytes]) -> Any:
         return {"s": value.name}
     if isinstance(value, Message):
         blobs.append(value.SerializeToString())
-        return {"m": value.DESCRIPTOR.name, "b": len(blobs) - 1}
+        return {"m": value.DESCRIPTOR.full_name, "b": len(blobs) - 1}
     if isinstance(value, ServiceError):
         return {"e": type(value).__name__ if type(value).__name__ in ERRORS else "ServiceError",
                 "code": value.code.name, "message": value.message}

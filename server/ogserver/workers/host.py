@@ -32,6 +32,7 @@ from ogapi.v1 import mapping_pb2 as pb
 
 from ogmapping.queries import Rendered
 from ogmapping.stats import MapStats
+from ogserver.access.tokens import TokenHash
 from ogserver.api.validation import RenderSpec
 from ogserver.errors import ServiceError
 from ogserver.sessions.counters import FrameTotals, SessionCounters
@@ -42,6 +43,8 @@ from ogserver.sessions.resume import resume_each
 from ogserver.sessions.stream_events import StreamEvent
 from ogserver.settings import Settings
 from ogserver.workers.process import Worker
+from ogserver.workers.views import WorkerLatest, WorkerLook
+from ogserver.workers.worker import OpenedThere
 
 log = logging.getLogger(__name__)
 
@@ -57,15 +60,20 @@ class Placed:
     owner: str
     config: pb.SessionConfig
     recording: Path
+    token: TokenHash  # the session's, kept here too: the live views' viewers may present it
 
 
 class WorkerSession:
-    """A session in a worker process: the ``HostedSession`` the servicer and stream use."""
+    """A session in a worker process: the ``HostedSession`` the servicer and stream use, and the
+    ``ViewedSession`` the live views use (``views.py``)."""
 
     def __init__(self, placed: Placed) -> None:
         self.id = placed.config.session_id
         self.config = placed.config
         self.worker = placed.worker
+        self.token = placed.token
+        self.latest = WorkerLatest(placed.worker, self.id)
+        self.look = WorkerLook(placed.worker, self.id)
         self._recording = placed.recording
 
     @property
@@ -168,8 +176,9 @@ class WorkerHost:
                 if not placed:
                     worker.load -= 1
 
-    def _register(self, worker: Worker, owner: str, config: pb.SessionConfig, recording: Path) -> Placed:
-        placed = Placed(worker, owner, config, recording)
+    def _register(self, worker: Worker, owner: str, opened: OpenedThere) -> Placed:
+        config, recording, token = opened
+        placed = Placed(worker, owner, config, recording, token)
         with self._lock:
             self._placed[config.session_id] = placed
         log.info("session %s placed on worker %d (pid %d)", config.session_id, worker.number, worker.pid)
@@ -177,9 +186,8 @@ class WorkerHost:
 
     def _resume(self, recording: Path) -> str:
         with self._place("") as worker:
-            config, path, owner = worker.call("resume", recording)
-        self._register(worker, owner, config, path)
-        return config.session_id
+            owner, opened = worker.call("resume", recording)
+        return self._register(worker, owner, opened).config.session_id
 
     def check_label(self, label: str) -> None:
         check_label(label, self.settings)
@@ -187,14 +195,14 @@ class WorkerHost:
     def create(self, request: pb.CreateSessionRequest, owner: str) -> Opened:
         requested_config(request, self.settings)  # refused here as a single server refuses, before a place is held
         with self._place(owner) as worker:
-            config, token, recording = worker.call("create", request, owner)
-            return Opened(WorkerSession(self._register(worker, owner, config, recording)), token)
+            opened, token = worker.call("create", request, owner)
+            return Opened(WorkerSession(self._register(worker, owner, opened)), token)
 
     def restore(self, owner: str, receive: Callable[[], Upload]) -> Opened:
         """The place is held before ``receive`` reads the snapshot: a full server refuses at once."""
         with self._place(owner) as worker:
-            config, token, recording = worker.call("restore", owner, receive())
-            return Opened(WorkerSession(self._register(worker, owner, config, recording)), token)
+            opened, token = worker.call("restore", owner, receive())
+            return Opened(WorkerSession(self._register(worker, owner, opened)), token)
 
     # ------------------------------------------------------------------ finding
 

@@ -7,7 +7,8 @@ Then each ``call`` runs in a thread of its own pool (a frame offer waiting on it
 renders and stats run side by side, as the gRPC threads of a single server would) and is answered
 with its ``reply``. A frame stream's acks go back unasked, as ``event`` messages tagged with the
 number the server gave the stream. With views on, the worker's own ``LiveView`` (no Foxglove) writes
-keyframes' renders and point clouds into its sessions' recordings, as a single server does.
+keyframes' renders and point clouds into its sessions' recordings, as a single server does; the server's
+live views (the web view, Foxglove) ask for the rest, a call per answer (``views.py``).
 
 When the server goes away (its end of the socket closes) the worker exits at once without closing
 anything, as the server itself would have died: the next server with ``--resume`` brings the
@@ -39,19 +40,21 @@ from ogmapping.config.overrides import assign
 from ogmapping.runtime.profile import resolve_device
 from ogmapping.warmup import warm_up
 from ogserver import LOG_FORMAT
+from ogserver.access.tokens import TokenHash
 from ogserver.errors import ServiceError
 from ogserver.live.publisher import LiveView
+from ogserver.live.views import Pending, Shown
 from ogserver.sessions.counters import FrameTotals, SessionCounters
-from ogserver.sessions.hosting import Closed, Opened, Upload
+from ogserver.sessions.hosting import Closed, Upload
 from ogserver.sessions.registry import Registry
 from ogserver.sessions.session import Session
 from ogserver.sessions.stream_events import Acked, SessionClosed, StreamEvent
 from ogserver.settings import LABEL, Settings
 from ogserver.workers import codec
+from ogserver.workers.views import QUESTIONS, SERVER_READER
 
 log = logging.getLogger(__name__)
-Described = tuple[pb.SessionConfig, Path]
-OpenedThere = tuple[pb.SessionConfig, str, Path]  # the session's config, its token and its recording
+OpenedThere = tuple[pb.SessionConfig, Path, TokenHash]  # a session's config, its recording and its token's hash
 
 
 class Link:
@@ -84,7 +87,7 @@ class WorkerSessions:
     CALLS = frozenset({
         "create", "restore", "resume", "authorize", "touch", "claim_stream", "release_stream", "streaming", "offer",
         "count_rejected", "render", "map_stats", "counters", "snapshot", "correct_poses", "close", "expire_idle",
-        "close_all", "frame_totals",
+        "close_all", "frame_totals", "take_latest", "shown", "look",
     })
 
     def __init__(self, registry: Registry, link: Link) -> None:
@@ -99,19 +102,22 @@ class WorkerSessions:
         return found
 
     @staticmethod
-    def _opened(opened: Opened) -> OpenedThere:
-        return opened.session.config, opened.token, opened.session.recording
+    def _described(session: Session) -> OpenedThere:
+        return session.config, session.recording, session.token
 
-    def create(self, request: pb.CreateSessionRequest, owner: str) -> OpenedThere:
-        return self._opened(self.registry.create(request, owner))
+    def create(self, request: pb.CreateSessionRequest, owner: str) -> tuple[OpenedThere, str]:
+        """The new session, and its token."""
+        opened = self.registry.create(request, owner)
+        return self._described(opened.session), opened.token
 
-    def restore(self, owner: str, upload: Upload) -> OpenedThere:
-        return self._opened(self.registry.restore(owner, lambda: upload))
+    def restore(self, owner: str, upload: Upload) -> tuple[OpenedThere, str]:
+        opened = self.registry.restore(owner, lambda: upload)
+        return self._described(opened.session), opened.token
 
-    def resume(self, recording: Path) -> tuple[pb.SessionConfig, Path, str]:
-        """A session a dead server left open: its config, recording and owner."""
+    def resume(self, recording: Path) -> tuple[str, OpenedThere]:
+        """A session a dead server left open, and its owner."""
         session = self.registry.resume(recording)
-        return session.config, session.recording, self.registry.owner(session)
+        return self.registry.owner(session), self._described(session)
 
     def authorize(self, session_id: str, token: str, field: str) -> None:
         self.registry.get(session_id, token, field)
@@ -154,6 +160,24 @@ class WorkerSessions:
 
     def correct_poses(self, session_id: str, message: pb.CorrectPosesRequest) -> pb.CorrectPosesResponse:
         return self._session(session_id).correct_poses(message)
+
+    def take_latest(self, session_id: str) -> Pending | None:
+        return self._session(session_id).latest.take(SERVER_READER)
+
+    def shown(self, session_id: str) -> Shown:
+        return self._session(session_id).latest.shown()
+
+    def look(self, session_id: str, question: str, *args: Any) -> Any:
+        """One of the live views' questions of a session's map (``MapLook``), within the server's bounds."""
+        if question not in QUESTIONS:
+            raise ServiceError(grpc.StatusCode.INTERNAL, f"a map has no question {question!r}")
+        settings = self.registry.settings
+        if question == "points" and args[0] > settings.live.view_points:
+            raise ServiceError(grpc.StatusCode.INVALID_ARGUMENT, f"points: over live.view_points "
+                               f"({args[0]} > {settings.live.view_points})")
+        if question == "render_jpeg" and args[1].width * args[1].height > settings.limits.max_image_pixels:
+            raise ServiceError(grpc.StatusCode.INVALID_ARGUMENT, "render_jpeg: over limits.max_image_pixels")
+        return getattr(self._session(session_id).look, question)(*args)
 
     def close(self, session_id: str) -> Closed:
         return self.registry.close(self._session(session_id))
