@@ -177,7 +177,8 @@ class Mapper:
                 stride = allocation.allocation_stride(settings, frame.color_intrinsics)
                 sampled = allocation.sampled_depth(settings, depth, frame.color_intrinsics)
                 cells = allocation.allocate(settings.allocation, model.octree, sampled, frame.color_intrinsics, placed,
-                                            lambda: model.render(placed, frame.color_intrinsics)[1], stride)
+                                            lambda: model.render(placed, frame.color_intrinsics)[1], stride,
+                                            unread=model.profile.static_shapes)
             with model.timed("keyframes"):
                 keys = model.octree.keys(0)
                 seen = model.octree.seen_mask(keys, depth, frame.color_intrinsics, placed)

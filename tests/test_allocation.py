@@ -28,7 +28,7 @@ def render_of(alpha: torch.Tensor, depth: torch.Tensor):
 
 def test_unique_allocation_gives_the_octree_allocation():
     generator = torch.Generator().manual_seed(3)
-    fast, naive = SparseVoxelOctree(VOXEL, 2), SparseVoxelOctree(VOXEL, 2)
+    fast, naive, unread = SparseVoxelOctree(VOXEL, 2), SparseVoxelOctree(VOXEL, 2), SparseVoxelOctree(VOXEL, 2)
     for step in range(6):
         depth = 0.5 + torch.rand(4, 8, generator=generator) * (1 + step)
         depth[0, step % 8] = 0.0
@@ -37,6 +37,8 @@ def test_unique_allocation_gives_the_octree_allocation():
         expected = allocate("octree", fast, depth, INTRINSICS, pose).settle(fast)
         got = allocate("unique", naive, depth, INTRINSICS, pose).settle(naive)
         assert torch.equal(got, expected) and torch.equal(naive.keys(0), fast.keys(0))
+        at_fixed_sizes = allocate("octree", unread, depth, INTRINSICS, pose, unread=True).settle(unread)
+        assert torch.equal(at_fixed_sizes, expected) and torch.equal(unread.keys(0), fast.keys(0))
 
 
 def test_unique_and_octree_mappers_build_the_same_map():
@@ -110,11 +112,11 @@ def test_octree_allocation_waits_for_nothing_until_settled():
     depth[:, 6:] = 0.0
     padded, checked = SparseVoxelOctree(VOXEL, 2), SparseVoxelOctree(VOXEL, 2)
     checked.insert(checked.observed(backproject(depth, INTRINSICS, POSE)))
-    cells = allocate("octree", padded, depth, INTRINSICS, POSE)
+    cells = allocate("octree", padded, depth, INTRINSICS, POSE, unread=True)
     assert cells.padded.numel() == 32 and padded.keys(0).numel() == 32
     assert (cells.padded[cells.count:] == PAD).all()
     assert torch.equal(cells.settle(padded), checked.keys(0)) and torch.equal(padded.keys(0), checked.keys(0))
-    again = allocate("octree", padded, torch.ones(4, 8), INTRINSICS, POSE)  # only the two right columns are new
+    again = allocate("octree", padded, torch.ones(4, 8), INTRINSICS, POSE, unread=True)  # two new columns
     assert int(again.count) == 8 and padded.keys(0).numel() == 24 + 32
     assert torch.equal(padded.keys(0)[-24:], torch.full((24,), PAD))
     again.settle(padded)

@@ -74,12 +74,18 @@ class NewCells:
 
 
 def allocate(strategy: str, octree: SparseVoxelOctree, depth: torch.Tensor, intrinsics: Intrinsics,
-             c2w: torch.Tensor, render: Callable[[], RenderOutput] | None = None, stride: int = 1) -> NewCells:
+             c2w: torch.Tensor, render: Callable[[], RenderOutput] | None = None, stride: int = 1,
+             unread: bool = False) -> NewCells:
     """Occupy the coarse cells ``strategy`` picks for this frame (``depth`` holds valid values only on the
-    ``stride`` grid, ``sampled_depth``); returns the codes that get a new coarse anchor (unique)."""
-    if strategy == "octree":
+    ``stride`` grid, ``sampled_depth``); returns the codes that get a new coarse anchor (unique). ``unread``
+    (the static-shape step's, as on a GPU): ``octree`` allocation at fixed sizes, leaving the count on the
+    device; otherwise it selects the frame's valid points and cells at once, less work where a read of the
+    device costs nothing (the CPU). The same cells either way."""
+    if strategy == "octree" and unread:
         return octree_allocation(octree, *grid_points(depth, intrinsics, c2w, stride))
-    if strategy == "unique":
+    if strategy == "octree":
+        new = octree.insert(octree.observed(backproject(depth, intrinsics, c2w)), 0)
+    elif strategy == "unique":
         new = unique_allocation(octree, backproject(depth, intrinsics, c2w))
     elif strategy == "projection":
         if render is None:
