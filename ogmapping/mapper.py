@@ -238,7 +238,7 @@ class Mapper:
 
     def _footprint(self, keyframe: Keyframe) -> Footprint:
         """``keyframe``'s footprint on the map as it is now."""
-        depth = keyframe.depth.to(self.device, non_blocking=keyframe.pinned).to(torch.float32)
+        depth = keyframe.device_depth(self.device)
         keys = self.model.octree.keys(0)
         return Footprint(keys, self.model.octree.seen_mask(keys, depth, keyframe.intrinsics, keyframe.c2w))
 

@@ -252,3 +252,10 @@ def test_loss_view_weighs_the_view_once_the_window_is_full():
     assert mapper.keyframes.is_full()
     assert mapper.steps.window_weights(mapper.keyframes.draw_window(False)) == [0.5, 1.0, 1.0, 1.0]
     assert mapper.steps.window_weights([]) == [0.5], "the view alone (a window that draws nothing)"
+
+
+def test_a_keyframe_captured_on_the_cpu_is_on_the_host_at_once():
+    stored = keyframe(3, [1, 2])
+    assert stored.ready is None and stored.rgb is stored.host_rgb and stored.depth is stored.host_depth
+    assert stored.rgb.dtype == torch.uint8 and stored.depth.dtype == torch.float16
+    assert torch.equal(stored.device_depth(torch.device("cpu")), stored.depth.float())

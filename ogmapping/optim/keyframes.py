@@ -66,17 +66,20 @@ class Keyframe:
     mapper's device, one took 12.3 MB at 640x480 (15.4 MB with the half-size copy the window draws:
     15 GB of GPU memory per 1000 keyframes); stored like this it takes 1.5 MB (1.9 MB) of host
     memory, and only the drawn window is on the device, as ``View``s made afresh at every draw.
-    Pinned when mapping on CUDA, so those copies are asynchronous.
+    Pinned when mapping on CUDA, so those copies are asynchronous, and so is the copy off the device
+    when it is captured (``ready`` marks its end): the device copies back through ``view`` and
+    ``device_depth`` in stream order without waiting; the host reads ``rgb`` and ``depth`` once it is done.
     """
 
     index: int
-    rgb: torch.Tensor  # (H, W, 3) uint8, host memory
-    depth: torch.Tensor  # (H, W) float16 metres, 0 = invalid, host memory
+    host_rgb: torch.Tensor  # (H, W, 3) uint8, host memory (``rgb`` once it is there)
+    host_depth: torch.Tensor  # (H, W) float16 metres, 0 = invalid, host memory (``depth`` once it is there)
     intrinsics: Intrinsics
     c2w: torch.Tensor  # (4, 4), the client's pose, on the mapper's device
     footprint: Footprint  # the occupied coarsest cells this frame sees
     pinned: bool = False
     correction: PoseCorrection | None = None  # with ``poses.refine``, every keyframe's but the first
+    ready: torch.cuda.Event | None = None  # recorded after the copy off the device, until the host has waited on it
     _downscaled: dict[float, Keyframe] = field(default_factory=dict, repr=False)
 
     @classmethod
@@ -84,16 +87,46 @@ class Keyframe:
                 c2w: torch.Tensor, footprint: Footprint, *, pinned: bool = False,
                 correction: PoseCorrection | None = None) -> Keyframe:
         """Store float ``rgb`` in [0, 1] (rounded to 1/255: exact for 8-bit images at their own size)
-        and ``depth`` in metres (float16: steps of 2 mm from 2 to 4 m, 4 mm from 4 to 8 m) from any device."""
-        colour = (rgb.detach() * 255.0).round_().clamp_(0.0, 255.0).to("cpu", torch.uint8)
-        return cls(index, _host(colour, pinned), _host(depth.detach().to("cpu", torch.float16), pinned),
-                   intrinsics, c2w, footprint, pinned, correction)
+        and ``depth`` in metres (float16: steps of 2 mm from 2 to 4 m, 4 mm from 4 to 8 m) from any device;
+        from CUDA into pinned memory without waiting (``ready``)."""
+        colour = (rgb.detach() * 255.0).round_().clamp_(0.0, 255.0).to(torch.uint8)
+        depth = depth.detach().to(torch.float16)
+        if colour.device.type != "cuda":
+            return cls(index, _host(colour, pinned), _host(depth, pinned), intrinsics, c2w, footprint, pinned,
+                       correction)
+        host_rgb, host_depth = (torch.empty(t.shape, dtype=t.dtype, pin_memory=True) for t in (colour, depth))
+        host_rgb.copy_(colour, non_blocking=True)
+        host_depth.copy_(depth, non_blocking=True)
+        ready = torch.cuda.Event()
+        ready.record()
+        return cls(index, host_rgb, host_depth, intrinsics, c2w, footprint, True, correction, ready)
+
+    @property
+    def rgb(self) -> torch.Tensor:
+        """The colour on the host, once its copy there is done."""
+        self._wait()
+        return self.host_rgb
+
+    @property
+    def depth(self) -> torch.Tensor:
+        """The depth on the host, once its copy there is done."""
+        self._wait()
+        return self.host_depth
+
+    def _wait(self) -> None:
+        if self.ready is not None:
+            self.ready.synchronize()
+            self.ready = None
+
+    def device_depth(self, device: torch.device) -> torch.Tensor:
+        """The depth as float32 on ``device``, copied there in stream order (no wait on the host)."""
+        return self.host_depth.to(device, non_blocking=self.pinned).to(torch.float32)
 
     def view(self, device: torch.device, *, compiled: bool, images: Callable | None = None) -> View:
         """This keyframe as float32 images on ``device`` (copied there now), with SSIM statistics;
         ``images`` is ``view_images`` or its compiled graph (which ``compiled`` then does not apply to)."""
-        rgb = self.rgb.to(device, non_blocking=self.pinned)
-        depth = self.depth.to(device, non_blocking=self.pinned)
+        rgb = self.host_rgb.to(device, non_blocking=self.pinned)
+        depth = self.host_depth.to(device, non_blocking=self.pinned)
         if images is not None:
             rgb, depth, statistics = images(rgb, depth)
             return View(rgb, depth, self.intrinsics, self.c2w, statistics, self.correction)
