@@ -56,12 +56,13 @@ from ogmapping.structure.footprint import Footprint
 @dataclass(frozen=True)
 class PreparedFrame:
     """A frame made ready to map (``Mapper.prepare``): depth registered onto the colour grid and clipped,
-    colour and depth as host tensors at the mapper's precision (pinned on CUDA, so they upload without
-    blocking). Preparing is the per-frame work that needs no map, so it can run ahead of the mapping."""
+    colour, depth and pose as host tensors at the mapper's precision (pinned on CUDA, so they upload
+    without blocking). Preparing is the per-frame work that needs no map, so it can run ahead of the mapping."""
 
     frame: Frame
     rgb: torch.Tensor
     depth: torch.Tensor
+    c2w: torch.Tensor
     seconds: float  # host time spent preparing it
 
 
@@ -136,10 +137,11 @@ class Mapper:
         in the stage ``preprocess``."""
         start = time.perf_counter()
         ready = prepare(frame, self.config.octree.depth_min, self.config.octree.depth_max)
-        rgb, depth = (torch.as_tensor(array, dtype=self.profile.precision) for array in (ready.rgb, ready.depth))
+        rgb, depth, c2w = (torch.as_tensor(array, dtype=self.profile.precision)
+                           for array in (ready.rgb, ready.depth, ready.c2w))
         if self.device.type == "cuda":
-            rgb, depth = rgb.pin_memory(), depth.pin_memory()
-        return PreparedFrame(ready, rgb, depth, time.perf_counter() - start)
+            rgb, depth, c2w = rgb.pin_memory(), depth.pin_memory(), c2w.pin_memory()
+        return PreparedFrame(ready, rgb, depth, c2w, time.perf_counter() - start)
 
     def process(self, frame: Frame | PreparedFrame, budget: Budget | None = None) -> FrameResult:
         """Map one frame (plain, or from ``prepare``); returns what happened to it. Optimisation ends early
@@ -159,7 +161,7 @@ class Mapper:
         frame = prepared.frame
         with model.timed("upload"):
             self._fit_to(frame.color_intrinsics)
-            rgb, depth, c2w = model.upload(prepared.rgb, prepared.depth, frame.c2w)
+            rgb, depth, c2w = model.upload(prepared.rgb, prepared.depth, prepared.c2w)
         # With ``poses.refine`` every frame but the first keyframe's carries a correction of its client pose
         # (the first keeps it: the map stays in the client's frame), tracked against the map before this
         # frame adds to it; the frame is placed at the tracked pose, and its steps refine it further.

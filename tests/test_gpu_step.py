@@ -92,6 +92,29 @@ def profiled(work: Callable[[], object]) -> tuple[list[str], dict[str, int]]:
     return names, {name: names.count(name) - idle.count(name) for name in RUNTIME_SYNCS}
 
 
+def synchronising_sites(work: Callable[[], object]) -> Counter[str]:
+    """Every synchronising call ``work`` makes (``set_sync_debug_mode("warn")``), by the engine's or gsplat's
+    line that made it."""
+    sites: Counter[str] = Counter()
+
+    def record(message, category, filename, lineno, file=None, line=None) -> None:
+        ours = [frame for frame in traceback.extract_stack()[:-1]
+                if frame.filename != __file__ and ("ogmapping" in frame.filename or "gsplat" in frame.filename)]
+        where = ours[-1] if ours else traceback.FrameSummary(filename, lineno, "?")
+        sites[f"{where.filename.split('site-packages/')[-1].split('/ogmapping/')[-1]}:{where.lineno} {where.name}"] += 1
+
+    torch.cuda.synchronize()
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = record
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            work()
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    return sites
+
+
 def step(mapper: Mapper, view: View) -> torch.Tensor:
     """One optimisation iteration on ``view`` (the newest keyframe) and a drawn window, as a keyframe's
     are, on the mapper's stream as ``process`` runs them."""
@@ -136,27 +159,32 @@ def test_step_time_and_launches_are_reported(steady: tuple[Mapper, View, str], c
 
 def test_a_steady_step_synchronises_at_most_at_gsplat_s_tile_count(steady: tuple[Mapper, View, str]) -> None:
     mapper, view, _ = steady
-    sites: Counter[str] = Counter()
-
-    def record(message, category, filename, lineno, file=None, line=None) -> None:
-        ours = [frame for frame in traceback.extract_stack()[:-1]
-                if frame.filename != __file__ and ("ogmapping" in frame.filename or "gsplat" in frame.filename)]
-        where = ours[-1] if ours else traceback.FrameSummary(filename, lineno, "?")
-        sites[f"{where.filename.split('site-packages/')[-1].split('/ogmapping/')[-1]}:{where.lineno} {where.name}"] += 1
-
-    torch.cuda.synchronize()
-    with warnings.catch_warnings():
-        warnings.simplefilter("always")
-        warnings.showwarning = record
-        torch.cuda.set_sync_debug_mode("warn")
-        try:
-            for _ in range(CHECKED_STEPS):
-                step(mapper, view)
-        finally:
-            torch.cuda.set_sync_debug_mode("default")
+    sites = synchronising_sites(lambda: [step(mapper, view) for _ in range(CHECKED_STEPS)])
     per_step = {site: count / CHECKED_STEPS for site, count in sites.items()}
     report("sync-sites.json", json.dumps({"step": mapper.profile.step_mode, "per step": per_step}, indent=2) + "\n")
     assert sum(per_step.values()) <= 1 and all("gsplat" in site for site in per_step), per_step
+
+
+def test_a_frame_synchronises_only_at_its_reads_and_gsplat_s(steady: tuple[Mapper, View, str],
+                                                             seven_scenes_if_present: Path | None) -> None:
+    """``Mapper.process`` of prepared frames: every synchronising call is one of the engine's counted reads
+    (``host_read.read``: one a frame, one a keyframe insertion, one a refinement) or gsplat's tile count."""
+    mapper, _, _ = steady
+    data = os.environ.get("OGMAP_GPU_DATA") or seven_scenes_if_present
+    frames = (open_frames(str(data), "7scenes", "40:48") if data is not None
+              else open_frames("synthetic", "synthetic", "40:48", n_frames=48, width=640, height=480))
+    prepared = [mapper.prepare(frames.load(position)) for position in frames.selection.streamed]
+    steps = 0
+
+    def process() -> None:
+        nonlocal steps
+        for frame in prepared:
+            steps += mapper.process(frame).iterations
+
+    sites = synchronising_sites(process)
+    report("frame-sync-sites.json", json.dumps({"frames": len(prepared), "steps": steps, "sites": dict(sites)},
+                                               indent=2) + "\n")
+    assert all("host_read.py" in site or "gsplat" in site for site in sites), dict(sites)
 
 
 def test_stage_timers_do_not_synchronise_while_mapping(steady: tuple[Mapper, View, str]) -> None:

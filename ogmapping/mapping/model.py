@@ -116,12 +116,11 @@ class MapModel:
         return tuple(torch.as_tensor(array, dtype=self.profile.precision, device=self.device)
                      for array in (frame.rgb, frame.depth, frame.c2w))
 
-    def upload(self, rgb: torch.Tensor, depth: torch.Tensor, c2w: np.ndarray) -> tuple[
+    def upload(self, rgb: torch.Tensor, depth: torch.Tensor, c2w: torch.Tensor) -> tuple[
             torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``tensors`` of images already host tensors at the mapper's precision (pinned on CUDA: copied
-        without blocking the host)."""
-        rgb, depth = (image.to(self.device, non_blocking=True) for image in (rgb, depth))
-        return rgb, depth, torch.as_tensor(c2w, dtype=self.profile.precision, device=self.device)
+        """A frame's images and pose, already host tensors at the mapper's precision (pinned on CUDA: copied
+        without blocking the host), on the device."""
+        return tuple(tensor.to(self.device, non_blocking=True) for tensor in (rgb, depth, c2w))
 
     def count_frame(self, c2w: np.ndarray) -> None:
         """One more frame mapped, seen from the camera pose ``c2w`` (the client's)."""
