@@ -115,6 +115,11 @@ class BagRecorder:
     def pose_stamped(self, stamp_ns: int, frame: str, pose: np.ndarray) -> object:
         return self.t("geometry_msgs/msg/PoseStamped")(header=self.header(stamp_ns, frame), pose=self._pose(pose))
 
+    def path(self, stamp_ns: int, frame: str, poses: list[tuple[int, np.ndarray]]) -> object:
+        """A nav_msgs/Path in ``frame`` of (stamp, pose) pairs, each a PoseStamped in that frame too."""
+        return self.t("nav_msgs/msg/Path")(header=self.header(stamp_ns, frame),
+                                           poses=[self.pose_stamped(t, frame, pose) for t, pose in poses])
+
     def odometry(self, stamp_ns: int, frame: str, child: str, pose: np.ndarray) -> object:
         covariance = np.zeros(36)
         zero = self.t("geometry_msgs/msg/Vector3")(x=0.0, y=0.0, z=0.0)

@@ -24,6 +24,7 @@ typical session:
   ogclient render --session out/kitchen.json --data ../shared/data/7scenes-redkitchen --scale 0.25 --position 55
   ogclient snapshot --session out/kitchen.json --out out/kitchen.safetensors
   ogclient correct-poses --session out/kitchen.json slam-corrected.tum   # a loop closure: poses already mapped
+  ogclient stream --bag robot.bag --corrected-topic /slam/path   # ... or the bag's SLAM path, once all are mapped
   ogclient close --session out/kitchen.json
   ogclient replay recordings/<session>.mcap --close
   ogclient repair-recording recordings/<session>.mcap repaired.mcap   # after a server crash
@@ -112,10 +113,17 @@ def parser() -> argparse.ArgumentParser:
     stream.add_argument("--close", action="store_true", help="close the session when done")
     stream.add_argument("--quiet", action="store_true", help="no progress bar")
     add_trajectory(stream)
-    stream.add_argument("--corrected-trajectory", metavar="FILE",
-                        help="a TUM trajectory of corrected poses (a SLAM system's after a loop closure, e.g. for a "
-                             "--bag): once every frame is mapped, the poses of the frames this stream mapped are sent "
-                             "as pose corrections (matched by timestamp, else index; see correct-poses)")
+    corrected = stream.add_mutually_exclusive_group()
+    corrected.add_argument("--corrected-trajectory", metavar="FILE",
+                           help="a TUM trajectory of corrected poses (a SLAM system's after a loop closure, e.g. for "
+                                "a --bag): once every frame is mapped, the poses of the frames this stream mapped are "
+                                "sent as pose corrections (matched by timestamp, else index; see correct-poses)")
+    corrected.add_argument("--corrected-topic", metavar="TOPIC",
+                           help="with --bag: the same from a topic of the bag, read before streaming: nav_msgs/Path "
+                                "(its last message, each pose stamped) or PoseStamped, PoseWithCovarianceStamped, "
+                                "Odometry (a corrected pose a message), in the frames' world and mounted by TF as "
+                                "--pose-topic's poses are (the body: --body-frame, else Odometry's child frame, else "
+                                "the pose source's); never taken as the pose source")
     stream.set_defaults(handler=commands.stream)
 
     replay = sub.add_parser(

@@ -28,7 +28,7 @@ from ogclient.streaming import StreamResult, paced, stream_frames
 from ogmapping.cli.options import dataset_source, open_frame_set, parse_intrinsics
 from ogmapping.config import load_file, parse_override_args, resolve
 from ogmapping.frames.camera import validate_pose
-from ogmapping.frames.trajectory import read_tum
+from ogmapping.frames.trajectory import Trajectory, read_tum
 from ogmapping.quality.evaluation import open_frames
 
 COLOR_CHOICES = {"png": pb.COLOR_PNG, "jpeg": pb.COLOR_JPEG, "raw": pb.COLOR_RAW_RGB8}
@@ -93,7 +93,8 @@ def resumed_positions(ctx: Context, session: SessionRef, positions: list[int]) -
 
 
 def stream(ctx: Context, args: argparse.Namespace) -> int:
-    frame_set = open_frame_set(args)
+    frame_set = open_frame_set(args)  # a bag reads --corrected-topic as it opens
+    corrected = read_tum(args.corrected_trajectory) if args.corrected_trajectory else frame_set.source.corrected
     if args.resume and not args.session:
         raise ClientError("--resume goes on with an existing session: name its credentials with --session FILE")
     if args.fps < 0:
@@ -129,24 +130,25 @@ def stream(ctx: Context, args: argparse.Namespace) -> int:
     result = stream_resuming(ctx.stub, session, after, total=len(positions), progress=not args.quiet,
                              backoff=Backoff(retries=args.retries))
     print(result.summary())
-    correct_streamed(ctx, session, args.corrected_trajectory, keys, result)
+    correct_streamed(ctx, session, corrected, keys, result)
     close_if_asked(ctx, session, args)
     write_refined(args.trajectory, keys, result)
     return 1 if result.rejected else 0
 
 
-def correct_streamed(ctx: Context, session: SessionRef, path: str | None, keys: dict[int, float],
+def correct_streamed(ctx: Context, session: SessionRef, trajectory: Trajectory | None, keys: dict[int, float],
                      result: StreamResult) -> None:
-    """--corrected-trajectory: once every frame is mapped, the file's poses of the frames this stream mapped
-    (matched by key: timestamp, else index) sent as pose corrections; its other lines are left out."""
-    if not path:
+    """--corrected-trajectory or --corrected-topic: once every frame is mapped, the trajectory's poses of the
+    frames this stream mapped (matched by key: timestamp, else index) sent as pose corrections; its other poses
+    are left out."""
+    if trajectory is None:
         return
-    trajectory = read_tum(path)
+    name, count = trajectory.name, len(trajectory.keys)
     poses = corrections.for_mapped(trajectory, keys, result.acks)
     if not poses:
-        raise ClientError(f"{path}: none of its {len(trajectory.keys)} poses is of a frame this stream mapped")
+        raise ClientError(f"{name}: none of its {count} poses is of a frame this stream mapped")
     sent = corrections.send(ctx.stub, session, poses, corrections.DEFAULT_BATCH)
-    print(f"{path}: {len(poses)} of its {len(trajectory.keys)} poses are of frames mapped here; {sent.summary()}")
+    print(f"{name}: {len(poses)} of its {count} poses are of frames mapped here; {sent.summary()}")
 
 
 def write_refined(path: str | None, keys: dict[int, float], result: StreamResult) -> None:

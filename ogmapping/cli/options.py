@@ -46,8 +46,9 @@ def add_bag_arguments(parser: argparse.ArgumentParser) -> None:
                      "from instead of TF")
     bag.add_argument("--fixed-frame", help="TF world frame for poses (default: the root of the camera's TF tree)")
     bag.add_argument("--camera-frame", help="the camera's optical frame (default: the colour images' frame_id)")
-    bag.add_argument("--body-frame", help="frame whose pose --pose-topic gives (default: Odometry's child_frame_id; "
-                     "PoseStamped: the camera frame); TF mounts the camera on it")
+    bag.add_argument("--body-frame", help="frame whose pose --pose-topic (and ogclient stream's --corrected-topic) "
+                     "gives (default: Odometry's child_frame_id; PoseStamped: the camera frame); TF mounts the camera "
+                     "on it")
     bag.add_argument("--pair-tolerance", type=float, metavar="SECONDS",
                      help=f"largest colour-depth stamp difference to pair (default {DEFAULT_BAG.pair_tolerance})")
     bag.add_argument("--pose-tolerance", type=float, metavar="SECONDS",

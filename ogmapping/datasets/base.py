@@ -21,6 +21,7 @@ import numpy as np
 
 from ogmapping.frames.camera import Intrinsics, validate_pose
 from ogmapping.frames.frame import Frame
+from ogmapping.frames.trajectory import Trajectory
 
 # Sensors write these raw values where they have no measurement.
 INVALID_RAW_DEPTH = (0, 65535)
@@ -32,6 +33,7 @@ class FrameSource(ABC):
     """A finite, random-access sequence of frames."""
 
     name: str
+    corrected: Trajectory | None = None  # corrected poses the data carries for its frames (a bag's --corrected-topic)
 
     @abstractmethod
     def __len__(self) -> int: ...

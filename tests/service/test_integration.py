@@ -37,7 +37,7 @@ from ogmapping.quality.metrics import psnr
 from .bad_frames import CASES, broken
 from .conftest import ServerHandle
 from .proto_names import assert_spelled_as_the_proto
-from .scene import FROZEN, LIMITS, TINY, create_request, messages, scene
+from .scene import FROZEN, LIMITS, TINY, create_request, messages, scene, write_ros_bag
 
 OK = grpc.StatusCode
 
@@ -228,24 +228,6 @@ def test_cli_against_the_server(server: ServerHandle, mapped: Mapped, tmp_path: 
     assert ogclient_main([*base, "snapshot", "--session", str(session_file), "--out", str(tmp_path / "m.st")]) == 0
     assert (tmp_path / "m.st").stat().st_size > 0
     assert ogclient_main([*base, "list"]) == 0 and mapped.session.session_id in capsys.readouterr().out
-
-
-def write_ros_bag(path: Path, count: int) -> None:
-    """The synthetic room as a ROS 2 bag (MCAP): raw rgb8 and 16UC1, camera_info, Odometry of the camera."""
-    from rosbag_writer import BagRecorder
-
-    frames = scene(f"0:{count}")
-    with BagRecorder(path, ros2=True) as bag:
-        for i in range(count):
-            frame, t = frames.load(i), 1_700_000_000 * 10**9 + i * 33_333_333
-            k = frame.color_intrinsics
-            rgb = (frame.rgb * 255).round().astype(np.uint8)
-            depth = (frame.depth * 1000).round().astype(np.uint16)
-            bag.write("/camera/color/image_raw", t, bag.image(t, "camera_color_optical_frame", rgb, "rgb8"))
-            bag.write("/camera/depth/image_rect_raw", t, bag.image(t, "camera_color_optical_frame", depth, "16UC1"))
-            bag.write("/camera/color/camera_info", t, bag.camera_info(
-                t, "camera_color_optical_frame", k.width, k.height, (k.fx, k.fy, k.cx - 0.5, k.cy - 0.5)))
-            bag.write("/odom", t, bag.odometry(t, "odom", "camera_color_optical_frame", frame.c2w))
 
 
 def test_stream_a_ros_bag(server: ServerHandle, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

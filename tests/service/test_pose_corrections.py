@@ -1,6 +1,7 @@
 """CorrectPoses end to end: each bad batch is INVALID_ARGUMENT naming its first bad entry and changes nothing;
 a good one moves the map, is recorded, and `ogclient replay` reproduces it; `ogclient correct-poses` sends a
-TUM trajectory; the batch limit and the token are enforced."""
+TUM trajectory, and `ogclient stream` one from a file or a bag's topic; the batch limit and the token are
+enforced."""
 
 from __future__ import annotations
 
@@ -19,13 +20,14 @@ from ogclient.evaluation import snapshot_bytes
 from ogclient.streaming import stream_frames
 from safetensors.torch import load as load_tensors
 
+from ogmapping.datasets import open_dataset
 from ogmapping.frames.rotation import axis_angle_matrix
 from ogmapping.frames.trajectory import frame_key, write_tum
 from ogmapping.quality.evaluation import open_frames
 
 from .conftest import start_local
 from .inprocess import Running, serving, settings
-from .scene import TINY, create_request, messages, scene
+from .scene import TINY, create_request, messages, scene, write_ros_bag
 
 FIRST = 6  # frames streamed before the corrections; the rest after
 
@@ -224,3 +226,43 @@ def test_a_stream_sends_its_corrected_trajectory_at_the_end(running: Running, tm
                      r"(\d+) keyframes corrected \((\d+) anchors moved\)", out := capsys.readouterr().out)
     assert said, out
     assert int(said.group(1)) >= 1 and int(said.group(2)) > 0
+
+
+def test_a_stream_sends_the_corrected_path_on_a_bag_topic(running: Running, tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture) -> None:
+    """`ogclient stream --bag --corrected-topic`: the bag's SLAM path (its camera poses in the pose topic's frame)
+    corrects the session as the same poses sent as a TUM file with --corrected-trajectory do; a topic that is no
+    corrected trajectory is refused before a session is opened."""
+    pytest.importorskip("rosbags")
+    frames = scene("0:6")
+    corrected = [moved(frames.load(i).c2w, 0.5, (0.01, 0.0, 0.0)) for i in range(6)]
+    bag = tmp_path / "robot"
+    write_ros_bag(bag, 6, corrected)
+    tum = tmp_path / "slam.tum"
+    write_tum(tum, [frame.timestamp for frame in open_dataset(str(bag), "bag", corrected_topic="/slam/path")],
+              corrected, ["slam"])
+
+    def stream(*flags: str) -> tuple[str, dict]:
+        """What the stream said of its corrections, and the map they left."""
+        session_file = tmp_path / "session.json"
+        assert ogclient_main(["--server", running.address, "stream", "--bag", str(bag), "--preset", "sparse-fast",
+                              *(item for key, value in TINY.items() for item in ("--set", f"{key}={value}")),
+                              "--quiet", "--session-out", str(session_file), *flags]) == 0
+        said = re.search(r": (5 of its 6 poses are of frames mapped here; .*)", out := capsys.readouterr().out)
+        assert said, out
+        session = SessionRef.load(session_file)
+        live = anchors(snapshot_bytes(running.stub, session))
+        running.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id), metadata=session.metadata())
+        return said.group(1), live
+
+    from_topic, from_file = stream("--corrected-topic", "/slam/path"), stream("--corrected-trajectory", str(tum))
+    assert from_topic[0] == from_file[0] and re.search(r"[1-9]\d* keyframes corrected", from_topic[0])
+    assert torch_equal(from_topic[1]["keyframe"], from_file[1]["keyframe"])
+    assert np.allclose(from_topic[1]["positions"].numpy(), from_file[1]["positions"].numpy(), atol=1e-6)
+
+    refused = tmp_path / "refused.json"
+    assert ogclient_main(["--server", running.address, "stream", "--bag", str(bag), "--session-out", str(refused),
+                          "--corrected-topic", "/camera/color/camera_info"]) == 2
+    assert "--corrected-topic /camera/color/camera_info is a sensor_msgs/msg/CameraInfo topic" in \
+        capsys.readouterr().err
+    assert not refused.exists()

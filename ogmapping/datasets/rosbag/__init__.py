@@ -5,8 +5,9 @@ The modules, one idea each: ``layout`` (is this path a bag), ``options`` (the us
 message's stamp and frame without decoding its image), ``images`` (Image / CompressedImage to colour and metres),
 ``calibration`` (CameraInfo to intrinsics, undistortion), ``transforms`` (TF trees, interpolated
 tracks), ``topics`` (which topics hold what, chosen by flag or because there is exactly one),
-``poses`` (TF or a pose topic, as camera-to-world at an image stamp), ``pairing`` (colour with depth
-by stamp) and ``source`` (``RosBag``, the ``FrameSource``).
+``poses`` (TF or a pose topic, as camera-to-world at an image stamp), ``corrected`` (a SLAM system's
+corrected trajectory on a topic, as the frames' poses), ``pairing`` (colour with depth by stamp) and
+``source`` (``RosBag``, the ``FrameSource``).
 
 Conventions: ROS optical frames (``*_optical_frame``, REP 103) have OpenCV's axes, x right, y down,
 z forward, which are ours, so a pose of the image's frame is a ``c2w`` as it is. CameraInfo K has

@@ -17,5 +17,6 @@ class BagOptions:
     fixed_frame: str | None = None
     camera_frame: str | None = None
     body_frame: str | None = None
+    corrected_topic: str | None = None  # a SLAM system's corrected trajectory (``corrected``), never the pose source
     pair_tolerance: float = 0.02  # seconds between a colour image and its depth image
     pose_tolerance: float = 0.05  # seconds an image may lie beyond the first or last pose sample

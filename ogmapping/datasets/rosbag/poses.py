@@ -43,18 +43,36 @@ def read_tf(bag: BagFile) -> TransformTree:
     return tree
 
 
+@dataclass(frozen=True)
+class StampedPose:
+    """One pose message: the pose of ``child`` (Odometry's child frame, else '') in ``frame`` at ``stamp_ns``."""
+
+    frame: str
+    child: str
+    stamp_ns: int
+    translation: tuple[float, float, float]
+    quaternion: tuple[float, float, float, float]
+
+
+def stamped_pose(message: object, msgtype: str) -> StampedPose:
+    """A decoded PoseStamped, PoseWithCovarianceStamped or Odometry (``POSE_TYPES``)."""
+    pose = message.pose if msgtype == POSE_TYPES[0] else message.pose.pose  # type: ignore[attr-defined]
+    child = normalise_frame(message.child_frame_id) if msgtype == POSE_TYPES[2] else ""  # type: ignore[attr-defined]
+    return StampedPose(normalise_frame(message.header.frame_id), child, stamp_ns(message.header.stamp),  # type: ignore[attr-defined]
+                       _vector(pose.position), _quaternion(pose.orientation))
+
+
 def read_pose_topic(bag: BagFile, topic: str) -> tuple[Track, str | None]:
     """The topic's poses as a track (parent = the header frame), and Odometry's child frame if any."""
     track: Track | None = None
     child: str | None = None
     for ref, msgtype, raw in bag.scan([topic]):
-        message = bag.deserialize(raw, msgtype, ref.topic)
-        pose = message.pose if msgtype == POSE_TYPES[0] else message.pose.pose  # type: ignore[attr-defined]
+        sample = stamped_pose(bag.deserialize(raw, msgtype, ref.topic), msgtype)
         if msgtype == POSE_TYPES[2]:
-            child = normalise_frame(message.child_frame_id) or None  # type: ignore[attr-defined]
+            child = sample.child or None
         if track is None:
-            track = Track(normalise_frame(message.header.frame_id), child or "")  # type: ignore[attr-defined]
-        track.add(stamp_ns(message.header.stamp), _vector(pose.position), _quaternion(pose.orientation))  # type: ignore[attr-defined]
+            track = Track(sample.frame, child or "")
+        track.add(sample.stamp_ns, sample.translation, sample.quaternion)
     if track is None:
         raise topic_error(bag, f"pose topic {topic} has no messages")
     return track, child
@@ -72,15 +90,26 @@ class PoseSource:
     track: Track | None = None  # pose topic: the body's poses
     body_frame: str | None = None
 
-    def at(self, stamp: int) -> np.ndarray | None:
+    @property
+    def world(self) -> str:
+        """The frame the poses are in: the fixed frame, or the pose topic's header frame ('' if it names none)."""
         if self.track is None:
             assert self.fixed_frame is not None
-            return self.tree.lookup(self.fixed_frame, self.camera_frame, stamp, self.tolerance_ns)
+            return self.fixed_frame
+        return self.track.parent
+
+    def at(self, stamp: int) -> np.ndarray | None:
+        if self.track is None:
+            return self.tree.lookup(self.world, self.camera_frame, stamp, self.tolerance_ns)
         body = self.track.at(stamp, self.tolerance_ns)
-        if body is None or self.body_frame in (None, self.camera_frame):
-            return body
-        mount = self.tree.lookup(self.body_frame, self.camera_frame, stamp, self.tolerance_ns)
-        return None if mount is None else body @ mount
+        return None if body is None else self.mounted(body, self.body_frame or self.camera_frame, stamp)
+
+    def mounted(self, body_pose: np.ndarray, body: str, stamp: int) -> np.ndarray | None:
+        """The camera's pose from ``body``'s (both in the world) through TF's body -> camera mounting at the stamp."""
+        if body == self.camera_frame:
+            return body_pose
+        mount = self.tree.lookup(body, self.camera_frame, stamp, self.tolerance_ns)
+        return None if mount is None else body_pose @ mount
 
 
 def _tf_source(bag: BagFile, tree: TransformTree, camera: str, fixed: str, tolerance_ns: int) -> PoseSource:
@@ -107,9 +136,12 @@ def _topic_source(bag: BagFile, tree: TransformTree, camera: str, topic: str, op
 def choose_pose_source(bag: BagFile, options: BagOptions, camera: str, tree: TransformTree) -> PoseSource:
     """The flagged pose source, else the only one the bag has."""
     tolerance_ns = round(options.pose_tolerance * 1e9)
-    pose_topics = of_types(bag, POSE_TYPES)
+    pose_topics = [topic for topic in of_types(bag, POSE_TYPES) if topic != options.corrected_topic]
     if options.pose_topic is not None and options.fixed_frame is not None:
         raise ValueError("--pose-topic and --fixed-frame are two pose sources; give one")
+    if options.pose_topic is not None and options.pose_topic == options.corrected_topic:
+        raise ValueError(f"--pose-topic and --corrected-topic both name {options.pose_topic}: the corrected "
+                         "poses would be the poses the frames already have")
     if options.pose_topic is not None:
         if options.pose_topic not in pose_topics:
             raise topic_error(bag, f"--pose-topic {options.pose_topic} is not a PoseStamped, "

@@ -1,12 +1,12 @@
 """``RosBag``: a recorded ROS 1 or ROS 2 bag as a random-access ``FrameSource``.
 
-Opening a bag chooses its topics (``topics``), reads its calibration, TF and pose topic, reads
-every image's header to pair colour with depth (``pairing``) and gives each pair the camera's pose
-at the colour stamp (``poses``); pairs without a pose are dropped. Frames are decoded on demand:
-the images of frame N are found again by their place in the bag (``bagfile``). A frame's colour
-camera's pose is that of the colour images' optical frame (``--camera-frame`` overrides it); depth
-from another optical frame than the colour images' gets ``depth_to_color`` from TF and is registered
-onto colour later (``preprocess.register_depth``).
+Opening a bag chooses its topics (``topics``), reads its calibration, TF and pose topic (and a SLAM
+system's corrected trajectory, ``corrected``), reads every image's header to pair colour with depth
+(``pairing``) and gives each pair the camera's pose at the colour stamp (``poses``); pairs without a
+pose are dropped. Frames are decoded on demand: the images of frame N are found again by their place
+in the bag (``bagfile``). A frame's colour camera's pose is that of the colour images' optical frame
+(``--camera-frame`` overrides it); depth from another optical frame than the colour images' gets
+``depth_to_color`` from TF and is registered onto colour later (``preprocess.register_depth``).
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from ogmapping.datasets.base import FrameSource
 from ogmapping.datasets.rosbag import images
 from ogmapping.datasets.rosbag.bagfile import BagFile
 from ogmapping.datasets.rosbag.calibration import Calibration, check_size, undistort
+from ogmapping.datasets.rosbag.corrected import Corrected, read_corrected
 from ogmapping.datasets.rosbag.headers import normalise_frame, read_header
 from ogmapping.datasets.rosbag.options import BagOptions
 from ogmapping.datasets.rosbag.pairing import StampedImage, pair_images
@@ -67,6 +68,11 @@ class RosBag(FrameSource):
         self.tree = read_tf(self.bag)
         self.pose_source = choose_pose_source(self.bag, self.options, camera, self.tree)
         self._check_frames()
+        self._corrected: Corrected | None = None
+        if self.options.corrected_topic is not None:
+            self._corrected = read_corrected(self.bag, self.options.corrected_topic, self.pose_source,
+                                             self.options.body_frame)
+            self.corrected = self._corrected.trajectory
 
         pairing = pair_images(colors, depths, self.options.pair_tolerance)
         self._entries = []
@@ -132,6 +138,7 @@ class RosBag(FrameSource):
             f"depth {self.topics.depth} ({self.bag.topics[self.topics.depth].msgtype}), {depths} images; "
             f"calibration {depth_camera}",
             f"poses: {self.pose_source.description}",
+            *([f"corrected poses: {self._corrected.description}"] if self._corrected else []),
             f"{len(self)} frames: {unpaired} colour images without depth within {self.options.pair_tolerance} s, "
             f"{pairs - len(self)} pairs without a pose within {self.options.pose_tolerance} s",
             *self._notes,
