@@ -2,8 +2,10 @@
 
 Maps the streamed frames once per setting (frames decoded before the clock starts), then scores
 every held-out frame (index % 10 == 5) and prints the mean per stretch of ``--stretch`` frames,
-oldest first. Comparing a run over a short prefix with a run over the whole sequence shows what
-the later frames cost the early ones.
+oldest first: the raw PSNR, and after it the PSNR once each frame's own affine colour map (gain and
+offset) is fitted to its render (``psnr_affine``), which takes the frame's exposure out of the score.
+Comparing a run over a short prefix with a run over the whole sequence shows what the later frames
+cost the early ones.
 
     .venv/bin/python bench/forgetting.py --frames 0:300 --scale 0.25 "" "keyframes.global_count=2"
 """
@@ -33,16 +35,20 @@ def main() -> None:
         run = map_setting(args.preset, setting, sequence.streamed)
         mapper = run.mapper
         truths = [ground_truth(frame, run.config) for frame in sequence.heldout]
-        psnr = np.array([score(mapper.render(t.c2w, t.color_intrinsics), t)["psnr"] for t in truths])
+        scores = [score(mapper.render(t.c2w, t.color_intrinsics), t) for t in truths]
         first = selection.heldout[0]
-        stretches = {}
-        for index, value in zip(selection.heldout, psnr, strict=True):
-            stretches.setdefault((index - first) // args.stretch, []).append(value)
-        summary = " ".join(f"{np.mean(values):.2f}" for _, values in sorted(stretches.items()))
+        figures = []
+        for key in ("psnr", "psnr_affine"):
+            values = np.array([frame[key] for frame in scores])
+            stretches = {}
+            for index, value in zip(selection.heldout, values, strict=True):
+                stretches.setdefault((index - first) // args.stretch, []).append(value)
+            summary = " ".join(f"{np.mean(each):.2f}" for _, each in sorted(stretches.items()))
+            figures.append(f"{values.mean():.2f} dB, per {args.stretch} frames: {summary}")
         print(f"{args.preset} [{setting}]: {run.fps(len(sequence.streamed)):.2f} FPS, "
               f"{mapper.model.iterations} iterations, "
-              f"{len(mapper.model.anchors)} anchors; held-out PSNR {psnr.mean():.2f} dB; "
-              f"per {args.stretch} frames: {summary}", flush=True)
+              f"{len(mapper.model.anchors)} anchors; held-out PSNR raw {figures[0]}; "
+              f"PSNR affine-fit {figures[1]}", flush=True)
 
 
 if __name__ == "__main__":

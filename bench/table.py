@@ -8,8 +8,8 @@ from pathlib import Path
 from typing import Any
 
 HEADER = ("run", "preset", "resolution", "streamed/held-out frames", "processing FPS", "render FPS",
-          "PSNR streamed / held-out", "SSIM streamed / held-out", "MS-SSIM streamed / held-out",
-          "LPIPS streamed / held-out",
+          "PSNR streamed / held-out", "PSNR affine-fit streamed / held-out", "SSIM streamed / held-out",
+          "MS-SSIM streamed / held-out", "LPIPS streamed / held-out",
           "depth L1 cm streamed / held-out", "keyframes / iterations", "anchors (per level)", "snapshot KB",
           "peak RSS MB")
 
@@ -20,7 +20,7 @@ def load(path: str) -> dict[str, Any]:
 
 
 def pair(result: dict[str, Any], key: str, digits: int) -> str:
-    values = [result[split].get(key) for split in ("streamed", "heldout")]
+    values = [result[split].get(key) for split in ("streamed", "heldout")]  # None: a file older than the key
     return " / ".join("n/a" if value is None else f"{value:.{digits}f}" for value in values)
 
 
@@ -29,7 +29,8 @@ def row(name: str, r: dict[str, Any]) -> list[str]:
         name, r["preset"], "x".join(map(str, r["resolution"])),
         f"{r['streamed']['frames']} / {r['heldout']['frames']}",
         f"{r['processing_fps']:.2f}", f"{r['render_fps']:.1f}",
-        pair(r, "psnr", 2), pair(r, "ssim", 3), pair(r, "ms_ssim", 3), pair(r, "lpips", 3), pair(r, "depth_l1_cm", 2),
+        pair(r, "psnr", 2), pair(r, "psnr_affine", 2), pair(r, "ssim", 3), pair(r, "ms_ssim", 3), pair(r, "lpips", 3),
+        pair(r, "depth_l1_cm", 2),
         f"{r['keyframes']} / {r.get('iterations', 'n/a')}",
         f"{r['anchors']} ({', '.join(map(str, r['anchors_per_level']))})",
         f"{r['snapshot_bytes'] / 1024:.0f}", f"{r['peak_rss_bytes'] / 2**20:.0f}",

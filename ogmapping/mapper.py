@@ -36,6 +36,7 @@ from ogmapping.mapping.model import MapModel
 from ogmapping.mapping.steps import MappingSteps
 from ogmapping.mapping.tracker import Tracker
 from ogmapping.model.gaussians import GaussianSet
+from ogmapping.optim.exposure import Exposure, stepped
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
 from ogmapping.optim.poses import PoseCorrection, PoseReport
 from ogmapping.persist import map_io, snapshot
@@ -170,6 +171,8 @@ class Mapper:
         if correction is not None:
             self.tracker.track(frame, correction, budget, start)
             placed = correction.refined(c2w).detach()
+        # With ``keyframes.exposure`` it carries an exposure too (but the first keyframe), learned in its steps.
+        exposure = Exposure(self.device) if self.config.keyframes.exposure and self.keyframes else None
         # The host reads the device once before the steps: how many coarse cells the frame adds, with its
         # keyframe test (the octree stays padded in between, so all of it holds the lock).
         with self.lock:
@@ -195,13 +198,17 @@ class Mapper:
             if is_keyframe:
                 footprint = Footprint(model.octree.keys(0), seen[: model.octree.count(0)])
                 self.keyframes.insert(Keyframe.capture(frame.index, rgb, depth, frame.color_intrinsics, c2w, footprint,
-                                                       pinned=self.device.type == "cuda", correction=correction))
+                                                       pinned=self.device.type == "cuda", correction=correction,
+                                                       exposure=exposure))
                 with self.lock:  # the anchors this frame allocated belong to it, not to the keyframe before
                     model.anchors.keyframe[first_new:] = len(self.keyframes) - 1
         # The frame itself, at full precision, is the view every step trains on.
-        view = (View.of(rgb, depth, frame.color_intrinsics, c2w, compiled=self.profile.compiled, correction=correction)
+        view = (View.of(rgb, depth, frame.color_intrinsics, c2w, compiled=self.profile.compiled, correction=correction,
+                        exposure=exposure)
                 if iterations else None)
-        loss, grown, done, stopped = self.steps.run(iterations, view, is_keyframe, budget, start)
+        # A keyframe's exposure stays in the optimiser; a streamed frame's leaves it with its steps.
+        with stepped(model.optimizer, exposure, is_keyframe, self.lock):
+            loss, grown, done, stopped = self.steps.run(iterations, view, is_keyframe, budget, start)
         with self.lock:
             pose = correction.report(c2w) if correction is not None else PoseReport.unrefined(frame.c2w)
         model.count_frame(frame.c2w)

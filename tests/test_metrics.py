@@ -40,6 +40,22 @@ def test_psnr_matches_hand_computation():
     assert metrics.psnr(gt, gt) == math.inf
 
 
+def test_psnr_affine_fits_the_frames_own_gain_and_offset():
+    rng = np.random.default_rng(3)
+    render = rng.random((12, 9, 3)) * 0.8 + 0.1
+    assert metrics.psnr_affine(render, render) == metrics.psnr(render, render) == math.inf
+    darker = 0.6 * render + 0.05  # a known affine: recovered exactly
+    scale, shift = metrics.affine_fit(render, darker)
+    assert scale == pytest.approx(0.6, abs=1e-12) and shift == pytest.approx(0.05, abs=1e-12)
+    assert metrics.psnr_affine(render, darker) > 200 > metrics.psnr(render, darker)
+    noisy = np.clip(darker + rng.normal(0, 0.02, render.shape), 0, 1)  # and with noise, never below the raw PSNR
+    assert metrics.psnr(render, noisy) < metrics.psnr_affine(render, noisy) < metrics.psnr(darker, noisy) + 0.5
+    flat = np.full_like(render, 0.3)  # a constant render: the offset alone, to the truth's mean
+    assert metrics.affine_fit(flat, render) == pytest.approx((1.0, float(render.mean()) - 0.3))
+    clipped = np.clip(1.5 * render, 0, 1)  # the fit clips to [0, 1] as images are
+    assert metrics.psnr_affine(render, clipped) >= metrics.psnr(render, clipped)
+
+
 def test_ssim_identical_is_one_and_matches_direct_computation():
     rng = np.random.default_rng(0)
     a = rng.random((20, 23, 3))
@@ -115,6 +131,7 @@ def test_summarise_skips_missing_values():
         {"psnr": 30.0, "ssim": 0.7, "ms_ssim": 0.9, "depth_l1_cm": math.nan, "lpips": None},
     ]
     summary = metrics.summarise(frames)
-    assert summary == {"psnr": 25.0, "ssim": pytest.approx(0.6), "ms_ssim": 0.9, "depth_l1_cm": 2.0, "lpips": None,
-                       "frames": 2, "psnr_spread": {"min": 20.0, "max": 30.0, "std": 5.0}}
+    assert summary == {"psnr": 25.0, "psnr_affine": None, "ssim": pytest.approx(0.6), "ms_ssim": 0.9,
+                       "depth_l1_cm": 2.0, "lpips": None, "frames": 2,
+                       "psnr_spread": {"min": 20.0, "max": 30.0, "std": 5.0}}
     assert metrics.summarise([{"psnr": None}])["psnr_spread"] is None

@@ -107,9 +107,29 @@ def test_the_window_loss_is_each_views_mapping_loss() -> None:
                   torch.autograd.grad(sum(expected), inputs))
 
 
-def test_a_mapping_step_with_the_profile_flag_takes_the_kernels_terms(monkeypatch) -> None:
+def test_the_window_loss_corrects_each_view_by_its_exposure() -> None:
+    """Stacked (a, b), one row per view, as each view's ``mapping_loss`` with its own: values and gradients."""
+    _, device = triton_loss()
+    views = [_views(12, 10, seed) for seed in (3, 4)]
+    scales = [torch.rand(5, 3), torch.rand(4, 3)]
+    config = LossConfig()
+    exposures = torch.tensor([[0.0, 0.0], [-0.3, 0.05]], requires_grad=True)
+    expected = [mapping_loss(*view, view_scales, config, compiled=False, exposure=view_exposure)[0]
+                for view, view_scales, view_exposure in zip(views, scales, exposures.unbind(), strict=True)]
+    on_device = [_on(device, *view) for view in views]
+    stacked = _on(device, exposures)[0]
+    losses = window_mapping_loss(
+        *([view[i] for view in on_device] for i in range(4)), [s.to(device) for s in scales], config,
+        [reference_statistics(view[2], compiled=False) for view in on_device], [None, None], stacked)
+    _assert_close(losses, torch.stack(expected))
+    _assert_close(torch.autograd.grad(losses.sum(), [stacked]), torch.autograd.grad(sum(expected), [exposures]))
+
+
+@pytest.mark.parametrize("exposure", [False, True])
+def test_a_mapping_step_with_the_profile_flag_takes_the_kernels_terms(monkeypatch, exposure: bool) -> None:
     """The step asks for the Triton terms once per image size of its window when the profile says so (the
-    kernels stood in for by the CPU's fused terms here: the step's wiring is what is checked)."""
+    kernels stood in for by the CPU's fused terms here: the step's wiring is what is checked), with its
+    views' exposures stacked where ``keyframes.exposure`` is on."""
     module, _ = triton_loss()
     calls = []
 
@@ -123,7 +143,8 @@ def test_a_mapping_step_with_the_profile_flag_takes_the_kernels_terms(monkeypatc
     monkeypatch.setattr(ogmapping.mapper, "execution_profile",
                         lambda *args: dataclasses.replace(chosen(*args), triton_loss=True))
     source = SyntheticSource(n_frames=1, width=32, height=24)
-    mapper = ogmapping.mapper.Mapper(resolve("sparse", overrides={"keyframes.first_iterations": 2}), "cpu")
+    mapper = ogmapping.mapper.Mapper(resolve("sparse", overrides={"keyframes.first_iterations": 2,
+                                                                  "keyframes.exposure": exposure}), "cpu")
     mapper.process(source[0])
     assert calls == [(1, 24, 32, 3)] * 2
 

@@ -171,11 +171,13 @@ def report(results: dict, out: Path, snapshot: Path, recording: Path) -> None:
     """Speed, quality and where everything went."""
     print(f"speed: processing {results['processing_fps']:.2f} frames/s on {results['device']}, "
           f"render {fmt(results['render_fps'], 1)} frames/s through the server")
-    print("quality          PSNR dB   SSIM  MS-SSIM  LPIPS   depth L1 cm")
+    print("quality          PSNR dB  PSNR affine-fit dB   SSIM  MS-SSIM  LPIPS   depth L1 cm")
     for split, name in (("streamed", "streamed"), ("heldout", "held-out")):
         scores = results[split]
-        print(f"  {name:9s} ({scores['frames']:2d})  {fmt(scores['psnr'], 2):>6s}  {fmt(scores['ssim'], 3):>6s}  "
-              f"{fmt(scores['ms_ssim'], 3):>7s}  {fmt(scores['lpips'], 3):>6s}  {fmt(scores['depth_l1_cm'], 2):>8s}")
+        print(f"  {name:9s} ({scores['frames']:2d})  {fmt(scores['psnr'], 2):>6s}  "
+              f"{fmt(scores['psnr_affine'], 2):>18s}  {fmt(scores['ssim'], 3):>6s}  {fmt(scores['ms_ssim'], 3):>7s}  "
+              f"{fmt(scores['lpips'], 3):>6s}  {fmt(scores['depth_l1_cm'], 2):>8s}")
+    print("  (PSNR: the render as it is; PSNR affine-fit: after each frame's own gain and offset, fitted to it)")
     print(f"map: {results['anchors']} anchors, {results['map_gaussians']} Gaussians (what `ogmap export` writes "
           f"and the web view draws; {results['gaussians']} of them drawn in the last keyframe's view), "
           f"snapshot {snapshot} ({results['snapshot_bytes']} bytes)")

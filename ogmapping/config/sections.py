@@ -106,6 +106,12 @@ class KeyframeConfig:
     # The four step counts above (iterations, first_iterations, frame_iterations, frame_renders) are
     # multiplied by this; ``resolution.steps`` sets it from the first frame's size ("Steps by resolution").
     step_multiple: int = ranged(1, 1)
+    # Per-keyframe exposure (not in the paper; MonoGS): each keyframe but the first, and the streamed view
+    # in its steps, learns an affine colour correction of its render, exp(a) * colour + b, with the map
+    # (``ogmapping.optim.exposure``), so views whose auto-exposure differs do not rewrite each other's
+    # surfaces. The first keyframe's is the identity: the map keeps its colour scale, and every render a
+    # client sees is uncorrected. Off by default until quality runs decide.
+    exposure: bool = False
 
 
 @dataclass
@@ -145,6 +151,7 @@ class OptimConfig:
     color_mlp_lr: float = _learning_rate(0.032)
     cov_mlp_lr: float = _learning_rate(0.016)
     colour_lr: float = _learning_rate(0.08)  # the anchors' own colour logits (model.anchor_colour)
+    exposure_lr: float = _learning_rate(0.01)  # the keyframes' exposure scalars (keyframes.exposure; MonoGS's)
     # Queries see the moving average of the map over its last steps, with this decay per step
     # (ogmapping.optim.averaging); 0: the live map, as the paper. Below 1: at 1 the average never moves.
     average_decay: float = ranged(0.0, 0, 1, open_high=True)

@@ -24,6 +24,7 @@ from ogmapping.mapping.graphs import StepGraphs
 from ogmapping.model.decoders import Decoders
 from ogmapping.model.encoding import HashGridEncoding, feature_dim, initial_anchor_features
 from ogmapping.model.gaussians import GaussianSet, anchors_in_view, decoded_logits, generate
+from ogmapping.optim import exposure
 from ogmapping.optim.averaging import MapAverage
 from ogmapping.optim.lazy_adam import LazyAdam
 from ogmapping.render import Camera, rasterize
@@ -90,6 +91,8 @@ class MapModel:
             groups.append({"params": [self.anchors.parameter("features")], "lr": lr.features_lr, "name": "features"})
         if self.anchors.with_colours:
             groups.append({"params": [self.anchors.parameter("colours")], "lr": lr.colour_lr, "name": "colours"})
+        if self.config.keyframes.exposure:  # the views' exposures join and leave it (``optim.exposure``)
+            groups.append({"params": [], "lr": lr.exposure_lr, "name": exposure.GROUP})
         # Fused: its step counts stay tensors (torch's loop reads each on the host). Only with static shapes,
         # whose maps are not the CPU's: it rounds otherwise than the loop the CPU's maps were tuned with.
         return torch.optim.Adam(groups, eps=1e-15, fused=self.profile.static_shapes or None)

@@ -2,8 +2,10 @@
 ``refine.interval`` steps of the session the anchors grow and are pruned.
 
 A step decodes every view's anchors in view, rasterizes the window in one batch, weighs each view's
-loss (``loss.view``), backpropagates, gathers the screen-space gradients refinement grows from, and
-steps Adam, the hash grid's lazy Adam, the map's moving average and the pose corrections that move.
+loss (``loss.view``; with ``keyframes.exposure`` on its render's colour corrected by the view's exposure),
+backpropagates, gathers the screen-space gradients refinement grows from, and steps Adam (the exposures
+of the views drawn with it), the hash grid's lazy Adam, the map's moving average and the pose corrections
+that move.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from ogmapping.mapping.model import MapModel
 from ogmapping.model.gaussians import GaussianSet, generate_window
 from ogmapping.model.static_gaussians import DrawnWindow, frustum_camera
 from ogmapping.optim import refine
+from ogmapping.optim.exposure import values_of
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
 from ogmapping.optim.losses import same_size_groups
 from ogmapping.optim.poses import PoseCorrection
@@ -126,7 +129,8 @@ class MappingSteps:
         if not model.profile.triton_loss:
             return [model.graphs.view_loss(output.color, output.depth, drawn.rgb, drawn.depth, gaussians.scales,
                                            config.loss, drawn.ssim_reference, compiled=model.profile.compiled,
-                                           drawn=gaussians.drawn if static else None)[0]
+                                           drawn=gaussians.drawn if static else None,
+                                           exposure=self.exposure(drawn))[0]
                     for gaussians, output, drawn in renders]
         losses: dict[int, torch.Tensor] = {}
         for group in same_size_groups([output.color for _, output, _ in renders]):
@@ -136,9 +140,16 @@ class MappingSteps:
                 [drawn.rgb for _, _, drawn in chosen], [drawn.depth for _, _, drawn in chosen],
                 [gaussians.scales for gaussians, _, _ in chosen], config.loss,
                 [drawn.ssim_reference for _, _, drawn in chosen],
-                [gaussians.drawn if static else None for gaussians, _, _ in chosen])
+                [gaussians.drawn if static else None for gaussians, _, _ in chosen],
+                torch.stack([self.exposure(drawn) for _, _, drawn in chosen]) if config.keyframes.exposure else None)
             losses.update(zip(group, batch.unbind(), strict=True))
         return [losses[position] for position in range(len(renders))]
+
+    def exposure(self, view: View) -> torch.Tensor | None:
+        """The (a, b) ``view``'s render is corrected by in its loss: none without ``keyframes.exposure``,
+        else its own or, for the first keyframe, the identity (one tensor per view either way, so the
+        loss's graphs keep their inputs' shapes)."""
+        return values_of(view.exposure, self.model.device) if self.model.config.keyframes.exposure else None
 
     def decode_static(self, views: list[tuple[torch.Tensor, View]]) -> DrawnWindow:
         """The Gaussians of every buffer row seen from each (pose, view), stacked, the ones not drawn inert: from

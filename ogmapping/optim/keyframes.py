@@ -30,6 +30,7 @@ import torch
 from ogmapping.config import KeyframeConfig, Window
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.preprocess import resize_depth
+from ogmapping.optim.exposure import Exposure
 from ogmapping.optim.poses import PoseCorrection
 from ogmapping.optim.ssim import ReferenceStatistics, reference_statistics
 from ogmapping.runtime.host_read import read
@@ -46,12 +47,13 @@ class View:
     c2w: torch.Tensor  # (4, 4), the client's pose
     ssim_reference: ReferenceStatistics
     correction: PoseCorrection | None = None  # with ``poses.refine``: the pose's learnable correction
+    exposure: Exposure | None = None  # with ``keyframes.exposure``: the render's learnable colour correction
 
     @classmethod
     def of(cls, rgb: torch.Tensor, depth: torch.Tensor, intrinsics: Intrinsics, c2w: torch.Tensor, *,
-           compiled: bool, correction: PoseCorrection | None = None) -> View:
+           compiled: bool, correction: PoseCorrection | None = None, exposure: Exposure | None = None) -> View:
         """The view of these images; ``compiled`` as ``ssim.reference_statistics``."""
-        return cls(rgb, depth, intrinsics, c2w, reference_statistics(rgb, compiled=compiled), correction)
+        return cls(rgb, depth, intrinsics, c2w, reference_statistics(rgb, compiled=compiled), correction, exposure)
 
     def pose(self) -> torch.Tensor:
         """The camera-to-world to render at: the client's, corrected (differentiably) where refined."""
@@ -80,12 +82,13 @@ class Keyframe:
     pinned: bool = False
     correction: PoseCorrection | None = None  # with ``poses.refine``, every keyframe's but the first
     ready: torch.cuda.Event | None = None  # recorded after the copy off the device, until the host has waited on it
+    exposure: Exposure | None = None  # with ``keyframes.exposure``, every keyframe's but the first
     _downscaled: dict[float, Keyframe] = field(default_factory=dict, repr=False)
 
     @classmethod
     def capture(cls, index: int, rgb: torch.Tensor, depth: torch.Tensor, intrinsics: Intrinsics,
                 c2w: torch.Tensor, footprint: Footprint, *, pinned: bool = False,
-                correction: PoseCorrection | None = None) -> Keyframe:
+                correction: PoseCorrection | None = None, exposure: Exposure | None = None) -> Keyframe:
         """Store float ``rgb`` in [0, 1] (rounded to 1/255: exact for 8-bit images at their own size)
         and ``depth`` in metres (float16: steps of 2 mm from 2 to 4 m, 4 mm from 4 to 8 m) from any device;
         from CUDA into pinned memory without waiting (``ready``)."""
@@ -93,13 +96,13 @@ class Keyframe:
         depth = depth.detach().to(torch.float16)
         if colour.device.type != "cuda":
             return cls(index, _host(colour, pinned), _host(depth, pinned), intrinsics, c2w, footprint, pinned,
-                       correction)
+                       correction, exposure=exposure)
         host_rgb, host_depth = (torch.empty(t.shape, dtype=t.dtype, pin_memory=True) for t in (colour, depth))
         host_rgb.copy_(colour, non_blocking=True)
         host_depth.copy_(depth, non_blocking=True)
         ready = torch.cuda.Event()
         ready.record()
-        return cls(index, host_rgb, host_depth, intrinsics, c2w, footprint, True, correction, ready)
+        return cls(index, host_rgb, host_depth, intrinsics, c2w, footprint, True, correction, ready, exposure)
 
     @property
     def rgb(self) -> torch.Tensor:
@@ -129,9 +132,10 @@ class Keyframe:
         depth = self.host_depth.to(device, non_blocking=self.pinned)
         if images is not None:
             rgb, depth, statistics = images(rgb, depth)
-            return View(rgb, depth, self.intrinsics, self.c2w, statistics, self.correction)
+            return View(rgb, depth, self.intrinsics, self.c2w, statistics, self.correction, self.exposure)
         rgb, depth = rgb.to(torch.float32) / 255.0, depth.to(torch.float32)
-        return View.of(rgb, depth, self.intrinsics, self.c2w, compiled=compiled, correction=self.correction)
+        return View.of(rgb, depth, self.intrinsics, self.c2w, compiled=compiled, correction=self.correction,
+                       exposure=self.exposure)
 
     def downscaled(self, scale: float) -> Keyframe:
         """This keyframe with its images resized by ``scale`` (colour by area, depth nearest), cached."""
@@ -144,7 +148,7 @@ class Keyframe:
             depth = torch.from_numpy(resize_depth(self.depth.numpy(), *size))
             self._downscaled[scale] = Keyframe.capture(self.index, torch.from_numpy(rgb), depth, intrinsics,
                                                        self.c2w, self.footprint, pinned=self.pinned,
-                                                       correction=self.correction)
+                                                       correction=self.correction, exposure=self.exposure)
         return self._downscaled[scale]
 
 

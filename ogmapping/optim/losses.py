@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import torch
 
 from ogmapping.config import LossConfig
+from ogmapping.optim.exposure import exposed
 from ogmapping.optim.fused_loss import image_terms
 from ogmapping.optim.ssim import ReferenceStatistics, ssim_map
 from ogmapping.render.views import grouped
@@ -52,6 +53,7 @@ def mapping_loss(
     *,
     compiled: bool,
     drawn: torch.Tensor | None = None,
+    exposure: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Weighted sum of the four terms for one view.
 
@@ -60,7 +62,11 @@ def mapping_loss(
     cached SSIM side of ``gt_color`` when the caller has it. ``compiled`` takes the image terms from
     ``fused_loss`` (CPU tensors) instead of autograd; both give the same values and gradients.
     ``drawn`` (N,) marks the Gaussians drawn where ``scales`` holds inert ones too (static shapes).
+    ``exposure`` (2,), the view's (a, b) (``ogmapping.optim.exposure``), corrects the render's colour
+    before the colour and SSIM terms.
     """
+    if exposure is not None:
+        render_color = exposed(render_color, exposure)
     if compiled:
         color, ssim, depth = image_terms(render_color, render_depth, gt_color, gt_depth, gt_statistics)
     else:
@@ -91,15 +97,19 @@ def window_mapping_loss(
     weights: LossConfig,
     gt_statistics: list[ReferenceStatistics],
     drawn: list[torch.Tensor | None],
+    exposures: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """``mapping_loss`` of each of a window's views of one image size, (B,): the image terms from the
-    Triton kernels, all views in one batch (float32 CUDA tensors, or CPU ones when interpreted)."""
+    Triton kernels, all views in one batch (float32 CUDA tensors, or CPU ones when interpreted);
+    ``exposures`` (B, 2), each view's (a, b), as ``mapping_loss``'s ``exposure``."""
     from ogmapping.optim.triton_loss import window_terms
 
     cached = ReferenceStatistics(*(torch.stack([getattr(statistics, name) for statistics in gt_statistics])
                                    for name in ("image", "mean", "square_mean")))
-    terms = window_terms(torch.stack(render_colors), torch.stack(render_depths), torch.stack(gt_colors),
-                         torch.stack(gt_depths), cached)
+    colors = torch.stack(render_colors)
+    if exposures is not None:
+        colors = exposed(colors, exposures)
+    terms = window_terms(colors, torch.stack(render_depths), torch.stack(gt_colors), torch.stack(gt_depths), cached)
     volume = torch.stack([mean_volume(view_scales, view_drawn) for view_scales, view_drawn in zip(
         scales, drawn, strict=True)])
     image = weights.color * terms[:, 0] + weights.ssim * terms[:, 1] + weights.depth * terms[:, 2]

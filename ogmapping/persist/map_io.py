@@ -22,7 +22,7 @@ from ogmapping.queries import keyframe_poses
 def optimisation(model: MapModel, keyframes: KeyframeSet) -> training.Optimisation:
     """The parts of ``model`` and ``keyframes`` the training state lives in."""
     return training.Optimisation(model.anchors, model.optimizer, model.hash_optimizer, model.generator, keyframes,
-                                 model.device, model.last_gaussians, model.average)
+                                 model.device, model.last_gaussians, model.average, model.config.keyframes.exposure)
 
 
 def capture(model: MapModel, keyframes: KeyframeSet, training_state: bool) -> MapState:

@@ -1,6 +1,6 @@
-"""What a mapper's optimisation carries besides the map, as plain tensors: the keyframes, Adam's
-moments, the map's moving average, the refinement statistics, the anchors' exact centres and the
-random states.
+"""What a mapper's optimisation carries besides the map, as plain tensors: the keyframes (with their
+pose corrections and exposures), Adam's moments, the map's moving average, the refinement statistics,
+the anchors' exact centres and the random states.
 
 A snapshot leaves these out (a map rebuilt from it renders the same, and maps on with fresh
 keyframes and moments); a checkpoint keeps them (``Mapper.state(training=True)``), so a session
@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import torch
 
 from ogmapping.frames.camera import Intrinsics
+from ogmapping.optim import exposure
 from ogmapping.optim.averaging import MapAverage
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet
 from ogmapping.optim.lazy_adam import LazyAdam
@@ -40,6 +41,7 @@ class Optimisation:
     device: torch.device
     last_gaussians: int
     average: MapAverage
+    exposure: bool  # keyframes.exposure: every keyframe but the first has an exposure in the optimiser
 
 
 def _scalar(value: float | int, dtype: torch.dtype) -> torch.Tensor:
@@ -96,6 +98,8 @@ def capture(mapper: Optimisation) -> dict[str, torch.Tensor]:
         })
         if keyframe.correction is not None:
             tensors[f"keyframes.{position}.correction"] = keyframe.correction.state()
+        if keyframe.exposure is not None:
+            tensors[f"keyframes.{position}.exposure"] = keyframe.exposure.state()
     return {PREFIX + name: value.detach().cpu().clone() for name, value in tensors.items()}
 
 
@@ -131,6 +135,7 @@ def restore(mapper: Optimisation, tensors: dict[str, torch.Tensor]) -> int | Non
     for name in STATISTICS:
         setattr(anchors, name, _shaped(section, f"anchors.{name}", getattr(anchors, name)))
     _restore_average(mapper, section)
+    _restore_keyframes(mapper, section)  # first: their exposures join the optimiser, whose moments follow
     optimizer = mapper.optimizer
     for group in optimizer.param_groups:
         for position, param in enumerate(group["params"]):
@@ -147,7 +152,6 @@ def restore(mapper: Optimisation, tensors: dict[str, torch.Tensor]) -> int | Non
         adam.exp_avg = _shaped(section, "hash_adam.exp_avg", adam.exp_avg)
         adam.exp_avg_sq = _shaped(section, "hash_adam.exp_avg_sq", adam.exp_avg_sq)
     mapper.generator.set_state(section["generator"])
-    _restore_keyframes(mapper, section)
     return int(section["last_gaussians"][0])
 
 
@@ -169,6 +173,16 @@ def _correction(row: torch.Tensor | None, c2w: torch.Tensor, device: torch.devic
     return None if row is None else PoseCorrection.from_state(row, device, c2w.dtype)
 
 
+def _exposure(mapper: Optimisation, position: int, row: torch.Tensor | None) -> exposure.Exposure | None:
+    """Keyframe ``position``'s exposure, joined to the optimiser: none for the first or with the switch off;
+    the identity where the state holds none."""
+    if not mapper.exposure or position == 0:
+        return None
+    restored = exposure.Exposure(mapper.device) if row is None else exposure.Exposure.from_state(row, mapper.device)
+    exposure.join(mapper.optimizer, restored)
+    return restored
+
+
 def _restore_keyframes(mapper: Optimisation, section: dict[str, torch.Tensor]) -> None:
     keyframes = mapper.keyframes
     pinned = mapper.device.type == "cuda"
@@ -183,6 +197,7 @@ def _restore_keyframes(mapper: Optimisation, section: dict[str, torch.Tensor]) -
             section[prefix + "c2w"].to(mapper.device), Footprint.of_codes(section[prefix + "codes"].to(mapper.device)),
             pinned,
             _correction(section.get(prefix + "correction"), section[prefix + "c2w"], mapper.device),
+            exposure=_exposure(mapper, position, section.get(prefix + "exposure")),
         ))
     keyframes.keyframes = restored
     for name in ("local", "global_", "fixed"):

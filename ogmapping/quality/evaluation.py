@@ -4,7 +4,9 @@ A ``FrameSet`` chooses frames as ``ogmap run`` does (``selection.select``), opti
 of a trajectory file in place of the data's, and ``evaluate_views`` renders each chosen view through a
 render function (the local mapper, or the server) at the pose a function picks (the frame's own by
 default, or that of a second, exact trajectory), scores it against the frame as the mapper saw it and
-writes the same previews, so both commands report comparable numbers. No torch at import: the metrics
+writes the same previews, so both commands report comparable numbers. Renders are scored as they are
+(``psnr``, raw) and after the frame's own fitted gain and offset (``psnr_affine``: its exposure taken out,
+since the map keeps one reference exposure and is never corrected for a view). No torch at import: the metrics
 (SSIM and LPIPS run on torch) are loaded when scoring starts, so the client's other commands can share
 the frame set and stay light.
 """
@@ -88,11 +90,14 @@ def ground_truth(frame: Frame, config: MapperConfig) -> Frame:
 
 
 def score(rendered: Rendering, truth: Frame, lpips: Lpips | None = None) -> dict:
-    """PSNR, SSIM, MS-SSIM, depth L1 and, with an available ``lpips``, LPIPS (None otherwise)."""
-    from ogmapping.quality.metrics import depth_l1_cm, ms_ssim, psnr, ssim
+    """PSNR, SSIM, MS-SSIM, depth L1 and, with an available ``lpips``, LPIPS (None otherwise); and
+    ``psnr_affine``, the PSNR once the frame's own two-parameter affine colour map is fitted to the render
+    (``metrics.psnr_affine``): ``psnr`` is the render as it is, raw."""
+    from ogmapping.quality.metrics import depth_l1_cm, ms_ssim, psnr, psnr_affine, ssim
 
     return {
         "psnr": psnr(rendered.color, truth.rgb),
+        "psnr_affine": psnr_affine(rendered.color, truth.rgb),
         "ssim": ssim(rendered.color, truth.rgb),
         "ms_ssim": ms_ssim(rendered.color, truth.rgb),
         "depth_l1_cm": depth_l1_cm(rendered.depth, truth.depth),

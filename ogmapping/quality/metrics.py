@@ -28,7 +28,7 @@ from safetensors.torch import load_file
 from ogmapping.optim.ssim import WINDOW_SIZE, ssim_map
 
 SSIM_BORDER = WINDOW_SIZE // 2
-METRIC_KEYS = ("psnr", "ssim", "ms_ssim", "depth_l1_cm", "lpips")
+METRIC_KEYS = ("psnr", "psnr_affine", "ssim", "ms_ssim", "depth_l1_cm", "lpips")
 # MS-SSIM halves the image four times and then still needs a whole window: a side of more than this.
 MS_SSIM_MIN_SIDE = (WINDOW_SIZE - 1) * 2**4
 # Where the LPIPS weights file is looked for: this variable, else DEFAULT_LPIPS_WEIGHTS.
@@ -52,6 +52,24 @@ def psnr(pred: ArrayLike, gt: ArrayLike) -> float:
     """Peak signal-to-noise ratio in dB for images in [0, 1]; inf for identical images."""
     mse = float(((_tensor(pred) - _tensor(gt)) ** 2).mean())
     return math.inf if mse == 0.0 else -10.0 * math.log10(mse)
+
+
+def affine_fit(pred: ArrayLike, gt: ArrayLike) -> tuple[float, float]:
+    """(s, t) minimising the squared error of ``s * pred + t`` against ``gt`` over every pixel and channel
+    (closed-form least squares, one pair per image); (1, mean gt - mean pred) for a constant ``pred``."""
+    x, y = _tensor(pred).reshape(-1), _tensor(gt).reshape(-1)
+    x_mean, y_mean = x.mean(), y.mean()
+    variance = float(((x - x_mean) ** 2).sum())
+    scale = float(((x - x_mean) * (y - y_mean)).sum()) / variance if variance > 0 else 1.0
+    return scale, float(y_mean) - scale * float(x_mean)
+
+
+def psnr_affine(pred: ArrayLike, gt: ArrayLike) -> float:
+    """PSNR of ``pred`` after the affine colour map of ``affine_fit`` to ``gt``, clipped to [0, 1]: the
+    render's error once the view's own exposure (one gain and offset for the image) is taken out. At
+    least the raw PSNR (the identity is one of the maps fitted), equal where ``pred`` is ``gt``."""
+    scale, shift = affine_fit(pred, gt)
+    return psnr((_tensor(pred) * scale + shift).clamp(0.0, 1.0), gt)
 
 
 def ssim(pred: ArrayLike, gt: ArrayLike) -> float:
