@@ -28,7 +28,7 @@ NO_TRITON = "triton is not installed (the dev extra installs it: pip install -e 
 def interpreted(module: ModuleType) -> bool:
     from triton.runtime.interpreter import InterpretedFunction
 
-    return isinstance(module._forward_kernel, InterpretedFunction)
+    return any(isinstance(value, InterpretedFunction) for value in vars(module).values())
 
 
 def kernels(name: str) -> tuple[ModuleType, torch.device]:

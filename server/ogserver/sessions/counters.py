@@ -39,3 +39,9 @@ class FrameTotals:
     def __add__(self, other: FrameTotals) -> FrameTotals:
         return FrameTotals(self.received + other.received, self.rejected + other.rejected,
                            self.mapped + other.mapped, self.unmapped + other.unmapped)
+
+
+def rate(count: int, first: float | None, last: float | None) -> float:
+    """``count`` events a second between the monotonic times ``first`` and ``last`` (0 before both are known)."""
+    elapsed = last - first if first is not None and last is not None else 0.0
+    return count / elapsed if elapsed > 0 else 0.0

@@ -59,7 +59,7 @@ from ogserver.recording.recorder import FrameRecord, Recorder, frame_record
 from ogserver.recording.skipped_budget import SkippedBudget
 from ogserver.sessions import pose_corrections
 from ogserver.sessions.backlog import Recorded, RecordedCorrections
-from ogserver.sessions.counters import SessionCounters
+from ogserver.sessions.counters import SessionCounters, rate
 from ogserver.sessions.jobs import Job, prepare_next
 from ogserver.sessions.ledger import TENSOR, FrameLedger
 from ogserver.sessions.queued_bytes import ByteBudget, frame_bytes
@@ -407,14 +407,10 @@ class Session:
 
     def counters(self) -> SessionCounters:
         with self._lock:
-            elapsed = (
-                self._last_mapped - self._first_received
-                if self._last_mapped is not None and self._first_received is not None else 0.0
-            )
             return SessionCounters(
                 received=self._received, rejected=self._rejected, mapped=self._mapped, pending=self._pending,
                 skipped=self._skipped, anchors=self._anchors,
-                processing_fps=self._mapped / elapsed if elapsed > 0 else 0.0,
+                processing_fps=rate(self._mapped, self._first_received, self._last_mapped),
                 uptime_seconds=time.monotonic() - self._started,
                 last_sequence=self._sequence, last_index=self._last_index,
                 mapped_sequence=self._mapped_position.sequence,
