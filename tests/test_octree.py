@@ -131,6 +131,12 @@ def test_state_round_trip_and_validation() -> None:
         restored.load_state_dict({k: v for k, v in state.items() if k != "keys.2"})
 
 
+def seen_from(octree: SparseVoxelOctree, depth: torch.Tensor, intrinsics, c2w: torch.Tensor) -> torch.Tensor:
+    """The occupied coarsest codes ``depth`` sees, picked out of the octree's keys by ``seen_mask``."""
+    keys = octree.keys(0)
+    return keys[octree.seen_mask(keys, depth, intrinsics, c2w)]
+
+
 def test_seen_from_keeps_cells_in_front_of_the_surface_only() -> None:
     """A wall 2 m ahead: cells on it and before it are seen, cells well behind it and off-image are not."""
     octree = SparseVoxelOctree(0.1, 0)
@@ -142,10 +148,10 @@ def test_seen_from_keeps_cells_in_front_of_the_surface_only() -> None:
     outside = torch.tensor([[5.0, 0.0, 2.0]])
     for points in (on_wall, in_front, behind, outside):
         octree.allocate(points)
-    seen = octree.seen_from(wall, intrinsics, torch.eye(4))
+    seen = seen_from(octree, wall, intrinsics, torch.eye(4))
     expected = torch.cat([octree.codes_of(p) for p in (on_wall, in_front)]).sort().values
     assert torch.equal(seen, expected)
-    assert octree.seen_from(torch.zeros(48, 64), intrinsics, torch.eye(4)).numel() == 0, "no depth, nothing seen"
+    assert seen_from(octree, torch.zeros(48, 64), intrinsics, torch.eye(4)).numel() == 0, "no depth, nothing seen"
 
 
 def test_seen_from_does_not_depend_on_resolution() -> None:
@@ -155,6 +161,6 @@ def test_seen_from_does_not_depend_on_resolution() -> None:
     octree.allocate(points - torch.tensor([2.0, 1.5, -1.5]))
     full = Intrinsics(80.0, 80.0, 40.0, 30.0, 80, 60)
     half = full.scaled(0.5)
-    seen_full = octree.seen_from(torch.full((60, 80), 2.6), full, torch.eye(4))
-    seen_half = octree.seen_from(torch.full((30, 40), 2.6), half, torch.eye(4))
+    seen_full = seen_from(octree, torch.full((60, 80), 2.6), full, torch.eye(4))
+    seen_half = seen_from(octree, torch.full((30, 40), 2.6), half, torch.eye(4))
     assert seen_full.numel() > 100 and torch.equal(seen_full, seen_half)

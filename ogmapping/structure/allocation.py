@@ -84,7 +84,7 @@ def allocate(strategy: str, octree: SparseVoxelOctree, depth: torch.Tensor, intr
     if strategy == "octree" and unread:
         return octree_allocation(octree, *grid_points(depth, intrinsics, c2w, stride))
     if strategy == "octree":
-        new = octree.insert(octree.observed(backproject(depth, intrinsics, c2w)), 0)
+        new = octree.allocate(backproject(depth, intrinsics, c2w))
     elif strategy == "unique":
         new = unique_allocation(octree, backproject(depth, intrinsics, c2w))
     elif strategy == "projection":

@@ -167,8 +167,10 @@ class SparseVoxelOctree:
         inside = in_frustum(self.centers(keys, level), intrinsics, pose, near=near, far=far, margin=margin_px)
         return keys[inside]
 
-    def seen_from(self, depth: torch.Tensor, intrinsics: Intrinsics, c2w: torch.Tensor) -> torch.Tensor:
-        """Sorted occupied coarsest codes a depth image sees: in its frustum and not behind its surface.
+    def seen_mask(self, keys: torch.Tensor, depth: torch.Tensor, intrinsics: Intrinsics,
+                  c2w: torch.Tensor) -> torch.Tensor:
+        """Which of ``keys`` (coarsest codes; ``PAD`` never) a depth image sees: in its frustum and not behind
+        its surface, as a mask (picking the codes out would make the host wait).
 
         Each cell is tested once, at its centre's pixel, so the set depends on the camera path and
         the voxel size but not on the image resolution or on how densely pixels sample the cells.
@@ -176,12 +178,6 @@ class SparseVoxelOctree:
         voxels (a centre below a surface seen at a grazing angle lies well behind it along the
         ray); pixels without a measurement see nothing.
         """
-        keys = self.keys(0)
-        return keys[self.seen_mask(keys, depth, intrinsics, c2w)]
-
-    def seen_mask(self, keys: torch.Tensor, depth: torch.Tensor, intrinsics: Intrinsics,
-                  c2w: torch.Tensor) -> torch.Tensor:
-        """Which of ``keys`` (coarsest codes, ``PAD`` never) ``seen_from`` keeps: a mask, so no host wait."""
         if keys.numel() == 0:
             return torch.zeros_like(keys, dtype=torch.bool)
         uv, z = project(self.centers(keys, 0), intrinsics, c2w.to(self.device, torch.float32))
