@@ -1,14 +1,17 @@
-"""Loop closure on the synthetic room: a map made from drifting poses, then corrected, against exact poses.
+"""Loop closure: a map made from drifting poses, then corrected, against one made from exact poses.
 
-The first ``--drift-frames`` mapped frames come with a pose drift that grows smoothly from nothing to
-``--metres`` and ``--degrees`` (a turn about the world's up axis about the room's centre, and a shift), as
-a SLAM system's odometry drifts before it closes a loop; the frames after them come with exact poses (the
-SLAM has closed its loop). Three maps: ``exact`` (exact poses throughout), ``uncorrected`` (the drift kept)
-and ``corrected`` (after the drifting frames, ``Mapper.correct_poses`` sends every keyframe's exact pose, as
-``CorrectPoses`` would). Each is scored at its end on held-out frames (every 10th, not mapped) at their exact
-poses: mean PSNR, and the gap to the exact map.
+The first ``--drift-frames`` streamed frames come with a pose drift that grows smoothly from nothing to
+``--metres`` and ``--degrees`` (a turn about the world's vertical axis through the first camera's centre,
+and a shift), as a SLAM system's odometry drifts before it closes a loop; the frames after them come with
+exact poses (the SLAM has closed its loop). Three maps: ``exact`` (exact poses throughout), ``uncorrected``
+(the drift kept) and ``corrected`` (after the drifting frames, ``Mapper.correct_poses`` sends every
+keyframe's exact pose, as ``CorrectPoses`` would). Each is scored when mapping ends on the held-out frames
+(index % 10 == 5, never streamed) at their exact poses: mean PSNR raw and affine-fit, the gap to the exact
+map, and the raw PSNR per stretch of ``--stretch`` frames.
 
-    .venv/bin/python bench/loop_closure.py --frames 60 --drift-frames 40 --width 160 --height 120
+    .venv/bin/python bench/loop_closure.py --data synthetic --frames 0:60 --drift-frames 40
+    .venv/bin/python bench/loop_closure.py --data ../shared/data/7scenes-redkitchen --frames 0:600 \\
+        --drift-frames 270
 """
 
 from __future__ import annotations
@@ -19,69 +22,82 @@ import time
 import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts its thread pool)
 
 # isort: split
-import numpy as np
+import dataclasses
 
-from ogmapping.config import parse_override_args, resolve
-from ogmapping.datasets.synthetic import SyntheticSource
+import numpy as np
+from sequence import add_sequence_arguments, load_sequence
+
+from ogmapping.config import MapperConfig, parse_override_args, resolve
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.rotation import axis_angle_matrix
 from ogmapping.mapper import Mapper
-from ogmapping.quality.metrics import psnr
+from ogmapping.quality.evaluation import ground_truth, score
 
 MODES = ("exact", "uncorrected", "corrected")
 
 
-def drifted(c2w: np.ndarray, fraction: float, metres: float, degrees: float) -> np.ndarray:
-    """``c2w`` after a drift of ``fraction`` of the full one: turned about the world's z axis, then shifted."""
+def drift(fraction: float, metres: float, degrees: float, up: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """A world motion of ``fraction`` of the full drift: a turn about ``up`` through ``centre``, then a shift
+    at right angles to ``up``."""
     motion = np.eye(4)
-    motion[:3, :3] = axis_angle_matrix(np.array([0.0, 0.0, 1.0]), np.radians(degrees * fraction))
-    motion[:3, 3] = np.array([1.0, 0.6, 0.0]) / np.linalg.norm([1.0, 0.6, 0.0]) * metres * fraction
-    return motion @ c2w
+    turn = axis_angle_matrix(up, np.radians(degrees * fraction))
+    side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    motion[:3, :3] = turn
+    motion[:3, 3] = centre - turn @ centre + side / np.linalg.norm(side) * metres * fraction
+    return motion
 
 
-def map_run(mode: str, frames: list[Frame], drift_frames: int, metres: float, degrees: float, config) -> Mapper:
+def map_run(mode: str, frames: list[Frame], args: argparse.Namespace, config: MapperConfig) -> Mapper:
     mapper = Mapper(config)
     exact = {frame.index: frame.c2w.copy() for frame in frames}
+    # The world's vertical as the first camera sees it (its image's up), the turn's centre its position.
+    up, centre = -frames[0].c2w[:3, 1], frames[0].c2w[:3, 3]
     for number, frame in enumerate(frames):
-        if mode != "exact" and number < drift_frames:
-            frame = Frame(frame.index, frame.rgb, frame.depth, frame.color_intrinsics, frame.depth_intrinsics,
-                          drifted(frame.c2w, (number + 1) / drift_frames, metres, degrees), frame.timestamp)
+        if mode != "exact" and number < args.drift_frames:
+            motion = drift((number + 1) / args.drift_frames, args.metres, args.degrees, up, centre)
+            frame = dataclasses.replace(frame, c2w=motion @ frame.c2w)
         mapper.process(frame)
-        if mode == "corrected" and number == drift_frames - 1:
+        if mode == "corrected" and number == args.drift_frames - 1:
             mapper.correct_poses({position: exact[keyframe.index]
                                   for position, keyframe in enumerate(mapper.keyframes.keyframes)})
     return mapper
 
 
-def held_out_psnr(mapper: Mapper, held: list[Frame]) -> float:
-    return float(np.mean([psnr(mapper.render(frame.c2w, frame.color_intrinsics).color, frame.rgb) for frame in held]))
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=60, help="frames in the sequence (default 60)")
-    parser.add_argument("--drift-frames", type=int, default=40, help="mapped frames that drift (default 40)")
+    add_sequence_arguments(parser)
+    parser.set_defaults(data="synthetic", frames="0:60")
+    parser.add_argument("--drift-frames", type=int, default=40, help="streamed frames that drift (default 40)")
     parser.add_argument("--metres", type=float, default=0.10, help="drift at its end (default 0.10)")
     parser.add_argument("--degrees", type=float, default=3.0, help="drift at its end (default 3)")
-    parser.add_argument("--width", type=int, default=160)
-    parser.add_argument("--height", type=int, default=120)
-    parser.add_argument("--preset", default="sparse")
+    parser.add_argument("--stretch", type=int, default=60, help="frames per stretch in the summary (default 60)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config overrides")
     args = parser.parse_args()
-    source = SyntheticSource(n_frames=args.frames, width=args.width, height=args.height)
-    loaded = [source[position] for position in range(len(source))]
-    mapped = [frame for frame in loaded if frame.index % 10 != 5]
-    held = [frame for frame in loaded if frame.index % 10 == 5]
+    sequence = load_sequence(args)
+    streamed, held = sequence.streamed, sequence.heldout
+    if not 0 < args.drift_frames <= len(streamed):
+        parser.error(f"--drift-frames must be 1 to {len(streamed)}, the streamed frames (got {args.drift_frames})")
     config = resolve(args.preset, overrides=parse_override_args(args.set))
-    print(f"synthetic room, {len(mapped)} frames mapped ({args.drift_frames} drifting to {args.metres:g} m and "
-          f"{args.degrees:g} degrees), {len(held)} held out, {args.width}x{args.height}, {args.preset}")
-    scores = {}
+    truths = [ground_truth(frame, config) for frame in held]
+    size = f"{streamed[0].color_intrinsics.width}x{streamed[0].color_intrinsics.height}"
+    print(f"{args.data} {args.frames}: {len(streamed)} frames streamed ({args.drift_frames} drifting to "
+          f"{args.metres:g} m and {args.degrees:g} degrees), {len(held)} held out, {size}, {args.preset} "
+          f"{' '.join(args.set)}", flush=True)
+    exact = None
     for mode in MODES:
         start = time.perf_counter()
-        mapper = map_run(mode, mapped, args.drift_frames, args.metres, args.degrees, config)
-        scores[mode] = held_out_psnr(mapper, held)
-        print(f"{mode:12s} held-out PSNR at the exact poses {scores[mode]:6.2f} dB "
-              f"(gap to exact {scores[mode] - scores['exact']:+.2f} dB), {time.perf_counter() - start:.0f} s")
+        mapper = map_run(mode, streamed, args, config)
+        scores = [score(mapper.render(truth.c2w, truth.color_intrinsics), truth) for truth in truths]
+        raw = np.array([each["psnr"] for each in scores])
+        affine = np.mean([each["psnr_affine"] for each in scores])
+        exact = raw.mean() if exact is None else exact
+        stretches: dict[int, list[float]] = {}
+        for truth, value in zip(truths, raw, strict=True):
+            stretches.setdefault((truth.index - truths[0].index) // args.stretch, []).append(value)
+        summary = " / ".join(f"{np.mean(each):.2f}" for _, each in sorted(stretches.items()))
+        print(f"{mode:12s} held-out PSNR at the exact poses {raw.mean():6.2f} dB (gap to exact "
+              f"{raw.mean() - exact:+.2f} dB), affine-fit {affine:.2f} dB, per {args.stretch} frames {summary}, "
+              f"{time.perf_counter() - start:.0f} s", flush=True)
 
 
 if __name__ == "__main__":
