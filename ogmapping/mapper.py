@@ -30,9 +30,9 @@ from ogmapping import queries
 from ogmapping.config import ConfigBounds, MapperConfig, resolution
 from ogmapping.frames.camera import Intrinsics, validate_pose
 from ogmapping.frames.frame import Frame
-from ogmapping.frames.preprocess import prepare
 from ogmapping.mapping import corrections
 from ogmapping.mapping.model import MapModel
+from ogmapping.mapping.prepared import PreparedFrame, prepare_on_device, prepare_on_host
 from ogmapping.mapping.steps import MappingSteps
 from ogmapping.mapping.tracker import Tracker
 from ogmapping.model.gaussians import GaussianSet
@@ -52,19 +52,6 @@ from ogmapping.runtime.time_budget import Budget, Stop
 from ogmapping.stats import MapStats
 from ogmapping.structure import allocation, extent
 from ogmapping.structure.footprint import Footprint
-
-
-@dataclass(frozen=True)
-class PreparedFrame:
-    """A frame made ready to map (``Mapper.prepare``): depth registered onto the colour grid and clipped,
-    colour, depth and pose as host tensors at the mapper's precision (pinned on CUDA, so they upload
-    without blocking). Preparing is the per-frame work that needs no map, so it can run ahead of the mapping."""
-
-    frame: Frame
-    rgb: torch.Tensor
-    depth: torch.Tensor
-    c2w: torch.Tensor
-    seconds: float  # host time spent preparing it
 
 
 @dataclass
@@ -101,6 +88,7 @@ class Mapper:
         self.bounds = bounds
         profile = execution_profile(device, config.backend, config.model.encoding, config.step)
         self.stream = session_stream(profile.device)
+        self.preparing = session_stream(profile.device)  # frames prepared on the device (``mapping.prepared``)
         self.lock = threading.RLock()
         self.timer = StageTimer.for_device(profile.device)
         # Each session draws from its own generator: sessions mapping side by side in one server
@@ -132,17 +120,15 @@ class Mapper:
     # ------------------------------------------------------------------ mapping
 
     def prepare(self, frame: Frame) -> PreparedFrame:
-        """``frame`` made ready to map. Touches no map state, so any thread may run it while this
-        mapper maps the previous frame (``process`` takes the result): its time then goes to the stage
-        ``preprocess_ahead``, off the mapping thread; ``process`` of a plain frame prepares it itself,
-        in the stage ``preprocess``."""
-        start = time.perf_counter()
-        ready = prepare(frame, self.config.octree.depth_min, self.config.octree.depth_max)
-        rgb, depth, c2w = (torch.as_tensor(array, dtype=self.profile.precision)
-                           for array in (ready.rgb, ready.depth, ready.c2w))
-        if self.device.type == "cuda":
-            rgb, depth, c2w = rgb.pin_memory(), depth.pin_memory(), c2w.pin_memory()
-        return PreparedFrame(ready, rgb, depth, c2w, time.perf_counter() - start)
+        """``frame`` made ready to map (``ogmapping.mapping.prepared``): on the host, or uploaded and prepared on
+        the device (``ExecutionProfile.device_frames``). Touches no map state, so any thread may run it while
+        this mapper maps the previous frame (``process`` takes the result): its host time then goes to the stage
+        ``preprocess_ahead``, off the mapping thread; ``process`` of a plain frame prepares it itself, in the
+        stage ``preprocess``."""
+        settings = self.config.octree
+        if self.profile.device_frames:
+            return prepare_on_device(frame, settings.depth_min, settings.depth_max, self.profile, self.preparing)
+        return prepare_on_host(frame, settings.depth_min, settings.depth_max, self.profile)
 
     def process(self, frame: Frame | PreparedFrame, budget: Budget | None = None) -> FrameResult:
         """Map one frame (plain, or from ``prepare``); returns what happened to it. Optimisation ends early
@@ -159,9 +145,10 @@ class Mapper:
         else:
             with model.timed("preprocess"):
                 prepared = self.prepare(frame)
-        frame = prepared.frame
+        frame = prepared.given  # its pose, intrinsics and index: the prepared depth is in ``prepared.depth``
         with model.timed("upload"):
             self._fit_to(frame.color_intrinsics)
+            prepared.wait_on(self.stream)
             rgb, depth, c2w = model.upload(prepared.rgb, prepared.depth, prepared.c2w)
         # With ``poses.refine`` every frame but the first keyframe's carries a correction of its client pose
         # (the first keeps it: the map stays in the client's frame), tracked against the map before this
@@ -169,7 +156,7 @@ class Mapper:
         correction = PoseCorrection(self.device, c2w.dtype) if self.config.poses.refine and self.keyframes else None
         placed = c2w
         if correction is not None:
-            self.tracker.track(frame, correction, budget, start)
+            self.tracker.track(frame.color_intrinsics, (rgb, depth, c2w), correction, budget, start)
             placed = correction.refined(c2w).detach()
         # With ``keyframes.exposure`` it carries an exposure too (but the first keyframe), learned in its steps.
         exposure = Exposure(self.device) if self.config.keyframes.exposure and self.keyframes else None

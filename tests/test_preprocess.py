@@ -16,7 +16,7 @@ from ogmapping.datasets.sevenscenes import SevenScenes
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.geometry import backproject, project
-from ogmapping.frames.preprocess import clip_depth, register_depth, reproject_depth, resize_frame, stride_frame
+from ogmapping.frames.preprocess import clip_depth, register_depth, reproject_depth, resize_frame
 from ogmapping.frames.rotation import axis_angle_matrix
 
 
@@ -184,15 +184,3 @@ def _timed(function: Callable[[Frame], Frame], frame: Frame) -> float:
     start = time.perf_counter()
     function(frame)
     return time.perf_counter() - start
-
-
-def test_a_strided_frame_keeps_the_pixels_it_samples_where_they_were():
-    k = Intrinsics(fx=50.0, fy=48.0, cx=20.3, cy=15.1, width=40, height=30)
-    frame = make_frame(np.random.default_rng(1).uniform(0.5, 3.0, (30, 40)), k, k, None)
-    strided = stride_frame(frame, 2, 1)
-    assert np.array_equal(strided.rgb, frame.rgb[1::2, 1::2]) and np.array_equal(strided.depth, frame.depth[1::2, 1::2])
-    assert strided.color_intrinsics == strided.depth_intrinsics == k.strided(2, 1)
-    assert stride_frame(frame, 1, 0) is frame
-    unregistered = dataclasses.replace(frame, depth_intrinsics=k.scaled(0.5), depth=frame.depth[::2, ::2])
-    with pytest.raises(ValueError, match="registered"):
-        stride_frame(unregistered, 2, 0)

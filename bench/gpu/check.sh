@@ -132,7 +132,8 @@ install_with_fallback_suite() {
 }
 
 # pytest -m gpu; the step test's figures (step-time.json, sync-sites.json), the Triton kernels' timings
-# (triton-loss.json, triton-decode.json) and the output go to gpu-tests/.
+# (triton-loss.json, triton-decode.json), the frame preparation's on the device (preprocess-device.json) and
+# the output go to gpu-tests/.
 gpu_tests() {
     set -o pipefail
     mkdir -p "$RESULTS/gpu-tests"

@@ -11,7 +11,8 @@
 #            this GPU, with MAX_JOBS (default: the CPU count) parallel compiler jobs
 #   wheels   only the carried wheels (the first half of install)
 #   kernels  only gsplat's build (the second half of install)
-#   tests    pytest -m gpu tests/test_gpu_*.py (gsplat against the pure-torch reference, a mapping step)
+#   tests    pytest -m gpu tests/test_gpu_*.py (gsplat against the pure-torch reference, a mapping step,
+#            a frame prepared on the device)
 #   preset   ogmap run of one preset (dense, sparse, sparse-fast) on DATA_DIR (7-Scenes unless FORMAT);
 #            only its results.json is kept, as OUT_DIR/LABEL/results.json
 #   table    OUT_DIR/table.md from OUT_DIR/*/results.json

@@ -4,7 +4,8 @@ Usage: ``python bench/gpu/table.py OUT/dense OUT/sparse OUT/sparse-fast`` (folde
 table; ``python bench/gpu/table.py --tree RESULTS`` (a folder that ``check.sh`` filled): the machine, one
 table of every results.json below it, labelled by its folder, then the load tables (``load/load.md``), the
 mapping step's figures (``gpu-tests/step-time.json``, ``gpu-tests/sync-sites.json``), the Triton kernels'
-timings (``gpu-tests/triton-loss.json``, ``gpu-tests/triton-decode.json``) and the GPU tests' summary
+timings (``gpu-tests/triton-loss.json``, ``gpu-tests/triton-decode.json``), the frame preparation's
+(``gpu-tests/preprocess-device.json``) and the GPU tests' summary
 (``gpu-tests/pytest.txt``).
 The paper's processing FPS were measured on Replica at 1200x680 with an RTX 4090 (its Table "key
 performance metrics on Replica"); beside other data, resolutions or GPUs they are context only.
@@ -23,6 +24,8 @@ KERNEL_TIMINGS = {
     "triton-loss.json": "The loss forward and backward, Triton kernels against torch (tests/test_gpu_triton_loss.py)",
     "triton-decode.json": "The decode forward and backward, Triton kernels against torch "
                           "(tests/test_gpu_triton_decode.py)",
+    "preprocess-device.json": "A frame's depth registered and clipped on the device, against numpy on the host "
+                              "(tests/test_gpu_preprocess.py)",
 }
 COLUMNS = (
     "run",

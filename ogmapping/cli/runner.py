@@ -115,7 +115,7 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
         result = mapper.process(prepared)
         keyframes += result.keyframe
         if pose_log is not None:
-            pose_log.add(prepared.frame, result)
+            pose_log.add(prepared.given, result)
         progress.set_postfix(anchors=result.anchors, keyframes=keyframes, refresh=False)
         progress.update()
         if count % MEMORY_LOG_INTERVAL == 0:

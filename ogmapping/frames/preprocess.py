@@ -53,23 +53,6 @@ def resize_frame(frame: Frame, scale: float) -> Frame:
     )
 
 
-def stride_frame(frame: Frame, stride: int, start: int) -> Frame:
-    """Every ``stride``-th pixel of ``frame`` (prepared, depth on the colour grid) from ``start`` on each
-    axis: the same pixels at the same centres, unlike a resize, which averages them."""
-    if stride == 1 and start == 0:
-        return frame
-    if frame.depth_intrinsics != frame.color_intrinsics:
-        raise ValueError("stride_frame needs depth registered onto the colour grid")
-    intrinsics = frame.color_intrinsics.strided(stride, start)
-    return dataclasses.replace(
-        frame,
-        rgb=np.ascontiguousarray(frame.rgb[start::stride, start::stride]),
-        depth=np.ascontiguousarray(frame.depth[start::stride, start::stride]),
-        color_intrinsics=intrinsics,
-        depth_intrinsics=intrinsics,
-    )
-
-
 def clip_depth(frame: Frame, depth_min: float, depth_max: float) -> Frame:
     """The frame with depth outside [depth_min, depth_max] (and non-finite depth) marked invalid (0)."""
     depth = frame.depth.copy()

@@ -13,8 +13,8 @@ from collections.abc import Callable
 
 import torch
 
+from ogmapping.frames.camera import Intrinsics
 from ogmapping.frames.frame import Frame
-from ogmapping.frames.preprocess import stride_frame
 from ogmapping.mapping.model import MapModel
 from ogmapping.model.gaussians import GaussianSet
 from ogmapping.optim.losses import TrackingMask, tracking_loss, tracking_mask, tracking_residuals
@@ -27,6 +27,8 @@ from ogmapping.runtime.time_budget import Budget
 
 # A render of a frame's tracked pixels at a correction of its pose, and those pixels' colour and depth.
 TrackingRenderer = tuple[Callable[[PoseCorrection], RenderOutput], torch.Tensor, torch.Tensor]
+# A prepared frame's colour, depth and pose on the mapper's device.
+FrameTensors = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
 
 class Tracker:
@@ -36,8 +38,10 @@ class Tracker:
         self.model = model
         self.lock = lock
 
-    def track(self, frame: Frame, correction: PoseCorrection, budget: Budget, started: float) -> None:
-        """``poses.track_iterations`` steps on the pose of ``frame`` (prepared) alone, on every
+    def track(self, intrinsics: Intrinsics, tensors: FrameTensors, correction: PoseCorrection, budget: Budget,
+              started: float) -> None:
+        """``poses.track_iterations`` steps on the pose of a prepared frame (its colour camera's ``intrinsics``,
+        its colour, depth and pose as device ``tensors``) alone, on every
         ``poses.track_stride``-th pixel, the map held fixed, until ``budget`` says stop. With
         ``poses.track_min_gain`` a pose that ``settled`` after TRACK_CHECK_STEPS steps goes back to the
         client's and is held there, its tracking cut short; one that moves then takes
@@ -47,8 +51,8 @@ class Tracker:
         if not settings.track_iterations:
             return
         with self.lock, self.model.timed("track"):
-            gaussians = self.gaussians(frame)
-            renderer = self._renderer(frame, None, gaussians)
+            gaussians = self._gaussians(intrinsics, tensors[2])
+            renderer = self._renderer(intrinsics, tensors, None, gaussians)
             loss_at = self._loss_of(renderer)
             losses: list[torch.Tensor] = []  # before each step, then after the check's steps
             for _ in range(settings.track_iterations):
@@ -73,19 +77,18 @@ class Tracker:
                              settings.track_newton_iterations, lambda: budget.stop(started) is not None)
             if not settings.track_fine_iterations:
                 return
-            fine = self.objective(frame, 1, gaussians)
+            fine = self._loss_of(self._renderer(intrinsics, tensors, 1, gaussians))
             for _ in range(settings.track_fine_iterations):
                 if budget.stop(started) is not None:
                     return
                 (fine(correction) + correction.prior(settings)).backward()
                 correction.step(settings)
 
-    def gaussians(self, frame: Frame) -> GaussianSet:
-        """The Gaussians of the anchors ``frame`` (prepared) sees from its client's pose, decoded from there:
-        the fixed map its tracking steps render, on any of its pixels (a stride keeps the frustum)."""
-        _, _, c2w = self.model.tensors(frame)
+    def _gaussians(self, intrinsics: Intrinsics, c2w: torch.Tensor) -> GaussianSet:
+        """The Gaussians of the anchors a frame sees from its client's pose ``c2w``, decoded from there: the fixed
+        map its tracking steps render, on any of its pixels (a stride keeps the frustum)."""
         with self.lock, torch.no_grad():
-            return self.model.decode(c2w[:3, 3], self.model.rows_in_view(c2w, frame.color_intrinsics))
+            return self.model.decode(c2w[:3, 3], self.model.rows_in_view(c2w, intrinsics))
 
     def objective(self, frame: Frame, stride: int | None = None,
                   gaussians: GaussianSet | None = None) -> Callable[[PoseCorrection], torch.Tensor]:
@@ -94,12 +97,12 @@ class Tracker:
         (``gaussians``, decoded here when not given), rendered at those pixels' own centres with the
         full-size blur, so the loss is the full-size loss on those pixels. Call the function it returns
         with the mapper's lock held, before the map changes."""
-        return self._loss_of(self._renderer(frame, stride, gaussians))
+        return self._loss_of(self._renderer(frame.color_intrinsics, self.model.tensors(frame), stride, gaussians))
 
     def residuals(self, frame: Frame, stride: int | None = None, gaussians: GaussianSet | None = None) -> Residuals:
         """``objective`` as per-pixel residuals of a correction's ``delta`` (no gradient), over a given mask
         or, given None, the pixels this render covers: what Gauss-Newton tracking steps on."""
-        return self._residuals_of(self._renderer(frame, stride, gaussians))
+        return self._residuals_of(self._renderer(frame.color_intrinsics, self.model.tensors(frame), stride, gaussians))
 
     def _loss_of(self, renderer: TrackingRenderer) -> Callable[[PoseCorrection], torch.Tensor]:
         render_at, rgb, depth = renderer
@@ -127,18 +130,20 @@ class Tracker:
 
         return residuals_at
 
-    def _renderer(self, frame: Frame, stride: int | None, gaussians: GaussianSet | None) -> TrackingRenderer:
-        """A render of ``frame``'s every ``stride``-th pixel at a correction of its pose (see ``objective``),
-        and those pixels' colour and depth."""
+    def _renderer(self, intrinsics: Intrinsics, tensors: FrameTensors, stride: int | None,
+                  gaussians: GaussianSet | None) -> TrackingRenderer:
+        """A render of a frame's every ``stride``-th pixel at a correction of its pose (see ``objective``), and
+        those pixels' colour and depth (from row and column 0: the same pixels at the same centres)."""
+        rgb, depth, c2w = tensors
         if gaussians is None:
-            gaussians = self.gaussians(frame)
+            gaussians = self._gaussians(intrinsics, c2w)
         stride = self.model.config.poses.track_stride if stride is None else stride
-        frame = stride_frame(frame, stride, 0)
-        rgb, depth, c2w = self.model.tensors(frame)
+        rgb, depth = rgb[::stride, ::stride].contiguous(), depth[::stride, ::stride].contiguous()
+        intrinsics = intrinsics.strided(stride, 0)
         blur = COVARIANCE_BLUR / stride**2
 
         def render_at(correction: PoseCorrection) -> RenderOutput:
-            camera = self.model.camera(correction.refined(c2w), frame.color_intrinsics, blur)
+            camera = self.model.camera(correction.refined(c2w), intrinsics, blur)
             return rasterize(gaussians, camera, backend=self.model.backend)
 
         return render_at, rgb, depth

@@ -11,6 +11,7 @@ runs the pure-torch reference end to end. ``auto`` resolves as ``render.resolve_
 The GPU's counterpart of the fused loss, its Triton kernels, runs iff the device is CUDA, the backend
 ``gsplat`` and triton importable; ``backend="torch"`` there too keeps the reference end to end. The fused
 decode's Triton kernels (``ogmapping.model.triton_decode``) run by the same rule, for the static-shape step.
+Frames are prepared (depth registered and clipped) on the device iff it is CUDA.
 """
 
 from __future__ import annotations
@@ -44,6 +45,10 @@ class ExecutionProfile:
     triton_loss: bool = False
     # The static-shape decode comes from the Triton kernels (``ogmapping.model.triton_decode``), not autograd.
     triton_decode: bool = False
+    # Frames uploaded as they come and registered and clipped on the device (``ogmapping.mapping.prepared``),
+    # leaving the host only the copy into pinned memory. On the CPU numpy's registration, the reference, stays: it is
+    # faster there (bench/RESULTS.md "Frames prepared ahead").
+    device_frames: bool = False
 
     @property
     def step_mode(self) -> str:
@@ -70,6 +75,7 @@ def execution_profile(device: str | torch.device, backend: str, encoding: str,
         graphs=step == "compiled",
         triton_loss=triton,
         triton_decode=triton and static,
+        device_frames=device.type == "cuda",
     )
 
 
