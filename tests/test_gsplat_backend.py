@@ -3,8 +3,9 @@
 Which backend ``auto`` picks, when gsplat counts as usable (gsplat 1.5 reports kernels it could not
 build only by setting ``gsplat.cuda._backend._C`` to None) and what ``render_group`` does around
 ``gsplat.rasterization`` (views padded into one batch and cut out again, float32 in, the caller's
-dtype out, culled ``means2d`` zero, each view's screen-space and viewmat gradients its own). The real
-kernels are checked against the reference in ``test_gpu_gsplat.py``.
+dtype out, culled ``means2d`` zero, each view's screen-space and viewmat gradients its own), and how the
+options (``RasterOptions``) reach gsplat: packed outputs unpacked into the same output, the absolute
+gradient read per view. The real kernels are checked against the reference in ``test_gpu_gsplat.py``.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import types
 import pytest
 import torch
 
-from ogmapping.render import gsplat_backend, resolve_backend
+from ogmapping.render import RasterOptions, gsplat_backend, rasterize, resolve_backend
 from ogmapping.render.views import Camera, SplatSet
 
 CUDA = torch.device("cuda")
@@ -128,32 +129,61 @@ class WarpSummedCameraFrame(torch.autograd.Function):
         return grad @ viewmats[:, 0, :3, :3], v_viewmats, None
 
 
-def fake_rasterization(culled: torch.Tensor):
-    """A stand-in for ``gsplat.rasterization`` with its output shapes (``packed=False``, ``RGB+ED``, a
-    leading batch dimension B and one camera per batch entry): it takes float32 only, as gsplat's
-    kernels do, leaves culled ``means2d`` rows as garbage and reduces the viewmats' gradient as
-    gsplat does (``WarpSummedCameraFrame``). ``culled`` (B, N) marks the culled; rows past N, the
-    padding, are culled too."""
+class AbsGradTap(torch.autograd.Function):
+    """Passes ``means2d`` on; in backward sets ``means2d.absgrad`` as gsplat's rasterizer does with
+    ``absgrad=True`` (here 3 |gradient| + 1, which no plain gradient equals)."""
+
+    @staticmethod
+    def forward(ctx, means2d: torch.Tensor, absgrad: bool) -> torch.Tensor:
+        ctx.save_for_backward(means2d)
+        ctx.absgrad = absgrad
+        return means2d.clone()
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        (means2d,) = ctx.saved_tensors
+        if ctx.absgrad:
+            means2d.absgrad = 3 * grad.abs() + 1
+        return grad, None
+
+
+def fake_rasterization(culled: torch.Tensor, calls: list[dict] | None = None):
+    """A stand-in for ``gsplat.rasterization`` with its output shapes (``RGB+ED``, a leading batch dimension
+    B and one camera per batch entry; ``packed=True``: ``means2d`` (nnz, 2), ``radii`` (nnz, 2) with
+    ``batch_ids`` and ``gaussian_ids``): it takes float32 only, as gsplat's kernels do, leaves culled
+    ``means2d`` rows as garbage, reduces the viewmats' gradient as gsplat does (``WarpSummedCameraFrame``)
+    and with ``absgrad`` sets ``meta["means2d"].absgrad`` in backward. ``culled`` (B, N) marks the culled;
+    rows past N, the padding, are culled too. Each call's options are appended to ``calls``."""
 
     def rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, **options):
         for tensor in (means, quats, scales, opacities, colors, viewmats, Ks):
             assert tensor.dtype == torch.float32
-        assert options["packed"] is False and options["render_mode"] == "RGB+ED"
+        assert options["render_mode"] == "RGB+ED"
+        if calls is not None:
+            calls.append(options)
         batch, n = means.shape[:2]
-        assert viewmats.shape == (batch, 1, 4, 4) and Ks.shape == (batch, 1, 3, 3) and culled.shape[0] == batch
+        assert viewmats.shape == (batch, 1, 4, 4) and Ks.shape == (batch, 1, 3, 3)
         hidden = torch.ones(batch, n, dtype=torch.bool)
         hidden[:, :culled.shape[1]] = culled
         camera = WarpSummedCameraFrame.apply(means, viewmats, ~hidden)
         projected = camera[..., :2] * Ks[:, :, 0, 0, None] / camera[..., 2:] + Ks[:, 0, None, :2, 2]
-        means2d = torch.where(hidden.unsqueeze(-1), torch.full_like(projected, 1e30), projected)[:, None]
-        weight = torch.stack([
-            (means2d[b, 0, ~hidden[b]].sum() + opacities[b].sum() + colors[b].sum()) * 1e-3 * (b + 1)
-            for b in range(batch)
-        ])
+        radii = torch.where(hidden, 0, 3).to(torch.int32)[..., None].expand(batch, n, 2)
+        if options["packed"]:
+            batch_ids, gaussian_ids = torch.nonzero(~hidden, as_tuple=True)
+            means2d, radii = projected[batch_ids, gaussian_ids], radii[batch_ids, gaussian_ids]
+            meta = {"batch_ids": batch_ids, "camera_ids": torch.zeros_like(batch_ids), "gaussian_ids": gaussian_ids}
+            tapped = AbsGradTap.apply(means2d, options["absgrad"])
+            kept = [tapped[batch_ids == b] for b in range(batch)]
+        else:
+            means2d = torch.where(hidden.unsqueeze(-1), torch.full_like(projected, 1e30), projected)[:, None]
+            meta, radii = {}, radii[:, None]
+            tapped = AbsGradTap.apply(means2d, options["absgrad"])
+            kept = [tapped[b, 0, ~hidden[b]] for b in range(batch)]
+        weight = torch.stack([(kept[b].sum() + opacities[b].sum() + colors[b].sum()) * 1e-3 * (b + 1)
+                              for b in range(batch)])
         render = weight[:, None, None, None, None] * torch.ones(batch, 1, height, width, 4)
         alpha = torch.sigmoid(weight)[:, None, None, None, None] * torch.ones(batch, 1, height, width, 1)
-        radii = torch.where(hidden, 0, 3).to(torch.int32)[:, None, :, None].expand(batch, 1, n, 2)
-        return render, alpha, {"means2d": means2d, "radii": radii}
+        return render, alpha, {**meta, "means2d": means2d, "radii": radii}
 
     return rasterization
 
@@ -258,7 +288,9 @@ def test_views_are_grouped_by_image_size_and_blur_in_order_of_appearance():
         return Camera(torch.eye(4), torch.eye(3), width, height, blur)
 
     cameras = [camera(64, 48), camera(32, 24), camera(64, 48), camera(32, 24), camera(16, 16), camera(64, 48, 0.075)]
-    assert gsplat_backend.same_size_groups(cameras) == [[0, 2], [1, 3], [4], [5]]
+    assert gsplat_backend.call_groups(cameras) == [[0, 2], [1, 3], [4], [5]]
+    # packed, one view a call: gsplat's packed backward would mix the entries' gradients mid-warp
+    assert gsplat_backend.call_groups(cameras, packed=True) == [[index] for index in range(6)]
 
 
 def test_a_group_without_gaussians_renders_the_background():
@@ -268,3 +300,68 @@ def test_a_group_without_gaussians_renders_the_background():
                                           [Camera(torch.eye(4), torch.eye(3), 4, 3)] * 2, background)
     for output in outputs:
         assert torch.equal(output.color, background.expand(3, 4, 3)) and not bool(output.alpha.any())
+
+
+def render_options(options: RasterOptions) -> tuple[list, list[SplatSet], list[torch.Tensor], list[dict]]:
+    """Two views of 5 and 2 Gaussians rendered by the stand-in with ``options`` and backpropagated: the
+    outputs, the scenes, the viewmats (which require grad) and the options each call passed."""
+    generator = torch.Generator().manual_seed(5)
+    scenes = [random_scene(generator, n) for n in (5, 2)]
+    culled = torch.tensor([[False, True, False, False, True], [False, True, True, True, True]])
+    K = torch.tensor([[10.0, 0.0, 4.0], [0.0, 10.0, 3.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    viewmats = [torch.eye(4, dtype=torch.float64).requires_grad_() for _ in scenes]
+    calls: list[dict] = []
+    outputs = gsplat_backend.render_group(fake_rasterization(culled, calls), scenes,
+                                          [Camera(viewmat, K, 8, 6) for viewmat in viewmats], None, options)
+    (sum(o.color.sum() + o.depth.sum() + o.alpha.sum() for o in outputs)).backward()
+    return outputs, scenes, viewmats, calls
+
+
+def test_the_options_reach_gsplat():
+    *_, calls = render_options(RasterOptions())
+    assert [(c["packed"], c["absgrad"], c["rasterize_mode"]) for c in calls] == [(False, False, "classic")]
+    *_, calls = render_options(RasterOptions(packed=True, absgrad=True, antialiased=True))
+    assert [(c["packed"], c["absgrad"], c["rasterize_mode"]) for c in calls] == [(True, True, "antialiased")]
+
+
+def test_packed_outputs_are_unpacked_into_the_same_render_output():
+    """gsplat's packed layout (only the kept (entry, Gaussian) pairs, with their ids) comes back as the
+    unpacked layout's output: images, ``means2d`` and ``visible``, and every gradient."""
+    unpacked, scenes, viewmats, _ = render_options(RasterOptions())
+    packed, packed_scenes, packed_viewmats, _ = render_options(RasterOptions(packed=True))
+    for plain, output in zip(unpacked, packed, strict=True):
+        for name in ("color", "depth", "alpha", "means2d", "visible"):
+            got, want = getattr(output, name), getattr(plain, name)
+            assert got.shape == want.shape and got.dtype == want.dtype, name
+            torch.testing.assert_close(got, want, msg=name)
+        torch.testing.assert_close(output.means2d.grad, plain.means2d.grad)
+        assert output.screen_gradient(absolute=True) is None  # absgrad off
+    for scene, packed_scene in zip(scenes, packed_scenes, strict=True):
+        for name in ("means", "quats", "scales", "opacities", "colors"):
+            torch.testing.assert_close(getattr(packed_scene, name).grad, getattr(scene, name).grad, msg=name)
+    for viewmat, packed_viewmat in zip(viewmats, packed_viewmats, strict=True):
+        torch.testing.assert_close(packed_viewmat.grad, viewmat.grad)
+
+
+@pytest.mark.parametrize("packed", [False, True])
+def test_absgrad_is_read_per_view_after_backward(packed: bool):
+    """``screen_gradient(absolute=True)`` is each view's part of gsplat's ``meta["means2d"].absgrad`` (the
+    stand-in's 3 |gradient| + 1), 0 where culled; ``screen_gradient()`` stays the gradient."""
+    outputs, *_ = render_options(RasterOptions(packed=packed, absgrad=True))
+    for output in outputs:
+        absolute, grad = output.screen_gradient(absolute=True), output.screen_gradient()
+        assert absolute.dtype == torch.float64 and absolute.shape == grad.shape
+        seen = output.visible.unsqueeze(-1)
+        torch.testing.assert_close(absolute, torch.where(seen, 3 * grad.abs() + 1, 0.0))
+
+
+def test_other_backends_refuse_gsplat_only_options_and_render_packed_as_ever():
+    generator = torch.Generator().manual_seed(6)
+    scene = random_scene(generator, 3)
+    K = torch.tensor([[10.0, 0.0, 4.0], [0.0, 10.0, 3.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    camera = Camera(torch.eye(4, dtype=torch.float64), K, 8, 6)
+    for options in (RasterOptions(absgrad=True), RasterOptions(antialiased=True)):
+        with pytest.raises(ValueError, match=r"gsplat.s options only .* the torch backend"):
+            rasterize(scene, camera, backend="torch", options=options)
+    packed = rasterize(scene, camera, backend="torch", options=RasterOptions(packed=True))
+    assert torch.equal(packed.color, rasterize(scene, camera, backend="torch").color)

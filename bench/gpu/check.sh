@@ -10,20 +10,22 @@
 #   REPLICA_DIR       Replica room0, the folder holding results/ and traj.txt: frames 0-19 at 1200x680
 #   A data folder given as - or absent skips the steps that need it, as does one with too few frames.
 # Steps: install (carried wheels, gsplat's kernels; the suite runs on CUDA through the pure-torch fallback
-# meanwhile), pytest -m gpu, ogmap run of sparse-fast / sparse / dense on 7-Scenes 0-299 at 640x480 (sparse
-# also with step=dynamic, the eager step sized by the data) and on
-# Replica room0 0-19 at 1200x680, sparse with pose refinement from noisy poses on room0 (replica-refine),
-# bench/load.py with 1 / 4 / 8 / 16 sparse-fast sessions on one server (threads, then 4 worker processes), the service's sparse run of 0-299
-# (ogserver + ogclient stream/eval), the CPU thread table (sparse at 320x240, 1 / 2 / 4 / 8 / 16 threads),
-# sparse at 320x240 on the GPU, the suite with gsplat. A step that succeeded leaves a marker in .gpu/done,
-# so a second call on the same machine goes on where the first stopped.
+# meanwhile), pytest -m gpu, the rasterizer's options and selective Adam timed on one two-view step at 1200x680
+# (raster-options: bench/gpu/raster_options.py on the synthetic room, and on Replica room0 where given),
+# ogmap run of sparse-fast / sparse / dense on 7-Scenes 0-299 at 640x480 (sparse also with step=dynamic, the
+# eager step sized by the data) and on Replica room0 0-19 at 1200x680, sparse with pose refinement from noisy
+# poses on room0 (replica-refine), bench/load.py with 1 / 4 / 8 / 16 sparse-fast sessions on one server
+# (threads, then 4 worker processes), the service's sparse run of 0-299 (ogserver + ogclient stream/eval), the
+# CPU thread table (sparse at 320x240, 1 / 2 / 4 / 8 / 16 threads), sparse at 320x240 on the GPU, the suite
+# with gsplat. A step that succeeded leaves a marker in .gpu/done, so a second call on the same machine goes
+# on where the first stopped.
 # environment: PYTHON (python3), OGMAP_LPIPS_WEIGHTS (LPIPS weights file, optional), COMMIT (default: git's
 #   HEAD), STAMP (default: DATE-COMMIT, the results folder's name), ONLY (step names or patterns to run, e.g.
 #   "replica-* load"; install runs first where a GPU step needs it), LOAD_FRAMES (0:100), THREAD_FRAMES (0:100),
 #   THREADS ("1 2 4 8 16").
 set -uo pipefail
 cd "$(dirname "$0")/../.."
-[ $# -eq 3 ] || [ $# -eq 4 ] || { sed -n '2,22p' "$0" >&2; exit 2; }
+[ $# -eq 3 ] || [ $# -eq 4 ] || { sed -n '2,25p' "$0" >&2; exit 2; }
 OUT=$1 BUDGET=$2 DATA=$3 REPLICA=${4:--}
 export PY=${PYTHON:-python3}
 export LOAD_FRAMES=${LOAD_FRAMES:-0:100} THREAD_FRAMES=${THREAD_FRAMES:-0:100} THREADS=${THREADS:-1 2 4 8 16}
@@ -34,7 +36,7 @@ CHECK=$PWD/.gpu/check
 export RESULTS=$CHECK/bench/gpu/results/$STAMP LOGS=$CHECK/logs
 DONE=$PWD/.gpu/done
 mkdir -p "$OUT" "$RESULTS" "$LOGS" "$DONE/$STAMP"
-export DATA REPLICA
+export DATA REPLICA REPLICA_FRAMES
 export PYTHONUNBUFFERED=1
 export PYTHONPATH=$PWD/.gpu/site:$PWD:$PWD/proto:$PWD/server:$PWD/client
 export TORCH_EXTENSIONS_DIR=$PWD/.gpu/torch_extensions
@@ -216,11 +218,23 @@ replica_refine() {
     return $status
 }
 
-export -f pytest_interruptible suite install_with_fallback_suite gpu_tests service_load service_load_workers cpu_threads service replica_refine
+# bench/gpu/raster_options.py: gsplat's packed, absgrad and antialiased options and selective Adam, each timed on
+# one steady two-view step at 1200x680 with the PSNR of its renders against the baseline's: on the synthetic
+# room (a map over its whole orbit, 3 M Gaussians, about 0.5 M drawn a view) into raster-options/, and with
+# Replica room0 0-19 on room0 (0.5 M Gaussians from those frames, all in view) into raster-options/replica/.
+raster_options() {
+    "$PY" bench/gpu/raster_options.py --device cuda --out "$RESULTS/raster-options" || return
+    if (( REPLICA_FRAMES >= 20 )); then
+        "$PY" bench/gpu/raster_options.py --device cuda --data "$REPLICA" --format replica --gaussians 500000 \
+            --out "$RESULTS/raster-options/replica"
+    fi
+}
+
+export -f pytest_interruptible suite install_with_fallback_suite gpu_tests service_load service_load_workers cpu_threads service replica_refine raster_options
 log "check: budget ${BUDGET} s, results $STAMP, 7-Scenes '$DATA' ($SEVEN_SCENES_FRAMES frames), Replica '$REPLICA' ($REPLICA_FRAMES frames), only '${ONLY:-all}'"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>&1 | tee -a "$LOGS/check.log"
 
-GPU_STEPS=(gpu-tests 640-sparse-fast 640-sparse 640-sparse-dynamic 640-dense replica-sparse-fast replica-sparse replica-dense replica-refine load
+GPU_STEPS=(gpu-tests raster-options 640-sparse-fast 640-sparse 640-sparse-dynamic 640-dense replica-sparse-fast replica-sparse replica-dense replica-refine load
            service-sparse-640 320-sparse suite-gsplat)
 for name in "${GPU_STEPS[@]}"; do
     if wanted "$name" && [ ! -e "$(marker "$name")" ]; then
@@ -233,6 +247,7 @@ ogmap_run() {
     step "$1-$2" "$3" "$4,gpu" env FORMAT="$5" FRAMES="$6" SCALE="$7" bench/gpu/run.sh preset "$2" "$8" "$RESULTS/$1"
 }
 step gpu-tests 150 gpu gpu_tests
+step raster-options 60 gpu raster_options
 ogmap_run 640 sparse-fast 60 7scenes:300 7scenes 0:300 1 "$DATA"
 ogmap_run 640 sparse 90 7scenes:300 7scenes 0:300 1 "$DATA"
 # the same map with the step eager and sized by the data, as before compiled graphs: quality and speed side by side

@@ -3,8 +3,9 @@
 Usage: ``python bench/gpu/table.py OUT/dense OUT/sparse OUT/sparse-fast`` (folders or results.json): one
 table; ``python bench/gpu/table.py --tree RESULTS`` (a folder that ``check.sh`` filled): the machine, one
 table of every results.json below it, labelled by its folder, then the load tables (``load/load.md``), the
-mapping step's figures (``gpu-tests/step-time.json``, ``gpu-tests/sync-sites.json``), the Triton kernels'
-timings (``gpu-tests/triton-loss.json``, ``gpu-tests/triton-decode.json``), the frame preparation's
+rasterizer options' tables (``raster-options/**/raster-options.md``), the mapping step's figures
+(``gpu-tests/step-time.json``, ``gpu-tests/sync-sites.json``), the Triton kernels' timings
+(``gpu-tests/triton-loss.json``, ``gpu-tests/triton-decode.json``), the frame preparation's
 (``gpu-tests/preprocess-device.json``) and the GPU tests' summary
 (``gpu-tests/pytest.txt``).
 The paper's processing FPS were measured on Replica at 1200x680 with an RTX 4090 (its Table "key
@@ -161,6 +162,9 @@ def tree(root: Path) -> str:
     for load_table in sorted((root / "load").glob("load*.md"), key=lambda path: (path.stem != "load", path.stem)):
         how = "threads" if load_table.stem == "load" else load_table.stem.removeprefix("load-").replace("-", " ")
         lines += [f"## Sessions on one server, {how} (bench/load.py)", "", load_table.read_text().rstrip(), ""]
+    for options in sorted((root / "raster-options").rglob("raster-options.md")):
+        lines += ["## Rasterizer options and selective Adam (bench/gpu/raster_options.py)", "",
+                  options.read_text().rstrip(), ""]
     lines += step_figures(root / "gpu-tests")
     return "\n".join(lines)
 

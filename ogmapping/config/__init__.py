@@ -33,6 +33,7 @@ from ogmapping.config.sections import (
     OptimConfig,
     PosesConfig,
     RefineConfig,
+    RenderConfig,
     Window,
     apply_overrides,
     validate,
@@ -41,8 +42,8 @@ from ogmapping.config.sections import (
 __all__ = [
     "MIB", "PRESETS", "PRESET_VALUES", "Allocation", "AnchorColourStart", "Backend", "ConfigBounds", "Encoding",
     "Growth", "KeyframeConfig", "LossConfig", "MapperConfig", "ModelConfig", "OctreeConfig", "OptimConfig",
-    "PosesConfig", "RefineConfig", "Window", "apply_overrides", "flatten", "hash_table_bytes", "load_file",
-    "parse_override_args", "pinned", "preset", "resolve", "validate",
+    "PosesConfig", "RefineConfig", "RenderConfig", "Window", "apply_overrides", "flatten", "hash_table_bytes",
+    "load_file", "parse_override_args", "pinned", "preset", "resolve", "validate",
 ]
 
 

@@ -158,6 +158,12 @@ class OptimConfig:
     # The average's horizon grows with the map: it covers max(1 / (1 - average_decay), average_growth x
     # steps so far) steps, so an old map averages longer than a young one still converging; 0: fixed.
     average_growth: float = ranged(0.0, 0, 1)
+    # Adam steps only the anchor rows the step's views saw (a Gaussian of theirs visible), leaving the others'
+    # values and moments as they were (Taming 3DGS's selective Adam; ``ogmapping.optim.selective_adam``):
+    # torch's Adam decays every row's moments and moves it by its momentum even where the step gave it no
+    # gradient. The decoders and the exposures step as before; the hash grid's lazy Adam already steps only
+    # its touched rows. Off until measured on a GPU (bench/gpu/raster_options.py).
+    selective: bool = False
 
 
 @dataclass
@@ -206,6 +212,28 @@ class PosesConfig:
 
 
 @dataclass
+class RenderConfig:
+    """gsplat's rasterizer options (``ogmapping.render.RasterOptions``), each off as every backend renders.
+    ``absgrad`` and ``antialiased`` change what is rendered or read, so a map that sets one needs the gsplat
+    backend (ValueError when the mapper is made on another); none is measured yet beyond
+    bench/gpu/raster_options.py, which times them at 1200x680 on a GPU."""
+
+    # gsplat's packed layout: only the (view, Gaussian) pairs its culling keeps, instead of arrays of every
+    # Gaussian per view; less memory where a view sees a small share of the map, the same images. One gsplat
+    # call per view then (its packed backward mixes batch entries' gradients), not one per image size. Other
+    # backends render the same without it.
+    packed: bool = False
+    # Growth reads each Gaussian's absolute screen-space gradient (AbsGS: the sum over pixels of the gradient's
+    # absolute value) instead of the gradient: gradients of opposite sign no longer cancel over a large
+    # Gaussian. Its values are larger, so ``refine.grad_threshold`` grows more at the same value (gsplat's
+    # examples use four times the threshold with it).
+    absgrad: bool = False
+    # gsplat's antialiased projection: each Gaussian's opacity scaled by sqrt(det(S) / det(S + blur I)) of its
+    # 2D covariance S (Mip-Splatting), so the blur no longer makes small Gaussians brighter.
+    antialiased: bool = False
+
+
+@dataclass
 class MapperConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
     octree: OctreeConfig = field(default_factory=OctreeConfig)
@@ -214,6 +242,7 @@ class MapperConfig:
     loss: LossConfig = field(default_factory=LossConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     poses: PosesConfig = field(default_factory=PosesConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
     # How settings follow the first frame's size (``ogmapping.config.resolution``), resolved then.
     resolution: ResolutionConfig = field(default_factory=ResolutionConfig)
     backend: Backend = "auto"  # on the CPU only "cpu" runs the compiled kernels

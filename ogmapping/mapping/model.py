@@ -27,14 +27,15 @@ from ogmapping.model.gaussians import GaussianSet, anchors_in_view, decoded_logi
 from ogmapping.optim import exposure
 from ogmapping.optim.averaging import MapAverage
 from ogmapping.optim.lazy_adam import LazyAdam
-from ogmapping.render import Camera, rasterize
+from ogmapping.optim.selective_adam import SelectiveAdam
+from ogmapping.render import Camera, RasterOptions, rasterize
 from ogmapping.render.output import RenderOutput
 from ogmapping.render.rules import COVARIANCE_BLUR
 from ogmapping.runtime.late_value import LateValue
 from ogmapping.runtime.profile import ExecutionProfile
 from ogmapping.runtime.stage_timer import StageTimer
 from ogmapping.structure.anchor_colour import cell_colour_logits, colour_sample_stride
-from ogmapping.structure.anchors import AnchorMap
+from ogmapping.structure.anchors import LEARNABLE, AnchorMap
 from ogmapping.structure.octree import SparseVoxelOctree
 
 
@@ -59,6 +60,9 @@ class MapModel:
         """The map's structures, decoders and optimisers for ``config``, empty, drawn from the generator as it
         stands (on the caller's stream)."""
         self.config = config
+        render = config.render
+        self.raster_options = RasterOptions(render.packed, render.absgrad, render.antialiased)
+        self.raster_options.check(self.backend)  # before anything is built: a clear refusal
         model = config.model
         self.octree = SparseVoxelOctree.from_config(config.octree, self.device)
         self.anchors = AnchorMap(model.n_offsets, model.feature_dim, model.encoding == "anchor", self.device,
@@ -79,6 +83,8 @@ class MapModel:
         self.average = MapAverage(self.anchors, self.decoders, optim.average_decay, optim.average_growth)
 
     def _make_optimizer(self) -> torch.optim.Adam:
+        """Adam over the map's parameters, by group; with ``optim.selective`` the anchor rows' groups step
+        only the rows a step saw (``SelectiveAdam``)."""
         lr = self.config.optim
         groups = [
             {"params": [self.anchors.parameter("log_scales")], "lr": lr.scaling_lr, "name": "log_scales"},
@@ -95,7 +101,10 @@ class MapModel:
             groups.append({"params": [], "lr": lr.exposure_lr, "name": exposure.GROUP})
         # Fused: its step counts stay tensors (torch's loop reads each on the host). Only with static shapes,
         # whose maps are not the CPU's: it rounds otherwise than the loop the CPU's maps were tuned with.
-        return torch.optim.Adam(groups, eps=1e-15, fused=self.profile.static_shapes or None)
+        fused = self.profile.static_shapes or None
+        if self.config.optim.selective:
+            return SelectiveAdam(groups, row_groups=LEARNABLE, eps=1e-15, fused=fused)
+        return torch.optim.Adam(groups, eps=1e-15, fused=fused)
 
     @property
     def last_gaussians(self) -> int:
@@ -178,7 +187,8 @@ class MapModel:
         with self.timed("decode"):
             gaussians = self.decode(c2w[:3, 3], self.rows_in_view(c2w, intrinsics))
         with self.timed("rasterize"):
-            output = rasterize(gaussians, self.camera(c2w, intrinsics), backend=self.backend)
+            output = rasterize(gaussians, self.camera(c2w, intrinsics), backend=self.backend,
+                               options=self.raster_options)
         return gaussians, output
 
     def decoded_logits(self, positions: torch.Tensor, features: torch.Tensor | None,

@@ -3,8 +3,9 @@
 
 A step decodes every view's anchors in view, rasterizes the window in one batch, weighs each view's
 loss (``loss.view``; with ``keyframes.exposure`` on its render's colour corrected by the view's exposure),
-backpropagates, gathers the screen-space gradients refinement grows from, and steps Adam (the exposures
-of the views drawn with it), the hash grid's lazy Adam, the map's moving average and the pose corrections
+backpropagates, gathers the screen-space gradients refinement grows from (with ``render.absgrad`` their
+absolute sums), and steps Adam (the exposures of the views drawn with it; with ``optim.selective`` only the
+anchor rows the views saw), the hash grid's lazy Adam, the map's moving average and the pose corrections
 that move.
 """
 
@@ -16,7 +17,7 @@ import torch
 
 from ogmapping.mapping.model import MapModel
 from ogmapping.model.gaussians import GaussianSet, generate_window
-from ogmapping.model.static_gaussians import DrawnWindow, frustum_camera
+from ogmapping.model.static_gaussians import DrawnGaussianSet, DrawnWindow, frustum_camera
 from ogmapping.optim import refine
 from ogmapping.optim.exposure import values_of
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
@@ -79,10 +80,12 @@ class MappingSteps:
         with model.timed("statistics"):
             accumulate = model.graphs.statistics if static else refine.accumulate
             for gaussians, output, drawn in renders:
-                grad = output.means2d.grad if output.means2d.requires_grad else None
+                grad = output.screen_gradient(absolute=config.render.absgrad)
                 accumulate(model.anchors, gaussians, grad, output.visible, drawn.intrinsics.width,
                            drawn.intrinsics.height)
         with model.timed("optimizer"):
+            if config.optim.selective:
+                model.optimizer.select(seen_rows(model.anchors.capacity, renders))
             model.optimizer.step()
             if model.hash_optimizer is not None:
                 model.hash_optimizer.step()
@@ -109,7 +112,7 @@ class MappingSteps:
             window_gaussians = decoded.views() if static else decoded
         with model.timed("rasterize"):
             cameras = [model.camera(pose, drawn.intrinsics) for pose, drawn in views]
-            outputs = rasterize_batch(decoded, cameras, backend=model.backend)
+            outputs = rasterize_batch(decoded, cameras, backend=model.backend, options=model.raster_options)
         renders = list(zip(window_gaussians, outputs, window, strict=True))
         total = torch.zeros((), device=model.device)
         weights = self.window_weights(keyframes)
@@ -196,3 +199,14 @@ class MappingSteps:
         (half-size local keyframes cost 1.6 dB on Replica room0 at 600x340, bench/RESULTS.md)."""
         settings = self.model.config.keyframes
         return min(1.0, max(settings.window_scale, settings.window_min_width / width))
+
+
+def seen_rows(capacity: int, renders: list[tuple[GaussianSet, RenderOutput, View]]) -> torch.Tensor:
+    """(capacity,) bool: the anchor rows with a Gaussian drawn and visible in one of ``renders``, the rows
+    ``optim.selective`` steps (counted by a scatter, not gathered: nothing for the host to wait on)."""
+    device = renders[0][1].visible.device
+    hits = torch.zeros(capacity, dtype=torch.int32, device=device)
+    for gaussians, output, _ in renders:
+        counted = output.visible & gaussians.drawn if isinstance(gaussians, DrawnGaussianSet) else output.visible
+        hits.index_add_(0, gaussians.rows, counted.to(torch.int32))
+    return hits > 0

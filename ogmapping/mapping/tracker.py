@@ -144,6 +144,6 @@ class Tracker:
 
         def render_at(correction: PoseCorrection) -> RenderOutput:
             camera = self.model.camera(correction.refined(c2w), intrinsics, blur)
-            return rasterize(gaussians, camera, backend=self.model.backend)
+            return rasterize(gaussians, camera, backend=self.model.backend, options=self.model.raster_options)
 
         return render_at, rgb, depth

@@ -43,7 +43,7 @@ def accumulate(anchors: AnchorMap, gaussians: GaussianSet, means2d_grad: torch.T
     # Gaussian, adding 0 where it is not visible, instead of a gather of the visible ones (its
     # data-dependent size makes the host wait for the device). Each (row, slot) appears once per
     # render, so the sums are the same to the bit.
-    norms = _gradient_norms(means2d_grad, visible, width, height)
+    norms = gradient_norms(means2d_grad, visible, width, height)
     rows, slots = gaussians.rows, gaussians.slots
     anchors.grad_sum.index_put_((rows, slots), norms.to(anchors.grad_sum), accumulate=True)
     anchors.grad_count.index_put_((rows, slots), visible.to(rows.dtype), accumulate=True)
@@ -59,11 +59,11 @@ def accumulate_drawn(anchors: AnchorMap, gaussians: DrawnGaussianSet, means2d_gr
     if means2d_grad is None:
         return
     counted = visible & gaussians.drawn
-    anchors.buffer("grad_sum").view(-1).add_(_gradient_norms(means2d_grad, counted, width, height))
+    anchors.buffer("grad_sum").view(-1).add_(gradient_norms(means2d_grad, counted, width, height))
     anchors.buffer("grad_count").view(-1).add_(counted)
 
 
-def _gradient_norms(means2d_grad: torch.Tensor, counted: torch.Tensor, width: int, height: int) -> torch.Tensor:
+def gradient_norms(means2d_grad: torch.Tensor, counted: torch.Tensor, width: int, height: int) -> torch.Tensor:
     """Each Gaussian's screen-space gradient norm in NDC units where ``counted``, else 0."""
     scaled = torch.stack([means2d_grad[:, 0] * (width / 2.0), means2d_grad[:, 1] * (height / 2.0)], dim=-1)
     return torch.where(counted, scaled.norm(dim=-1), 0.0)

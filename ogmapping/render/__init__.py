@@ -8,7 +8,8 @@ a camera's ``viewmat`` its gradient when it requires one, for pose refinement):
 ``auto`` picks ``cpu`` for CPU tensors and, for CUDA tensors, ``gsplat`` when it can render there
 (``gsplat_backend.unavailable_reason``), else ``torch`` with a warning. What every backend
 implements and returns lives in ``rules.py`` and ``output.py``, which the backends import instead
-of this entry.
+of this entry. ``RasterOptions`` (``options.py``) are gsplat's options beyond those rules; a backend
+that does not implement one that is set refuses it (ValueError).
 """
 
 from __future__ import annotations
@@ -20,10 +21,12 @@ import torch
 
 from ogmapping.backends import BACKENDS
 from ogmapping.render import gsplat_backend
+from ogmapping.render.options import RasterOptions
 from ogmapping.render.output import RenderOutput
 from ogmapping.render.views import Camera, Splats, SplatSet, per_view
 
-__all__ = ["Camera", "RenderOutput", "SplatSet", "Splats", "rasterize", "rasterize_batch", "resolve_backend"]
+__all__ = ["Camera", "RasterOptions", "RenderOutput", "SplatSet", "Splats", "rasterize", "rasterize_batch",
+           "resolve_backend"]
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:
@@ -50,7 +53,8 @@ def resolve_backend(backend: str, device: torch.device) -> str:
 
 
 def rasterize(
-    splats: Splats, camera: Camera, background: torch.Tensor | None = None, backend: str = "auto"
+    splats: Splats, camera: Camera, background: torch.Tensor | None = None, backend: str = "auto",
+    options: RasterOptions | None = None,
 ) -> RenderOutput:
     """Render N Gaussians, ``splats``, into one ``camera``.
 
@@ -59,11 +63,12 @@ def rasterize(
     ``camera.viewmat`` (4, 4) world-to-camera, ``K`` (3, 3) pixel intrinsics (pixel centres at +0.5,
     see ``ogmapping.frames.camera``). ``camera.blur`` (pixels^2) is added to every splat's 2D
     covariance so that none is thinner than a pixel; an image sampling every s-th pixel of another
-    (``Intrinsics.strided``) reproduces that image's pixels with ``blur / s**2``.
+    (``Intrinsics.strided``) reproduces that image's pixels with ``blur / s**2``. ``options``: see
+    ``RasterOptions``.
     """
     name = resolve_backend(backend, splats.means.device)
     module = importlib.import_module(f"ogmapping.render.{name}_backend")
-    return module.rasterize(splats, camera, background)
+    return module.rasterize(splats, camera, background, **_options(name, options))
 
 
 def rasterize_batch(
@@ -71,6 +76,7 @@ def rasterize_batch(
     cameras: list[Camera],
     background: torch.Tensor | None = None,
     backend: str = "auto",
+    options: RasterOptions | None = None,
 ) -> list[RenderOutput]:
     """Render scene i (its own Gaussians, as ``rasterize`` takes them) into camera i, for every i.
 
@@ -80,13 +86,24 @@ def rasterize_batch(
 
     The same images and gradients as one ``rasterize`` per view (the reference backend is exactly
     that loop), in as few backend calls as the backend can: ``cpu`` one projection and one
-    compositing node for the whole batch, ``gsplat`` one call per image size. Each output's
+    compositing node for the whole batch, ``gsplat`` one call per image size (per view with
+    ``options.packed``). Each output's
     ``means2d.grad`` holds its own view's screen-space gradient after ``backward``.
     """
     stacked = not isinstance(scenes, list | tuple)
     device = scenes.means.device if stacked else scenes[0].means.device if scenes else torch.device("cpu")
     name = resolve_backend(backend, device)
     module = importlib.import_module(f"ogmapping.render.{name}_backend")
+    keywords = _options(name, options)
     if stacked and name == "cpu":
         return module.rasterize_stacked(scenes, list(cameras), background)
-    return module.rasterize_batch(per_view(scenes), list(cameras), background)
+    return module.rasterize_batch(per_view(scenes), list(cameras), background, **keywords)
+
+
+def _options(backend: str, options: RasterOptions | None) -> dict[str, RasterOptions]:
+    """The keyword arguments that hand ``options`` to ``backend``: only gsplat takes them; the others render
+    as every backend does, which is what ``packed`` asks for too, and refuse the rest (``RasterOptions.check``)."""
+    if options is None:
+        return {}
+    options.check(backend)
+    return {"options": options} if backend == "gsplat" else {}

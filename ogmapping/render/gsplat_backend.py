@@ -32,6 +32,13 @@ code, not settable from Python), with these details:
 - dtype: gsplat takes float32 only; other inputs are cast to it and the outputs back.
 - poses: gsplat's projection computes the viewmats' gradient when they require grad; the stack and
   cast that pass them in keep the graph, so each view's viewmat gets its own gradient.
+- options (``RasterOptions``): ``antialiased`` is gsplat's ``rasterize_mode="antialiased"``, ``absgrad`` its
+  ``absgrad=True`` (read from ``meta["means2d"].absgrad`` once backward has run). ``packed`` is its
+  ``packed=True``, which returns ``means2d`` and ``radii`` only for the (entry, Gaussian) pairs kept, with
+  their ``batch_ids`` and ``gaussian_ids``; they are scattered back to per-view arrays, so the output is
+  the unpacked one's. Packed, one call renders one view: its projection backward sums a warp's gradients
+  grouped by Gaussian index (the means') and camera index (the viewmats'), never by entry, and packed
+  entries follow each other mid-warp, where whole warps per entry (``batch_rows``) cannot keep them apart.
 """
 
 from __future__ import annotations
@@ -44,6 +51,7 @@ import torch
 from torch.nn.functional import pad
 from torch.nn.utils.rnn import pad_sequence
 
+from ogmapping.render.options import DEFAULT, RasterOptions
 from ogmapping.render.output import RenderOutput
 from ogmapping.render.rules import NEAR_PLANE
 from ogmapping.render.views import Camera, Splats, check_batch, grouped, parameters
@@ -56,6 +64,8 @@ INSTALL_HINT = (
 SUPPORTED_MINOR = (1, 5)
 FIRST_BATCHED_PATCH = 3  # gsplat 1.5.3 added the leading batch dimension ``rasterize_batch`` renders through
 WARP = 32  # CUDA threads per warp
+# Cuts a tensor of one gsplat call's layout into its views' (n_i, ...) parts.
+Pieces = Callable[[torch.Tensor], list[torch.Tensor]]
 
 
 @functools.cache
@@ -92,19 +102,18 @@ def require() -> None:
         raise ImportError(f"{reason}; {INSTALL_HINT}")
 
 
-def _screen_means(projected: torch.Tensor, pieces: Callable[[torch.Tensor], list[torch.Tensor]],
-                   dtype: torch.dtype, visible: list[torch.Tensor] | None = None) -> list[torch.Tensor]:
+def _screen_means(projected: torch.Tensor, pieces: Pieces, dtype: torch.dtype,
+                  visible: list[torch.Tensor]) -> list[torch.Tensor]:
     """Per-view (n_i, 2) leaves whose ``.grad`` receives the screen-space gradient of ``projected``.
 
-    gsplat renders from its own (B, 1, N, 2) tensor, so a plain view of it would never get a
-    gradient; leaf mirrors keep the shared ``RenderOutput.means2d.grad`` contract. ``pieces`` cuts a tensor
-    shaped like ``projected`` into the views' (n_i, 2) parts; each mirror holds its view's values (0
-    where ``visible`` is False) and a backward hook on ``projected`` hands each its part of the
+    gsplat renders from its own tensor ((B, 1, N, 2), or (nnz, 2) packed), so a plain view of it would
+    never get a gradient; leaf mirrors keep the shared ``RenderOutput.means2d.grad`` contract. ``pieces``
+    cuts a tensor shaped like ``projected`` into the views' (n_i, 2) parts; each mirror holds its view's
+    values (0 where ``visible`` is False) and a backward hook on ``projected`` hands each its part of the
     gradient, accumulating as a leaf's ``.grad`` does.
     """
-    parts = pieces(projected.detach())
-    if visible is not None:
-        parts = [part.masked_fill(~seen.unsqueeze(-1), 0.0) for part, seen in zip(parts, visible, strict=True)]
+    parts = [part.masked_fill(~seen.unsqueeze(-1), 0.0)
+             for part, seen in zip(pieces(projected.detach()), visible, strict=True)]
     mirrors = [part.to(dtype).clone() for part in parts]
     if not projected.requires_grad:
         return mirrors
@@ -135,14 +144,16 @@ def _empty(means: torch.Tensor, width: int, height: int, background: torch.Tenso
     )
 
 
-def rasterize(splats: Splats, camera: Camera, background: torch.Tensor | None = None) -> RenderOutput:
+def rasterize(splats: Splats, camera: Camera, background: torch.Tensor | None = None,
+              options: RasterOptions = DEFAULT) -> RenderOutput:
     """Render with gsplat; see ``ogmapping.render.rasterize`` for shapes and conventions."""
-    return rasterize_batch([splats], [camera], background)[0]
+    return rasterize_batch([splats], [camera], background, options)[0]
 
 
-def rasterize_batch(scenes: list[Splats], cameras: list[Camera],
-                    background: torch.Tensor | None = None) -> list[RenderOutput]:
-    """Scene i into camera i: one gsplat call per image size (and blur); see ``ogmapping.render.rasterize_batch``."""
+def rasterize_batch(scenes: list[Splats], cameras: list[Camera], background: torch.Tensor | None = None,
+                    options: RasterOptions = DEFAULT) -> list[RenderOutput]:
+    """Scene i into camera i: one gsplat call per image size (and blur), per view where ``options.packed``;
+    see ``ogmapping.render.rasterize_batch``."""
     require()
     check_batch(scenes, cameras)
     for scene in scenes:
@@ -151,16 +162,20 @@ def rasterize_batch(scenes: list[Splats], cameras: list[Camera],
     from gsplat import rasterization
 
     outputs: list[RenderOutput | None] = [None] * len(scenes)
-    for group in same_size_groups(cameras):
-        rendered = render_group(rasterization, [scenes[i] for i in group], [cameras[i] for i in group], background)
+    for group in call_groups(cameras, options.packed):
+        rendered = render_group(rasterization, [scenes[i] for i in group], [cameras[i] for i in group], background,
+                                options)
         for index, output in zip(group, rendered, strict=True):
             outputs[index] = output
     return outputs
 
 
-def same_size_groups(cameras: list[Camera]) -> list[list[int]]:
+def call_groups(cameras: list[Camera], packed: bool = False) -> list[list[int]]:
     """Indices of the cameras, grouped by image size and blur in order of first appearance: gsplat
-    renders a batch into images of one size with one ``eps2d``."""
+    renders a batch into images of one size with one ``eps2d``; ``packed``, one view a call (see the
+    module's docstring)."""
+    if packed:
+        return [[index] for index in range(len(cameras))]
     return grouped((*camera.size, camera.blur) for camera in cameras)
 
 
@@ -189,6 +204,7 @@ def render_group(
     scenes: list[Splats],
     cameras: list[Camera],
     background: torch.Tensor | None,
+    options: RasterOptions = DEFAULT,
 ) -> list[RenderOutput]:
     """One call of gsplat's ``rasterization`` for views of one image size and blur, each scene its own batch
     entry (gsplat 1.5.3's leading batch dimension), padded to ``batch_rows`` with Gaussians of
@@ -216,16 +232,17 @@ def render_group(
         height,
         near_plane=NEAR_PLANE,
         eps2d=cameras[0].blur,
-        packed=False,
+        packed=options.packed,
+        absgrad=options.absgrad,
         render_mode="RGB+ED",
-        rasterize_mode="classic",
+        rasterize_mode="antialiased" if options.antialiased else "classic",
         backgrounds=None if background is None else background.to(device=device, dtype=work).expand(batch, 1, 3),
     )
-    seen = (meta["radii"][:, 0] > 0).all(dim=-1)  # (B, N): a Gaussian is culled where either radius is 0
-    visible = [seen[b, :count] for b, count in enumerate(counts)]
+    pieces = _packed_pieces(meta, counts, rows) if options.packed else _batched_pieces(counts)
+    visible = pieces((meta["radii"] > 0).all(dim=-1))  # a Gaussian is culled where either radius is 0
     # gsplat leaves the entries of culled Gaussians uninitialised (``at::empty``); the mirrors hold 0 there.
-    means2d = _screen_means(meta["means2d"], lambda t: [t[b, 0, :count] for b, count in enumerate(counts)],
-                             dtype, visible)
+    means2d = _screen_means(meta["means2d"], pieces, dtype, visible)
+    absolute = functools.partial(_absolute, meta["means2d"], pieces, visible) if options.absgrad else None
     return [
         RenderOutput(
             color=render[b, 0, ..., :3].to(dtype),
@@ -233,6 +250,34 @@ def render_group(
             alpha=alpha[b, 0, ..., 0].to(dtype),
             means2d=means2d[b],
             visible=visible[b],
+            absgrad=None if absolute is None else functools.partial(absolute, b, dtype),
         )
         for b in range(batch)
     ]
+
+
+def _batched_pieces(counts: list[int]) -> Pieces:
+    """Cuts a tensor of gsplat's unpacked layout, (B, 1, N, ...), into the views' (n_i, ...) parts."""
+    return lambda tensor: [tensor[b, 0, :count] for b, count in enumerate(counts)]
+
+
+def _packed_pieces(meta: dict, counts: list[int], rows: int) -> Pieces:
+    """Scatters a tensor of gsplat's packed layout, (nnz, ...) with ``meta["batch_ids"]`` and
+    ``meta["gaussian_ids"]``, into the views' (n_i, ...) parts, 0 (False) for the Gaussians it left out."""
+    index = (meta["batch_ids"], meta["gaussian_ids"])
+
+    def pieces(tensor: torch.Tensor) -> list[torch.Tensor]:
+        dense = tensor.new_zeros(len(counts), rows, *tensor.shape[1:]).index_put_(index, tensor)
+        return [dense[b, :count] for b, count in enumerate(counts)]
+
+    return pieces
+
+
+def _absolute(projected: torch.Tensor, pieces: Pieces, visible: list[torch.Tensor], view: int,
+              dtype: torch.dtype) -> torch.Tensor | None:
+    """View ``view``'s (n, 2) part of the |gradient| sums gsplat's backward leaves in ``projected.absgrad``
+    (0 where culled), or None before a backward has run."""
+    summed = getattr(projected, "absgrad", None)
+    if summed is None:
+        return None
+    return pieces(summed.detach())[view].masked_fill(~visible[view].unsqueeze(-1), 0.0).to(dtype)

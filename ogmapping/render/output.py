@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -15,7 +16,8 @@ class RenderOutput:
     (accumulated z divided by alpha, 0 where alpha is 0); ``alpha`` (H, W) the accumulated opacity.
     ``means2d`` (N, 2) holds the projected centres in pixels; after ``loss.backward()`` its
     ``.grad`` is the per-Gaussian screen-space gradient refinement uses. ``visible`` (N,) marks
-    Gaussians that touched the image.
+    Gaussians that touched the image. ``absgrad``, where the backend computes it (gsplat with
+    ``RasterOptions.absgrad``), reads after ``backward`` each Gaussian's sum over pixels of |gradient|.
     """
 
     color: torch.Tensor
@@ -23,6 +25,16 @@ class RenderOutput:
     alpha: torch.Tensor
     means2d: torch.Tensor
     visible: torch.Tensor
+    absgrad: Callable[[], torch.Tensor | None] | None = None
+
+    def screen_gradient(self, absolute: bool = False) -> torch.Tensor | None:
+        """After ``backward``: ``means2d.grad`` (N, 2), or with ``absolute`` the sum over pixels of |gradient|
+        (``absgrad``; None where the backend does not compute it). None for a render without gradients."""
+        if not self.means2d.requires_grad:
+            return None
+        if absolute:
+            return self.absgrad() if self.absgrad is not None else None
+        return self.means2d.grad
 
 
 def finish_output(

@@ -235,6 +235,14 @@ def test_create_session_refuses_configs_beyond_the_bounds(server: ServerHandle, 
     assert refusal.value.details().startswith("overrides: config ") and named in refusal.value.details()
 
 
+def test_create_session_refuses_options_this_servers_rasterizer_lacks(server: ServerHandle) -> None:
+    request = pb.CreateSessionRequest(preset="sparse-fast", overrides={"render.antialiased": "true"})
+    with pytest.raises(grpc.RpcError) as refusal:
+        server.stub.CreateSession(request, timeout=CALL_SECONDS)
+    assert refusal.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert refusal.value.details().startswith("overrides: render.antialiased: gsplat's options only")
+
+
 def test_restore_refuses_a_snapshot_whose_config_is_beyond_the_bounds(server: ServerHandle) -> None:
     """A crafted 216 KB snapshot once pushed the server to 2.6 GB before anything was checked."""
     data = Mapper(resolve(PRESET, overrides=TINY)).snapshot()

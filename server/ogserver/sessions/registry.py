@@ -146,7 +146,10 @@ class Registry:
         """A new session; ``session_id`` is chosen here unless given (cluster mode names the actor first)."""
         preset, overrides, config = requested_config(request, self.settings)
         with self._reserve(owner):
-            mapper = Mapper(config, device=self.device, bounds=self.settings.config_bounds)
+            try:
+                mapper = Mapper(config, device=self.device, bounds=self.settings.config_bounds)
+            except ValueError as error:  # what this server's device cannot run (render.antialiased off CUDA)
+                raise invalid("overrides", error) from None
             return self._open(mapper, preset, overrides, request.label, "", owner, request.realtime, session_id)
 
     def restore(self, owner: str, receive: Callable[[], Upload], session_id: str = "") -> Opened:
