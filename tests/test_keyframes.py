@@ -1,5 +1,7 @@
 """Keyframe insertion by overlap and the dynamic window's draws."""
 
+import random
+
 import torch
 
 from ogmapping.config import KeyframeConfig
@@ -78,6 +80,55 @@ def test_window_draws_without_replacement_and_changes_between_iterations():
         assert sum(i in local for i in indices) == 3
         draws.append(tuple(indices))
     assert len(set(draws)) > 1, "the window is drawn afresh every iteration"
+
+
+def stalest_set(global_count: int) -> KeyframeSet:
+    """One local keyframe and six global ones beside K_new, drawn by ``stalest``."""
+    frames = KeyframeSet(KeyframeConfig(local_threshold=0.5, local_count=1, global_count=global_count,
+                                        global_draw="stalest"), seed=3)
+    frames.insert(keyframe(0, list(range(0, 20))))
+    for index in range(1, 7):
+        frames.insert(keyframe(index, list(range(100 * index, 100 * index + 20))))
+    frames.insert(keyframe(7, list(range(0, 20))))
+    assert frames.local == [0] and frames.global_ == [1, 2, 3, 4, 5, 6]
+    return frames
+
+
+def test_the_stalest_draw_revisits_every_global_keyframe_in_turn():
+    frames = stalest_set(global_count=2)
+    for _ in range(3):  # two rounds over the six global keyframes, each keyframe once a round
+        seen = []
+        for _ in range(3):
+            drawn = [kf.index for kf in frames.draw_window(view_is_newest=True)]
+            assert drawn[0] == 0 and len(drawn) == 3
+            seen += drawn[1:]
+        assert sorted(seen) == [1, 2, 3, 4, 5, 6]
+    assert frames.draws == 9 and frames.trained[0] == 9
+
+
+def test_the_stalest_draw_breaks_ties_at_random():
+    orders = set()
+    for seed in (11, 12, 13):
+        frames = stalest_set(global_count=6)
+        frames.random.seed(seed)
+        drawn = [kf.index for kf in frames.draw_window(view_is_newest=True)[1:]]
+        assert sorted(drawn) == [1, 2, 3, 4, 5, 6]  # all tied (never trained): every one, in a drawn order
+        orders.add(tuple(drawn))
+    assert len(orders) > 1
+
+
+def test_the_random_draw_is_the_papers_uniform_draw():
+    """``random`` (the default) draws b1 local then b2 global keyframes with ``random.sample``, as it always has."""
+    config = KeyframeConfig(local_threshold=0.5, local_count=1, global_count=2)
+    frames = KeyframeSet(config, seed=5)
+    frames.insert(keyframe(0, list(range(0, 20))))
+    for index in range(1, 7):
+        frames.insert(keyframe(index, list(range(100 * index, 100 * index + 20))))
+    frames.insert(keyframe(7, list(range(0, 20))))
+    expected = random.Random(5)
+    for _ in range(5):
+        drawn = [kf.index for kf in frames.draw_window(view_is_newest=True)]
+        assert drawn == expected.sample([0], 1) + expected.sample([1, 2, 3, 4, 5, 6], 2)
 
 
 def test_window_with_few_keyframes_uses_what_exists():

@@ -27,6 +27,8 @@ def test_a_mapper_rebuilt_with_its_training_state_maps_on_exactly(preset: str) -
     resumed = Mapper.from_state(snapshot.decode(data), training_state=True)
     fresh_start = Mapper.from_state(snapshot.decode(data))  # the map only: fresh keyframes and moments
     assert len(resumed.keyframes) == len(original.keyframes) and len(fresh_start.keyframes) == 0
+    before, after = original.keyframes, resumed.keyframes
+    assert (after.draws, after.trained) == (before.draws, before.trained) and before.draws > 0
     for frame in loaded[3:]:
         expected = original.process(frame)
         got = resumed.process(frame)

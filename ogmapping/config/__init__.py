@@ -24,6 +24,7 @@ from ogmapping.config.sections import (
     AnchorColourStart,
     Backend,
     Encoding,
+    GlobalDraw,
     Growth,
     KeyframeConfig,
     LossConfig,
@@ -41,9 +42,9 @@ from ogmapping.config.sections import (
 
 __all__ = [
     "MIB", "PRESETS", "PRESET_VALUES", "Allocation", "AnchorColourStart", "Backend", "ConfigBounds", "Encoding",
-    "Growth", "KeyframeConfig", "LossConfig", "MapperConfig", "ModelConfig", "OctreeConfig", "OptimConfig",
-    "PosesConfig", "RefineConfig", "RenderConfig", "Window", "apply_overrides", "flatten", "hash_table_bytes",
-    "load_file", "parse_override_args", "pinned", "preset", "resolve", "validate",
+    "GlobalDraw", "Growth", "KeyframeConfig", "LossConfig", "MapperConfig", "ModelConfig", "OctreeConfig",
+    "OptimConfig", "PosesConfig", "RefineConfig", "RenderConfig", "Window", "apply_overrides", "flatten",
+    "hash_table_bytes", "load_file", "parse_override_args", "pinned", "preset", "resolve", "validate",
 ]
 
 

@@ -27,6 +27,7 @@ StepMode = Literal["auto", "dynamic", "static", "compiled"]
 # The ablation switches (paper section 4); the first value of each is the paper's method.
 Allocation = Literal["octree", "unique", "projection"]  # map densification: the paper's, naive, SplaTAM's
 Window = Literal["dynamic", "random", "overlap", "coverage"]  # the paper's, or a fixed window (random: ESLAM's)
+GlobalDraw = Literal["random", "stalest"]  # how the dynamic window draws its global keyframes
 Growth = Literal["anchor", "error", "none"]  # the paper's progressive growth, Scaffold-GS's error-based, none
 
 MAX_OCTREE_LEVEL = 4
@@ -103,6 +104,10 @@ class KeyframeConfig:
     window_scale: float = ranged(1.0, 0, 1, open_low=True)
     window_min_width: int = ranged(160, 1)  # ...but never narrower than this many pixels (or the keyframe itself)
     window: Window = "dynamic"
+    # The dynamic window's b2 global keyframes: ``random`` draws them uniformly without replacement (the
+    # paper's); ``stalest`` takes those trained longest ago (ties at random), so every region is revisited
+    # in turn instead of by chance ("A whole run").
+    global_draw: GlobalDraw = "random"
     # The four step counts above (iterations, first_iterations, frame_iterations, frame_renders) are
     # multiplied by this; ``resolution.steps`` sets it from the first frame's size ("Steps by resolution").
     step_multiple: int = ranged(1, 1)

@@ -6,6 +6,10 @@ earlier keyframes once, when a keyframe is inserted, and keep them until the nex
 ``random`` (ESLAM), ``overlap`` (the most overlapping with K_new, SplaTAM / MonoGS) and
 ``coverage`` (greedy coverage of coarse cells K_new does not see, H2-Mapping-like).
 
+The dynamic window's global keyframes are drawn uniformly (``keyframes.global_draw=random``, the
+paper's) or as the ``stalest`` ones: those whose last window lies furthest back, so every region of a
+long run is revisited in turn.
+
 Keyframes whose poses a client corrected (``revisit``) join every window drawn after it, besides
 the keyframes drawn as above, ``REVISIT_PER_DRAW`` at a time in turn until each has joined
 ``REVISIT_DRAWS`` windows: the map they moved is settled where it moved to.
@@ -230,6 +234,8 @@ class KeyframeSet:
         self.fixed: list[int] = []  # a fixed window's earlier keyframes, chosen when K_new came
         # Corrected keyframes still to join windows: (position, windows left), in turn.
         self.revisits: deque[tuple[int, int]] = deque()
+        self.draws = 0  # dynamic windows drawn so far
+        self.trained: list[int] = []  # per keyframe, the draw that last put it in a window (-1: none yet)
 
     def __len__(self) -> int:
         return len(self.keyframes)
@@ -263,6 +269,7 @@ class KeyframeSet:
             count = self.config.local_count + self.config.global_count
             self.fixed = choose(self.keyframes, keyframe, weights, count, self.random)
         self.keyframes.append(keyframe)
+        self.trained.append(-1)
 
     def is_local(self, keyframe: Keyframe) -> bool:
         """Whether ``keyframe`` sees much of what the current view sees: the newest keyframe, or
@@ -285,6 +292,12 @@ class KeyframeSet:
             if left > 1:
                 self.revisits.append((position, left - 1))
         return joining
+
+    def _draw_global(self, count: int) -> list[int]:
+        """``count`` global keyframes, by ``keyframes.global_draw``."""
+        if self.config.global_draw == "random":
+            return self.random.sample(self.global_, count)
+        return sorted(self.global_, key=lambda position: (self.trained[position], self.random.random()))[:count]
 
     def window_size(self, view_is_newest: bool) -> int:
         """How many keyframes ``draw_window(view_is_newest)`` returns now (at most: a corrected keyframe
@@ -317,5 +330,8 @@ class KeyframeSet:
             newest = len(self.keyframes) - 1
             local_set = self.local if view_is_newest else [*self.local, newest]
             drawn = self.random.sample(local_set, min(self.config.local_count, len(local_set)))
-            drawn += self.random.sample(self.global_, min(self.config.global_count, len(self.global_)))
+            drawn += self._draw_global(min(self.config.global_count, len(self.global_)))
+            self.draws += 1
+            for position in drawn:
+                self.trained[position] = self.draws
         return [self.keyframes[i] for i in drawn + self._revisiting(drawn)]

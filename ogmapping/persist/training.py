@@ -85,6 +85,8 @@ def capture(mapper: Optimisation) -> dict[str, torch.Tensor]:
         tensors[f"keyframes.{name}"] = torch.tensor(getattr(keyframes, name), dtype=torch.int64)
     tensors["keyframes.count"] = _scalar(len(keyframes), torch.int64)
     tensors["keyframes.revisits"] = torch.tensor(list(keyframes.revisits), dtype=torch.int64).reshape(-1, 2)
+    tensors["keyframes.draws"] = _scalar(keyframes.draws, torch.int64)
+    tensors["keyframes.trained"] = torch.tensor(keyframes.trained, dtype=torch.int64)
     for position, keyframe in enumerate(keyframes.keyframes):
         camera = keyframe.intrinsics
         tensors.update({
@@ -210,6 +212,12 @@ def _restore_keyframes(mapper: Optimisation, section: dict[str, torch.Tensor]) -
     if any(not 0 <= position < len(restored) or left < 1 for position, left in revisits):
         raise ValueError(f"{PREFIX}keyframes.revisits: a keyframe beyond the {len(restored)} keyframes")
     keyframes.revisits = deque((position, left) for position, left in revisits)
+    # When each keyframe was last in a window; states written before the stalest draw existed hold none.
+    keyframes.draws = int(section.get("keyframes.draws", torch.zeros(1, dtype=torch.int64))[0])
+    trained = section.get("keyframes.trained", torch.full((len(restored),), -1, dtype=torch.int64)).tolist()
+    if len(trained) != len(restored) or any(not -1 <= draw <= keyframes.draws for draw in trained):
+        raise ValueError(f"{PREFIX}keyframes.trained: not one draw in 0..{keyframes.draws} (or -1) per keyframe")
+    keyframes.trained = trained
     version, *internal = section["keyframes.random"].tolist()
     gauss = float(section["keyframes.random_gauss"][0])
     keyframes.random.setstate((version, tuple(internal), None if math.isnan(gauss) else gauss))
