@@ -167,7 +167,8 @@ class OptimConfig:
     # values and moments as they were (Taming 3DGS's selective Adam; ``ogmapping.optim.selective_adam``):
     # torch's Adam decays every row's moments and moves it by its momentum even where the step gave it no
     # gradient. The decoders and the exposures step as before; the hash grid's lazy Adam already steps only
-    # its touched rows. Off until measured on a GPU (bench/gpu/raster_options.py).
+    # its touched rows. Off: +0.06 dB held out on 7-Scenes 0-299, -0.05 on 300-599 (seed 0), within the seeds' spread
+    # (bench/RESULTS.md "A whole run"); its GPU speed in bench/gpu/raster_options.py.
     selective: bool = False
 
 
