@@ -76,10 +76,12 @@ def test_a_rule_a_setting_cannot_take_is_refused_by_name(key: str, value: str, m
 
 
 def test_configs_stored_with_the_switches_load_as_the_rules_they_stood_for() -> None:
-    # Stored before `keyframes.global_draw`, they load with the uniform draw their maps were made with.
-    drawn_then = {"keyframes.global_draw": "random"}
+    # Stored before `keyframes.global_draw` and `sparse`'s fourth global keyframe, they load with the uniform
+    # draw and the window their maps were made with.
+    window_then = {"sparse": {"keyframes.global_count": 3}}
     for name, stored in json.loads(COMPAT.read_text()).items():
-        assert MapperConfig.from_dict(stored) == resolve(name, overrides=drawn_then), name
+        overrides = {"keyframes.global_draw": "random", **window_then.get(name, {})}
+        assert MapperConfig.from_dict(stored) == resolve(name, overrides=overrides), name
     cleared = resolve("sparse").to_dict()  # what a snapshot stored once its first frame resolved the switches
     del cleared["resolution"]
     cleared["keyframes"].update(steps_reference_pixels=204000, steps_growth="area")

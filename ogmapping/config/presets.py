@@ -69,9 +69,9 @@ PRESET_VALUES: dict[str, dict[str, Any]] = {
         "refine.prune_opacity": 0.05,
         "keyframes.iterations": 10,  # a step more than nine gains at little cost ("Keyframes and the window")
         "keyframes.first_iterations": 80,  # the anchor colours need more on the first keyframe ("Anchor colours")
-        # Three global keyframes at full size; a streamed frame's steps capped at four renders, so one step
-        # on a full window instead of two ("Keyframes and the window").
-        "keyframes.global_count": 3,
+        # Four global keyframes at full size (a whole run forgets less: "A whole run"); a streamed frame's
+        # steps capped at four renders, so one step on a full window instead of two ("Keyframes and the window").
+        "keyframes.global_count": 4,
         "keyframes.frame_renders": 4,
         "keyframes.global_draw": "stalest",  # every region revisited in turn: +0.17 / +0.27 dB held out ("A whole run")
         "loss.ssim": 0.1,  # its gradients drive growth: fewer anchors pay for the window's fifth view ("Loss weights")
