@@ -43,7 +43,7 @@ from ogmapping.datasets import open_dataset
 from ogmapping.frames.preprocess import resize_frame
 from ogmapping.frames.selection import select
 from ogmapping.mapper import Mapper
-from ogmapping.quality.evaluation import ground_truth, score
+from ogmapping.quality.evaluation import ground_truth, mapper_render, score
 from ogmapping.quality.metrics import Lpips, summarise
 from ogmapping.runtime.profile import resolve_device
 
@@ -124,7 +124,7 @@ def map_and_score(config, device, streamed, heldout, lpips: Lpips) -> dict[str, 
         per_frame = []
         for frame in frames:
             truth = ground_truth(frame, config)
-            rendered = mapper.render(truth.c2w, truth.color_intrinsics)
+            rendered = mapper_render(mapper)(truth.c2w, truth.color_intrinsics, truth)
             per_frame.append({**score(rendered, truth), "lpips": lpips(rendered.color, truth.rgb)})
         record[split] = summarise(per_frame)
     stats = mapper.stats()

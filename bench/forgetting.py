@@ -4,6 +4,8 @@ Maps the streamed frames once per setting (frames decoded before the clock start
 every held-out frame (index % 10 == 5) and prints the mean per stretch of ``--stretch`` frames,
 oldest first: the raw PSNR, and after it the PSNR once each frame's own affine colour map (gain and
 offset) is fitted to its render (``psnr_affine``), which takes the frame's exposure out of the score.
+Each held-out pose is rendered as a client pose of its frame's time (``mapper_render``: with
+``poses.refine``, moved as the nearest keyframe was; then the raw PSNR at the poses as given follows).
 Comparing a run over a short prefix with a run over the whole sequence shows what the later frames
 cost the early ones.
 
@@ -20,7 +22,7 @@ import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts
 import numpy as np
 from sequence import add_sequence_arguments, load_sequence, map_setting
 
-from ogmapping.quality.evaluation import ground_truth, score
+from ogmapping.quality.evaluation import ground_truth, mapper_render, score
 
 
 def main() -> None:
@@ -35,20 +37,25 @@ def main() -> None:
         run = map_setting(args.preset, setting, sequence.streamed)
         mapper = run.mapper
         truths = [ground_truth(frame, run.config) for frame in sequence.heldout]
-        scores = [score(mapper.render(t.c2w, t.color_intrinsics), t) for t in truths]
-        first = selection.heldout[0]
-        figures = []
-        for key in ("psnr", "psnr_affine"):
-            values = np.array([frame[key] for frame in scores])
-            stretches = {}
-            for index, value in zip(selection.heldout, values, strict=True):
-                stretches.setdefault((index - first) // args.stretch, []).append(value)
-            summary = " ".join(f"{np.mean(each):.2f}" for _, each in sorted(stretches.items()))
-            figures.append(f"{values.mean():.2f} dB, per {args.stretch} frames: {summary}")
+        render = mapper_render(mapper)
+        scores = [score(render(t.c2w, t.color_intrinsics, t), t) for t in truths]
+        figures = [per_stretch([frame[key] for frame in scores], selection.heldout, args.stretch)
+                   for key in ("psnr", "psnr_affine")]
+        report = f"held-out PSNR raw {figures[0]}; PSNR affine-fit {figures[1]}"
+        if run.config.poses.refine:  # the map has moved off the given poses: what a render at them sees
+            given = [score(mapper.render(t.c2w, t.color_intrinsics), t)["psnr"] for t in truths]
+            report += f"; raw at the poses as given, unmoved {per_stretch(given, selection.heldout, args.stretch)}"
         print(f"{args.preset} [{setting}]: {run.fps(len(sequence.streamed)):.2f} FPS, "
-              f"{mapper.model.iterations} iterations, "
-              f"{len(mapper.model.anchors)} anchors; held-out PSNR raw {figures[0]}; "
-              f"PSNR affine-fit {figures[1]}", flush=True)
+              f"{mapper.model.iterations} iterations, {len(mapper.model.anchors)} anchors; {report}", flush=True)
+
+
+def per_stretch(values: list[float], indices: list[int], stretch: int) -> str:
+    """The mean, then the mean of each ``stretch`` frames from the first index on."""
+    stretches: dict[int, list[float]] = {}
+    for index, value in zip(indices, values, strict=True):
+        stretches.setdefault((index - indices[0]) // stretch, []).append(value)
+    summary = " ".join(f"{np.mean(each):.2f}" for _, each in sorted(stretches.items()))
+    return f"{np.mean(values):.2f} dB, per {stretch} frames: {summary}"
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ from sequence import add_sequence_arguments, load_sequence
 
 from ogmapping.config import parse_override_args, resolve
 from ogmapping.mapper import Mapper
-from ogmapping.quality.evaluation import ground_truth
+from ogmapping.quality.evaluation import ground_truth, mapper_render
 from ogmapping.quality.metrics import psnr
 
 MARGIN = 3  # pixels dropped at each border when comparing shifted renders
@@ -56,7 +56,7 @@ def main() -> None:
     rows = []
     for frame in sequence.heldout:
         truth = ground_truth(frame, config)
-        rendered = mapper.render(truth.c2w, truth.color_intrinsics)
+        rendered = mapper_render(mapper)(truth.c2w, truth.color_intrinsics, truth)
         image = truth.rgb.astype(np.float32) / 255 if truth.rgb.dtype == np.uint8 else truth.rgb
         shifted, offset = best_shift(rendered.color, image)
         row = (psnr(rendered.color, image), psnr(affine_fit(rendered.color, image), image), shifted,

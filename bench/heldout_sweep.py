@@ -18,7 +18,7 @@ import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts
 # isort: split
 from sequence import add_sequence_arguments, load_sequence, map_setting
 
-from ogmapping.quality.evaluation import ground_truth, score
+from ogmapping.quality.evaluation import ground_truth, mapper_render, score
 from ogmapping.quality.metrics import summarise
 
 
@@ -37,7 +37,7 @@ def main() -> None:
         scores = []
         for name, frames in splits.items():
             truths = [ground_truth(frame, config) for frame in frames]
-            quality = summarise([score(mapper.render(t.c2w, t.color_intrinsics), t) for t in truths])
+            quality = summarise([score(mapper_render(mapper)(t.c2w, t.color_intrinsics, t), t) for t in truths])
             scores.append(f"{name} PSNR {quality['psnr']:.2f} dB, SSIM {quality['ssim']:.3f}, "
                           f"depth L1 {quality['depth_l1_cm']:.2f} cm")
         print(f"{args.preset} [{setting}]: {len(streamed) / seconds:.2f} FPS ({seconds:.0f} s), {'; '.join(scores)}, "

@@ -33,7 +33,7 @@ from ogmapping.config import MapperConfig, parse_override_args, resolve
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.rotation import axis_angle_matrix
 from ogmapping.mapper import Mapper
-from ogmapping.quality.evaluation import ground_truth, score
+from ogmapping.quality.evaluation import ground_truth, mapper_render, score
 
 MODES = ("exact", "uncorrected", "corrected")
 
@@ -94,7 +94,7 @@ def main() -> None:
     for mode in modes:
         start = time.perf_counter()
         mapper = map_run(mode, streamed, args, config)
-        scores = [score(mapper.render(truth.c2w, truth.color_intrinsics), truth) for truth in truths]
+        scores = [score(mapper_render(mapper)(truth.c2w, truth.color_intrinsics, truth), truth) for truth in truths]
         raw = np.array([each["psnr"] for each in scores])
         affine = np.mean([each["psnr_affine"] for each in scores])
         exact = raw.mean() if mode == "exact" else exact

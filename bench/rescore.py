@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 from ogmapping.mapper import Mapper
-from ogmapping.quality.evaluation import evaluate_views, open_frames
+from ogmapping.quality.evaluation import evaluate_views, mapper_render, open_frames
 from ogmapping.quality.metrics import METRIC_KEYS
 
 SPLITS = ("streamed", "heldout")
@@ -29,7 +29,7 @@ def rescore(run: Path, data: str, format: str, frames: str | None, scale: float,
     """Each split's summary of the map in ``run``, with the figures its results.json recorded beside it."""
     mapper = Mapper.restore((run / "map.safetensors").read_bytes())
     selected = open_frames(data, format, frames, 1, scale)
-    evaluation = evaluate_views(selected, mapper.config, mapper.render, None, progress, mapper.device)
+    evaluation = evaluate_views(selected, mapper.config, mapper_render(mapper), None, progress, mapper.device)
     recorded_file = run / "results.json"
     recorded = json.loads(recorded_file.read_text()) if recorded_file.is_file() else {}
     return {

@@ -99,6 +99,9 @@ class Mapper:
         self.keyframes = KeyframeSet(config.keyframes, config.seed, self._footprint)
         self.tracker = Tracker(self.model, self.lock)
         self.steps = MappingSteps(self.model, self.keyframes, self.lock)
+        # A snapshot keeps its keyframes' client and refined poses, not the keyframes: a map loaded from one
+        # answers renders at client poses with these until it maps keyframes of its own.
+        self.recorded_poses: list[KeyframePose] = []
 
     @property
     def config(self) -> MapperConfig:
@@ -278,10 +281,31 @@ class Mapper:
 
     # ------------------------------------------------------------------ queries
 
-    def render(self, c2w: np.ndarray, intrinsics: Intrinsics) -> Rendered:
-        """Colour, depth and alpha from any pose (camera-to-world) and intrinsics (``queries.render``)."""
+    def render(self, c2w: np.ndarray, intrinsics: Intrinsics, keyframe: int | None = None) -> Rendered:
+        """Colour, depth and alpha from any pose (camera-to-world) and intrinsics (``queries.render``). The
+        pose is in the map's frame; with ``keyframe`` (a position in ``keyframe_poses``, as ``nearest_keyframe``
+        gives) it is a client pose from around that keyframe's time, moved first as refinement moved the
+        keyframe (``queries.in_map_frame``; the same pose without ``poses.refine``). ValueError for a keyframe
+        the map does not have."""
         with on_stream(self.stream), self.lock, torch_threads(self.profile.threads):
+            if keyframe is not None:
+                c2w = queries.in_map_frame(self._keyframe_pose(keyframe), c2w)
             return queries.render(self.model, c2w, intrinsics)
+
+    def nearest_keyframe(self, frame_index: int) -> int | None:
+        """The position of the keyframe nearest ``frame_index`` (``Frame.index``), None while there is none."""
+        with self.lock:
+            live = self.keyframes.keyframes
+            indices = [keyframe.index for keyframe in live] if live else [pose.index for pose in self.recorded_poses]
+            return queries.nearest(indices, frame_index)
+
+    def _keyframe_pose(self, position: int) -> KeyframePose:
+        count = len(self.keyframes) or len(self.recorded_poses)
+        if not 0 <= position < count:
+            raise ValueError(f"keyframe {position}: the map has {count} keyframes")
+        if self.keyframes:
+            return queries.keyframe_pose(self.keyframes.keyframes[position])
+        return self.recorded_poses[position]
 
     def stats(self) -> MapStats:
         """Map statistics as one consistent record."""
@@ -289,9 +313,11 @@ class Mapper:
             return queries.map_stats(self.model, self.keyframes)
 
     def keyframe_poses(self) -> list[KeyframePose]:
-        """Every keyframe's pose as the client gave it and as refinement has left it so far."""
+        """Every keyframe's pose as the client gave it and as refinement has left it so far; for a map loaded
+        from a snapshot, until it maps a keyframe of its own, the poses the snapshot recorded
+        (``recorded_poses``)."""
         with on_stream(self.stream), self.lock:
-            return queries.keyframe_poses(self.keyframes)
+            return queries.keyframe_poses(self.keyframes) if self.keyframes else list(self.recorded_poses)
 
     def decode_at(self, camera_center: np.ndarray, max_anchors: int = 0) -> GaussianSet:
         """Every anchor's Gaussians as seen from ``camera_center`` (``queries.decode_all``)."""
@@ -332,6 +358,8 @@ class Mapper:
         handed_in(mapper.stream, state.tensors.values())
         with on_stream(mapper.stream):
             map_io.load(mapper.model, mapper.keyframes, state, training_state)
+        if not training_state:
+            mapper.recorded_poses = map_io.recorded_keyframe_poses(state)
         return mapper
 
     def snapshot(self) -> bytes:

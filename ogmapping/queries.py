@@ -14,7 +14,7 @@ import torch
 from ogmapping.frames.camera import Intrinsics
 from ogmapping.mapping.model import MapModel
 from ogmapping.model.gaussians import GaussianSet
-from ogmapping.optim.keyframes import KeyframeSet
+from ogmapping.optim.keyframes import Keyframe, KeyframeSet
 from ogmapping.stats import MapStats, PoseSummary
 
 
@@ -33,6 +33,21 @@ class KeyframePose:
     client_c2w: np.ndarray  # (4, 4)
     refined_c2w: np.ndarray  # (4, 4)
     clamped: bool
+
+
+def nearest(indices: list[int], frame_index: int) -> int | None:
+    """The position in ``indices`` (keyframes' frame indices) nearest ``frame_index`` (the earlier on a tie),
+    None for none."""
+    if not indices:
+        return None
+    return min(range(len(indices)), key=lambda position: (abs(indices[position] - frame_index), position))
+
+
+def in_map_frame(keyframe: KeyframePose, c2w: np.ndarray) -> np.ndarray:
+    """A client pose from around ``keyframe``'s time, moved as refinement moved that keyframe (refined x
+    client^-1): the client's poses drift, and the map follows its refined ones, so a pose the client gave
+    near a keyframe is off the map as far as that keyframe's was. Unchanged without refinement."""
+    return keyframe.refined_c2w @ np.linalg.inv(keyframe.client_c2w) @ np.asarray(c2w, dtype=np.float64)
 
 
 def render(model: MapModel, c2w: np.ndarray, intrinsics: Intrinsics) -> Rendered:
@@ -58,15 +73,17 @@ def decode_all(model: MapModel, camera_center: np.ndarray, max_anchors: int = 0)
         return model.decode(center, torch.arange(0, count, stride, device=model.device))
 
 
+def keyframe_pose(keyframe: Keyframe) -> KeyframePose:
+    """A keyframe's pose as the client gave it and as refinement has left it so far."""
+    client = keyframe.c2w.detach().double().cpu().numpy()
+    report = keyframe.correction.report(keyframe.c2w) if keyframe.correction is not None else None
+    return KeyframePose(keyframe.index, client, client if report is None else report.refined_c2w,
+                        report is not None and report.clamped)
+
+
 def keyframe_poses(keyframes: KeyframeSet) -> list[KeyframePose]:
     """Every keyframe's pose as the client gave it and as refinement has left it so far."""
-    poses = []
-    for keyframe in keyframes.keyframes:
-        client = keyframe.c2w.detach().double().cpu().numpy()
-        report = keyframe.correction.report(keyframe.c2w) if keyframe.correction is not None else None
-        poses.append(KeyframePose(keyframe.index, client, client if report is None else report.refined_c2w,
-                                  report is not None and report.clamped))
-    return poses
+    return [keyframe_pose(keyframe) for keyframe in keyframes.keyframes]
 
 
 def pose_summary(keyframes: KeyframeSet) -> PoseSummary:

@@ -189,6 +189,11 @@ def parser() -> argparse.ArgumentParser:
     render.add_argument("--pose", help="text file with a 4x4 camera-to-world matrix")
     render.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (with --pose)")
     render.add_argument("--size", help="WIDTHxHEIGHT (with --pose)")
+    at = render.add_mutually_exclusive_group()
+    at.add_argument("--sequence", type=int, help="the pose is the client's at the time of this frame (its FrameAck "
+                    "sequence): with poses.refine the server moves it as the mapped keyframe nearest that frame "
+                    "was moved (default with --position: the frame's own timestamp, where it has one)")
+    at.add_argument("--timestamp", type=float, help="as --sequence, by a frame's timestamp (seconds)")
     render.add_argument("--out", default="renders", help="output folder (default renders/)")
     add_bag_arguments(render)
     render.set_defaults(handler=commands.render)

@@ -227,16 +227,23 @@ def render(ctx: Context, args: argparse.Namespace) -> int:
             raise ClientError("--position needs --data or --bag")
         data, format, options = dataset_source(args)
         frame = open_frames(data, format, scale=args.scale, **options).load(args.position)
-        pose, camera = frame.c2w, frame.color_intrinsics
+        pose, camera, stamp = frame.c2w, frame.color_intrinsics, frame.timestamp
     elif args.pose and args.intrinsics and args.size:
         pose = validate_pose(np.loadtxt(args.pose).reshape(4, 4), "--pose")
         camera = parse_intrinsics(args.intrinsics, args.size)
+        stamp = None
     else:
         raise ClientError("give either --data DIR (or --bag PATH) --position N, or --pose FILE --intrinsics "
                           "fx,fy,cx,cy --size WxH")
     request = pb.RenderRequest(session_id=session.session_id, c2w=matrix_to_list(pose),
                                intrinsics=intrinsics_to_proto(camera),
                                color_encoding=pb.COLOR_PNG, depth_encoding=pb.DEPTH_PNG16)
+    # The pose is the client's from a frame's time (a dataset frame's own, unless named): the server moves it
+    # as refinement moved the keyframe nearest that frame (RenderRequest.at).
+    if args.sequence is not None:
+        request.sequence = args.sequence
+    elif args.timestamp is not None or stamp is not None:
+        request.timestamp = args.timestamp if args.timestamp is not None else stamp
     response = ctx.stub.Render(request, metadata=session.metadata())
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +22,7 @@ from ogclient.connection import SessionRef
 from ogclient.messages import intrinsics_to_proto
 from ogmapping.config import MapperConfig
 from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.frame import Frame
 from ogmapping.quality.evaluation import FrameSet, evaluate_views
 from ogmapping.runtime.host import host
 
@@ -33,11 +35,17 @@ class RemoteRender:
     depth: np.ndarray
 
 
-def render(stub: pb_grpc.MappingStub, session: SessionRef, c2w: np.ndarray, camera: Intrinsics) -> RemoteRender:
+def render(stub: pb_grpc.MappingStub, session: SessionRef, c2w: np.ndarray, camera: Intrinsics,
+           frame: Frame | None = None) -> RemoteRender:
+    """The server's render of ``c2w``: in the map's frame, or with ``frame`` as a client pose of its time (by
+    its timestamp, where it has one: held-out frames were never sent, so they have no sequence), as a local
+    evaluation renders it."""
     request = pb.RenderRequest(
         session_id=session.session_id, c2w=matrix_to_list(c2w), intrinsics=intrinsics_to_proto(camera),
         color_encoding=pb.COLOR_RAW_F32, depth_encoding=pb.DEPTH_RAW_F32,
     )
+    if frame is not None and frame.timestamp is not None:
+        request.timestamp = frame.timestamp
     response = stub.Render(request, metadata=session.metadata())
     return RemoteRender(
         color=decode_color(response.color.data, pb.COLOR_RAW_F32, camera.width, camera.height),
@@ -57,7 +65,7 @@ def evaluate(
     """results.json-shaped figures; with ``out``, also side-by-side previews and results.json there."""
     stats = stub.GetStats(pb.GetStatsRequest(session_id=session.session_id), metadata=session.metadata())
     config = MapperConfig.from_dict(json.loads(stats.config_json))
-    evaluation = evaluate_views(frames, config, lambda c2w, camera: render(stub, session, c2w, camera), out, progress)
+    evaluation = evaluate_views(frames, config, partial(render, stub, session), out, progress)
     sample = frames.load(frames.selection.streamed[0]).color_intrinsics
     results = {
         **evaluation.splits,

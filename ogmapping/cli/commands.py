@@ -59,7 +59,8 @@ def command_render(args: argparse.Namespace) -> int:
 
     mapper = Mapper.restore(Path(args.snapshot).read_bytes(), args.device)
     pose = validate_pose(np.loadtxt(args.pose).reshape(4, 4), "--pose")
-    rendered = mapper.render(pose, parse_intrinsics(args.intrinsics, args.size))
+    keyframe = mapper.nearest_keyframe(args.frame) if args.frame is not None else None
+    rendered = mapper.render(pose, parse_intrinsics(args.intrinsics, args.size), keyframe)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     color = cv2.cvtColor((rendered.color * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR)
@@ -156,6 +157,9 @@ def parser() -> argparse.ArgumentParser:
     render.add_argument("--pose", required=True, help="text file with a 4x4 camera-to-world matrix")
     render.add_argument("--intrinsics", required=True, help="fx,fy,cx,cy in pixels")
     render.add_argument("--size", required=True, help="WIDTHxHEIGHT")
+    render.add_argument("--frame", type=int, metavar="INDEX",
+                        help="the pose is the client's at this frame index: moved as refinement (poses.refine) moved "
+                        "the keyframe nearest it, as the snapshot records (default: the pose is in the map's frame)")
     render.add_argument("--device", default="cpu")
     render.add_argument("--out", default="renders", help="output folder for color.png and depth.png")
     render.set_defaults(handler=command_render)

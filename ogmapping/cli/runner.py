@@ -26,7 +26,7 @@ from ogmapping.cli.trajectory import check_covers
 from ogmapping.config import MapperConfig
 from ogmapping.frames.trajectory import read_tum
 from ogmapping.mapper import Mapper
-from ogmapping.quality.evaluation import evaluate_views, open_frames
+from ogmapping.quality.evaluation import evaluate_views, mapper_render, open_frames
 from ogmapping.runtime.machine import machine
 from ogmapping.runtime.profile import resolve_device
 from ogmapping.warmup import warm_up
@@ -127,10 +127,11 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
 
     snapshot = mapper.snapshot()
     (out / "map.safetensors").write_bytes(snapshot)
-    evaluation = evaluate_views(frames, config, mapper.render, out, options.progress, device)
+    render = mapper_render(mapper)
+    evaluation = evaluate_views(frames, config, render, out, options.progress, device)
     at_eval_poses: dict[str, dict] = {}
     if eval_poses is not None:
-        judged = evaluate_views(frames, config, mapper.render, out, options.progress, device, eval_poses.pose_of,
+        judged = evaluate_views(frames, config, render, out, options.progress, device, eval_poses.pose_of,
                                 f"{EVAL_POSES_KEY}_")
         at_eval_poses = {EVAL_POSES_KEY: {**judged.splits, "poses": eval_poses.name}}
 

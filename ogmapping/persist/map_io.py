@@ -16,7 +16,7 @@ from ogmapping.mapping.model import MapModel
 from ogmapping.optim.keyframes import KeyframeSet
 from ogmapping.persist import training
 from ogmapping.persist.state import MapState
-from ogmapping.queries import keyframe_poses
+from ogmapping.queries import KeyframePose, keyframe_poses
 
 
 def optimisation(model: MapModel, keyframes: KeyframeSet) -> training.Optimisation:
@@ -79,6 +79,21 @@ def keyframe_path(state: MapState) -> np.ndarray:
     if poses.dim() != 3 or tuple(poses.shape[1:]) != (4, 4) or not bool(torch.isfinite(poses).all()):
         raise ValueError(f"poses.refined_c2w must hold finite 4x4 poses, not shape {tuple(poses.shape)}")
     return poses.double().cpu().numpy()
+
+
+def recorded_keyframe_poses(state: MapState) -> list[KeyframePose]:
+    """The keyframes' frame indices, client and refined poses that ``state`` records, in mapping order: none for a
+    state written before snapshots kept them. ValueError for records that disagree or are not finite 4x4s."""
+    refined = keyframe_path(state)
+    client, indices = state.tensors.get("poses.client_c2w"), state.tensors.get("poses.keyframe_indices")
+    if client is None or indices is None:
+        return []
+    client = client.double().cpu().numpy()
+    if client.shape != refined.shape or indices.shape != (len(refined),) or not np.isfinite(client).all():
+        raise ValueError(f"poses.client_c2w {tuple(client.shape)} and poses.keyframe_indices "
+                         f"{tuple(indices.shape)} must match poses.refined_c2w {tuple(refined.shape)}")
+    indices = [index + (1 << 64) if index < 0 else index for index in indices.tolist()]  # frame_indices_as_int64
+    return [KeyframePose(index, client[i], refined[i], False) for i, index in enumerate(indices)]
 
 
 def load(model: MapModel, keyframes: KeyframeSet, state: MapState, training_state: bool) -> None:

@@ -3,8 +3,10 @@
 A ``FrameSet`` chooses frames as ``ogmap run`` does (``selection.select``), optionally with the poses
 of a trajectory file in place of the data's, and ``evaluate_views`` renders each chosen view through a
 render function (the local mapper, or the server) at the pose a function picks (the frame's own by
-default, or that of a second, exact trajectory), scores it against the frame as the mapper saw it and
-writes the same previews, so both commands report comparable numbers. Renders are scored as they are
+default, or that of a second, exact trajectory), taken as a client pose of that frame's time (with
+``poses.refine`` the map has moved the poses it was given, and the render moves the pose as the nearest
+keyframe's was moved), scores it against the frame as the mapper saw it and writes the same previews, so
+both commands report comparable numbers. Renders are scored as they are
 (``psnr``, raw) and after the frame's own fitted gain and offset (``psnr_affine``: its exposure taken out,
 since the map keeps one reference exposure and is never corrected for a view). No torch at import: the metrics
 (SSIM and LPIPS run on torch) are loaded when scoring starts, so the client's other commands can share
@@ -47,7 +49,8 @@ class Rendering(Protocol):
     depth: np.ndarray
 
 
-Render = Callable[[np.ndarray, Intrinsics], Rendering]  # (c2w, intrinsics) -> rendering
+# (c2w, intrinsics, the frame it is judged against) -> rendering: the frame names the time the pose is from
+Render = Callable[[np.ndarray, Intrinsics, Frame], Rendering]
 Pose = Callable[[Frame], np.ndarray]  # the frame as the mapper saw it -> the c2w to render it at
 
 
@@ -136,6 +139,21 @@ class Evaluation:
         return self.renders / self.render_seconds if self.render_seconds > 0 else None
 
 
+class LocalMap(Protocol):
+    """What ``mapper_render`` needs of a ``Mapper``."""
+
+    def render(self, c2w: np.ndarray, intrinsics: Intrinsics, keyframe: int | None = None) -> Rendering: ...
+
+    def nearest_keyframe(self, frame_index: int) -> int | None: ...
+
+
+def mapper_render(mapper: LocalMap) -> Render:
+    """Render through a local mapper at a pose of the judged frame's time: moved as the keyframe nearest that
+    frame was moved by refinement (``Mapper.render``; the pose itself without ``poses.refine``), since the
+    pose is the client's and the map follows its refined poses."""
+    return lambda c2w, camera, frame: mapper.render(c2w, camera, mapper.nearest_keyframe(frame.index))
+
+
 def own_pose(frame: Frame) -> np.ndarray:
     """Judge a view at the pose the mapper was given with it."""
     return frame.c2w
@@ -166,7 +184,7 @@ def evaluate_views(
             truth = ground_truth(frames.load(position), config)
             at = pose(truth)
             tic = time.perf_counter()
-            rendered = render(at, truth.color_intrinsics)
+            rendered = render(at, truth.color_intrinsics, truth)
             render_seconds += time.perf_counter() - tic
             renders += 1
             per_frame.append(score(rendered, truth, lpips))

@@ -225,6 +225,12 @@ def test_cli_against_the_server(server: ServerHandle, mapped: Mapped, tmp_path: 
     assert ogclient_main([*base, "render", "--session", str(session_file), "--data", "synthetic", "--format",
                           "synthetic", "--scale", "0.25", "--position", "5", "--out", str(out)]) == 0
     assert {p.name for p in out.iterdir()} == {"color.png", "depth.png", "preview.png"}
+    # Naming the frame a pose is from (here a session without refinement: the same render).
+    at_sequence = tmp_path / "at_sequence"
+    assert ogclient_main([*base, "render", "--session", str(session_file), "--data", "synthetic", "--format",
+                          "synthetic", "--scale", "0.25", "--position", "5", "--sequence", "3",
+                          "--out", str(at_sequence)]) == 0
+    assert (at_sequence / "color.png").read_bytes() == (out / "color.png").read_bytes()
     assert ogclient_main([*base, "snapshot", "--session", str(session_file), "--out", str(tmp_path / "m.st")]) == 0
     assert (tmp_path / "m.st").stat().st_size > 0
     assert ogclient_main([*base, "list"]) == 0 and mapped.session.session_id in capsys.readouterr().out

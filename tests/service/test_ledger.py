@@ -1,5 +1,6 @@
 """The frames a session mapped, as pose corrections name them: nearest timestamp within the TUM tolerance,
-sequences of mapped frames only, and the ledger a checkpoint keeps."""
+sequences of mapped frames only, and the ledger a checkpoint keeps; and the keyframe nearest any frame, as a
+render at a client pose of a frame's time needs it."""
 
 from __future__ import annotations
 
@@ -42,3 +43,17 @@ def test_a_checkpoint_keeps_the_ledger() -> None:
     assert len(kept) == 3
     assert [item.sequence for item in kept.resolve([entry(timestamp=1000.033), entry(sequence=4, field="b")])] == [2, 4]
     assert len(FrameLedger.from_tensor(None)) == 0
+
+
+def test_a_render_names_the_keyframe_nearest_its_frame() -> None:
+    frames = ledger()
+    frames.add(9, 1000.3, 2)
+    assert [frames.nearest_keyframe(sequence=n) for n in (1, 2, 3, 4, 6, 7, 100)] == [0, 0, 1, 1, 1, 2, 2]
+    assert [frames.nearest_keyframe(timestamp=t) for t in (0.0, 1000.1, 1000.2, 5000.0)] == [0, 0, 2, 2]
+    assert FrameLedger().nearest_keyframe(sequence=5) is None
+    assert FrameLedger().nearest_keyframe(timestamp=5.0) is None
+    unstamped = FrameLedger()
+    unstamped.add(1, None, 0)
+    with pytest.raises(ServiceError, match="timestamp: no mapped keyframe has a timestamp"):
+        unstamped.nearest_keyframe(timestamp=1.0)
+    assert FrameLedger.from_tensor(frames.tensor()).nearest_keyframe(sequence=7) == 2

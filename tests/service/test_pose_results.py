@@ -13,12 +13,18 @@ import grpc
 import numpy as np
 import pytest
 from ogapi import recording
+from ogapi.convert import matrix_to_list
+from ogapi.images import decode_color
 from ogapi.v1 import mapping_pb2 as pb
 from ogclient.__main__ import main as ogclient_main
 from ogclient.connection import SessionRef
+from ogclient.evaluation import render, snapshot_bytes
+from ogclient.messages import intrinsics_to_proto
 
 from ogmapping.frames.rotation import matrix_to_quaternion
 from ogmapping.frames.trajectory import read_tum
+from ogmapping.mapper import Mapper
+from ogmapping.quality.metrics import psnr
 
 from .inprocess import serving, settings
 from .scene import PRESET, TINY, create_request, messages, scene
@@ -54,6 +60,7 @@ def test_a_refining_session_reports_records_and_replays_its_corrections(tmp_path
         capsys.readouterr()
         assert ogclient_main(["--server", running.address, "stats", "--session", str(tmp_path / "session.json")]) == 0
         printed = json.loads(capsys.readouterr().out)["poses"]
+        renders_at_frame_times(running.stub, session, acks)
         running.stub.CloseSession(pb.CloseSessionRequest(session_id=session.session_id), metadata=session.metadata())
         path = running.record_dir / credentials.recording
 
@@ -102,6 +109,25 @@ def test_a_refining_session_reports_records_and_replays_its_corrections(tmp_path
                               "--session-out", str(tmp_path / "replay.json"), "--trajectory", str(replayed_file)])
         assert code == 0
         assert replayed_file.read_text().splitlines()[1:] == refined_file.read_text().splitlines()[1:]
+
+
+def renders_at_frame_times(stub, session: SessionRef, acks: list[pb.FrameAck]) -> None:
+    """A render naming a frame (by sequence or timestamp) is at the pose moved as the keyframe nearest it was
+    refined: as a local map made from the session's snapshot renders it, and not as the unmoved pose does."""
+    local = Mapper.restore(snapshot_bytes(stub, session))
+    frames = scene()
+    frame = frames.load(frames.selection.streamed[-1])
+    by_time = render(stub, session, frame.c2w, frame.color_intrinsics, frame)
+    unmoved = render(stub, session, frame.c2w, frame.color_intrinsics)
+    request = pb.RenderRequest(session_id=session.session_id, c2w=matrix_to_list(frame.c2w), sequence=acks[-1].sequence,
+                               intrinsics=intrinsics_to_proto(frame.color_intrinsics),
+                               color_encoding=pb.COLOR_RAW_F32, depth_encoding=pb.DEPTH_RAW_F32)
+    response = stub.Render(request, metadata=session.metadata())
+    camera = frame.color_intrinsics
+    by_sequence = decode_color(response.color.data, pb.COLOR_RAW_F32, camera.width, camera.height)
+    mine = local.render(frame.c2w, camera, local.nearest_keyframe(frame.index)).color
+    assert np.array_equal(by_sequence, by_time.color)
+    assert psnr(by_time.color, mine) > 40.0 and not np.array_equal(by_time.color, unmoved.color)
 
 
 def test_without_refinement_acks_and_stats_carry_no_poses(tmp_path: Path, capsys) -> None:

@@ -77,6 +77,13 @@ def test_render_request_defaults_to_png_colour_and_depth() -> None:
     spec = validation.render_request(render_request(), MAX_PIXELS)
     assert spec.color and spec.depth
     assert (spec.color_encoding, spec.depth_encoding, spec.jpeg_quality) == (pb.COLOR_PNG, pb.DEPTH_PNG16, 90)
+    assert spec.sequence is None and spec.timestamp is None  # the pose is in the map's frame
+
+
+def test_a_render_request_names_the_frame_its_pose_is_from() -> None:
+    assert validation.render_request(render_request(sequence=7), MAX_PIXELS).sequence == 7
+    spec = validation.render_request(render_request(timestamp=12.5), MAX_PIXELS)
+    assert (spec.sequence, spec.timestamp) == (None, 12.5)
 
 
 @pytest.mark.parametrize(
@@ -86,6 +93,9 @@ def test_render_request_defaults_to_png_colour_and_depth() -> None:
         ({"depth_encoding": 9}, INVALID, "depth_encoding"),
         ({"jpeg_quality": 101}, INVALID, "jpeg_quality"),
         ({"outputs": [7]}, INVALID, "outputs"),
+        ({"sequence": 0}, INVALID, "sequence"),
+        ({"timestamp": float("nan")}, INVALID, "timestamp"),
+        ({"timestamp": float("inf")}, INVALID, "timestamp"),
     ],
 )
 def test_bad_render_request(changes: dict, code, field: str) -> None:

@@ -11,6 +11,7 @@ import pytest
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from ogapi.v1 import mapping_pb2 as pb
 from ogserver.access.tokens import TokenHash
+from ogserver.api.validation import RenderSpec
 from ogserver.errors import ServiceError
 from ogserver.live.map_look import Splats
 from ogserver.live.views import MappedFrame, Pending, Shown
@@ -58,6 +59,15 @@ def test_what_the_live_views_read_of_a_worker_comes_back_as_it_was() -> None:
     assert np.array_equal(pending.refined[0][1], refined)
     assert (shown.render, shown.keyframes, splats, token) == (b"render", 3, value[2], value[4])
     assert np.array_equal(points_back.positions, points.positions) and np.array_equal(points_back.rgba, points.rgba)
+
+
+def test_a_render_request_naming_its_frame_comes_back_as_it_was() -> None:
+    camera = Intrinsics(50.0, 50.0, 40.0, 30.0, 80, 60)
+    for sequence, timestamp in ((7, None), (None, 12.25), (None, None)):
+        spec = RenderSpec(np.eye(4), camera, True, False, pb.COLOR_PNG, pb.DEPTH_PNG16, 90, sequence, timestamp)
+        back = codec.loads(codec.dumps(spec))
+        assert (back.sequence, back.timestamp, back.intrinsics) == (sequence, timestamp, camera)
+        assert np.array_equal(back.c2w, spec.c2w)
 
 
 def test_refusals_keep_their_kind_code_and_message() -> None:

@@ -249,7 +249,7 @@ class PoseCorrections(_message.Message):
     def __init__(self, after_sequence: _Optional[int] = ..., poses: _Optional[_Iterable[_Union[CorrectedPose, _Mapping]]] = ...) -> None: ...
 
 class RenderRequest(_message.Message):
-    __slots__ = ("session_id", "c2w", "intrinsics", "outputs", "color_encoding", "depth_encoding", "jpeg_quality")
+    __slots__ = ("session_id", "c2w", "intrinsics", "outputs", "color_encoding", "depth_encoding", "jpeg_quality", "sequence", "timestamp")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     C2W_FIELD_NUMBER: _ClassVar[int]
     INTRINSICS_FIELD_NUMBER: _ClassVar[int]
@@ -257,6 +257,8 @@ class RenderRequest(_message.Message):
     COLOR_ENCODING_FIELD_NUMBER: _ClassVar[int]
     DEPTH_ENCODING_FIELD_NUMBER: _ClassVar[int]
     JPEG_QUALITY_FIELD_NUMBER: _ClassVar[int]
+    SEQUENCE_FIELD_NUMBER: _ClassVar[int]
+    TIMESTAMP_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     c2w: _containers.RepeatedScalarFieldContainer[float]
     intrinsics: CameraIntrinsics
@@ -264,7 +266,9 @@ class RenderRequest(_message.Message):
     color_encoding: ColorEncoding
     depth_encoding: DepthEncoding
     jpeg_quality: int
-    def __init__(self, session_id: _Optional[str] = ..., c2w: _Optional[_Iterable[float]] = ..., intrinsics: _Optional[_Union[CameraIntrinsics, _Mapping]] = ..., outputs: _Optional[_Iterable[_Union[RenderOutput, str]]] = ..., color_encoding: _Optional[_Union[ColorEncoding, str]] = ..., depth_encoding: _Optional[_Union[DepthEncoding, str]] = ..., jpeg_quality: _Optional[int] = ...) -> None: ...
+    sequence: int
+    timestamp: float
+    def __init__(self, session_id: _Optional[str] = ..., c2w: _Optional[_Iterable[float]] = ..., intrinsics: _Optional[_Union[CameraIntrinsics, _Mapping]] = ..., outputs: _Optional[_Iterable[_Union[RenderOutput, str]]] = ..., color_encoding: _Optional[_Union[ColorEncoding, str]] = ..., depth_encoding: _Optional[_Union[DepthEncoding, str]] = ..., jpeg_quality: _Optional[int] = ..., sequence: _Optional[int] = ..., timestamp: _Optional[float] = ...) -> None: ...
 
 class RenderResponse(_message.Message):
     __slots__ = ("color", "depth", "width", "height", "render_seconds")

@@ -185,6 +185,9 @@ class RenderSpec:
     color_encoding: int
     depth_encoding: int
     jpeg_quality: int
+    # The frame whose time c2w is from (RenderRequest.at): by sequence or by timestamp; neither: the map's frame.
+    sequence: int | None = None
+    timestamp: float | None = None
 
 
 def render_request(message: pb.RenderRequest, max_pixels: int) -> RenderSpec:
@@ -215,8 +218,15 @@ def render_request(message: pb.RenderRequest, max_pixels: int) -> RenderSpec:
                 check_encodable(camera.width, camera.height, image_format)
         except ValueError as error:
             raise invalid("intrinsics", f"{error}; ask a smaller render or another {field}") from None
+    at = message.WhichOneof("at")
+    if at == "sequence" and message.sequence == 0:
+        raise invalid("sequence", "must be 1 or more (a frame's FrameAck.sequence)")
+    if at == "timestamp" and not math.isfinite(message.timestamp):
+        raise invalid("timestamp", f"must be finite (got {message.timestamp})")
     return RenderSpec(
         c2w=c2w, intrinsics=camera,
+        sequence=message.sequence if at == "sequence" else None,
+        timestamp=message.timestamp if at == "timestamp" else None,
         color=pb.RENDER_OUTPUT_COLOR in outputs, depth=pb.RENDER_OUTPUT_DEPTH in outputs,
         color_encoding=color_encoding, depth_encoding=depth_encoding,
         jpeg_quality=message.jpeg_quality or DEFAULT_JPEG_QUALITY,

@@ -1,4 +1,4 @@
-"""The frames a session mapped, as CorrectPoses addresses them: by sequence or by timestamp.
+"""The frames a session mapped, as CorrectPoses and Render address them: by sequence or by timestamp.
 
 Each mapped frame is kept as its sequence, its timestamp (when the client sent one) and, for a keyframe, its
 position in the mapper's keyframe list (the keyframe its anchors belong to). Frames skipped, refused or that
@@ -74,6 +74,20 @@ class FrameLedger:
             seen[sequence] = entry.field
             resolved.append(Resolved(entry.field, sequence, self._keyframes[sequence], entry.c2w))
         return resolved
+
+    def nearest_keyframe(self, sequence: int | None = None, timestamp: float | None = None) -> int | None:
+        """The keyframe position of the mapped keyframe nearest a frame's ``sequence`` or ``timestamp`` (the
+        earlier on a tie; the frame need not be one that was mapped), None while no keyframe is on record.
+        INVALID_ARGUMENT for a timestamp where no keyframe carries one."""
+        if timestamp is not None:
+            stamped = [(abs(stamp - timestamp), self._keyframes[sequence], sequence)
+                       for stamp, sequence in self._times if self._keyframes[sequence] is not None]
+            if not stamped and self._keyframes:
+                raise invalid("timestamp", "no mapped keyframe has a timestamp: name the frame by its sequence")
+            return min(stamped)[1] if stamped else None
+        keyframes = [(abs(mapped - sequence), mapped, position) for mapped, position in self._keyframes.items()
+                     if position is not None]
+        return min(keyframes)[2] if keyframes else None
 
     def tensor(self) -> torch.Tensor:
         rows = [(sequence, -1 if keyframe is None else keyframe, self._stamps.get(sequence, math.nan))

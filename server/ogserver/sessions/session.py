@@ -371,8 +371,8 @@ class Session:
         except Exception as error:  # the session survives a failing frame; the client sees why
             log.exception("session %s: mapping frame %d failed", self.id, frame.index)
             return messages.error_ack(frame.index, ServiceError(grpc.StatusCode.INTERNAL, f"mapping failed: {error}"))
-        self._ledger.add(sequence, frame.timestamp, len(self.mapper.keyframes) - 1 if result.keyframe else None)
-        with self._lock:
+        with self._lock:  # renders read the ledger from other threads
+            self._ledger.add(sequence, frame.timestamp, len(self.mapper.keyframes) - 1 if result.keyframe else None)
             self._mapped += 1
             self._anchors, self._gaussians = result.anchors, result.gaussians
             self._last_mapped = time.monotonic()
@@ -400,7 +400,13 @@ class Session:
     # ------------------------------------------------------------------ queries
 
     def render(self, spec: validation.RenderSpec) -> Rendered:
-        return self.mapper.render(spec.c2w, spec.intrinsics)
+        """A render at ``spec.c2w``: in the map's frame, or a client pose from the time of the frame it names
+        (moved as the keyframe nearest that frame was, ``Mapper.render``)."""
+        keyframe = None
+        if spec.sequence is not None or spec.timestamp is not None:
+            with self._lock:
+                keyframe = self._ledger.nearest_keyframe(spec.sequence, spec.timestamp)
+        return self.mapper.render(spec.c2w, spec.intrinsics, keyframe)
 
     def map_stats(self) -> MapStats:
         return self.mapper.stats()
