@@ -46,8 +46,11 @@ def nearest(indices: list[int], frame_index: int) -> int | None:
 def in_map_frame(keyframe: KeyframePose, c2w: np.ndarray) -> np.ndarray:
     """A client pose from around ``keyframe``'s time, moved as refinement moved that keyframe (refined x
     client^-1): the client's poses drift, and the map follows its refined ones, so a pose the client gave
-    near a keyframe is off the map as far as that keyframe's was. Unchanged without refinement."""
-    return keyframe.refined_c2w @ np.linalg.inv(keyframe.client_c2w) @ np.asarray(c2w, dtype=np.float64)
+    near a keyframe is off the map as far as that keyframe's was. Unchanged (bit for bit) without refinement."""
+    c2w = np.asarray(c2w, dtype=np.float64)
+    if np.array_equal(keyframe.refined_c2w, keyframe.client_c2w):
+        return c2w
+    return keyframe.refined_c2w @ np.linalg.inv(keyframe.client_c2w) @ c2w
 
 
 def render(model: MapModel, c2w: np.ndarray, intrinsics: Intrinsics) -> Rendered:
