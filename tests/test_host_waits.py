@@ -90,6 +90,23 @@ def test_a_steady_step_with_static_shapes_never_waits(preset: str) -> None:
     assert not per_step, f"{preset}: host waits per steady step with static shapes: {per_step}"
 
 
+def test_a_step_that_refines_and_clamps_poses_never_waits_with_static_shapes():
+    """The window keyframes' pose corrections step and are clamped to their bound on the device: refinement in
+    the mapping steps adds no wait (a bound of a micrometre clamps every step)."""
+    overrides = {"refine.interval": "10000", "poses.refine": "true", "poses.track_iterations": "0",
+                 "poses.track_newton_iterations": "0", "poses.max_translation": "1e-6"}
+    mapper, view, window = mapped("sparse", overrides, step="static")
+    corrections = [keyframe.correction for keyframe in window if keyframe.correction is not None]
+    assert corrections, "the window refines a pose"
+    waits = HostWaits()
+    with torch_threads(mapper.profile.threads), waits:
+        for _ in range(2):
+            mapper.steps.step(view, window)
+    assert not waits.sites, dict(waits.sites)
+    assert all(correction.clamped and correction.translation.norm() <= 1e-6 * (1 + 1e-5)
+               for correction in corrections)
+
+
 def test_growth_and_pruning_read_the_device_once():
     """Growth and pruning select with fixed sizes and read how many anchors each level gains and how many go
     in one read (``host_read``), whatever they find."""

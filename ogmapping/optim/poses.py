@@ -72,8 +72,17 @@ class PoseCorrection:
     def __init__(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> None:
         self.delta = torch.zeros(6, device=device, dtype=dtype, requires_grad=True)
         self.steps = 0
-        self.clamped = False  # hit the bound at some step since ``clamped`` was last cleared
+        # Hit the bound at some step: kept on the device, so a step never waits to learn it (``clamped`` reads it).
+        self._clamped = torch.zeros((), dtype=torch.bool, device=device)
         self.held = False  # kept at the client's pose for good (``hold``)
+
+    @property
+    def clamped(self) -> bool:
+        return bool(self._clamped)
+
+    @clamped.setter
+    def clamped(self, value: bool) -> None:
+        self._clamped.fill_(value)
 
     @property
     def translation(self) -> torch.Tensor:
@@ -142,10 +151,10 @@ class PoseCorrection:
         self._clamp(self.delta[3:], math.radians(settings.max_rotation))
 
     def _clamp(self, part: torch.Tensor, bound: float) -> None:
-        norm = float(part.norm())
-        if norm > bound:
-            part.mul_(bound / norm)
-            self.clamped = True
+        """Scale ``part`` back to ``bound`` where it is longer, on the device (times exactly 1 where it is not)."""
+        norm = part.norm()
+        self._clamped |= norm > bound
+        part.mul_((bound / norm.clamp_min(torch.finfo(norm.dtype).tiny)).clamp(max=1.0))
 
     def report(self, c2w: torch.Tensor) -> PoseReport:
         """This correction of the client's ``c2w`` as results report it."""
