@@ -158,11 +158,10 @@ class PoseCorrection:
 
     def report(self, c2w: torch.Tensor) -> PoseReport:
         """This correction of the client's ``c2w`` as results report it."""
-        with torch.no_grad():
-            refined = self.refined(c2w)
-        return PoseReport(self.translation.detach().double().cpu().numpy(),
-                          self.rotation.detach().double().cpu().numpy(), self.clamped,
-                          refined.double().cpu().numpy())
+        with torch.no_grad():  # one copy from the device: the correction, whether it was clamped, the pose
+            values = torch.cat([self.delta.double(), self._clamped.double().reshape(1),
+                                self.refined(c2w).double().reshape(-1)]).cpu().numpy()
+        return PoseReport(values[:3], values[3:6], bool(values[6]), values[7:].reshape(4, 4))
 
     def state(self) -> torch.Tensor:
         """Everything it carries as one float64 row: delta, steps, clamped, held (for checkpoints)."""
