@@ -50,7 +50,7 @@ def test_a_render_names_the_keyframe_nearest_its_frame() -> None:
     frames.add(9, 1000.3, 2)
     assert [frames.nearest_keyframe(sequence=n) for n in (1, 2, 3, 4, 6, 7, 100)] == [0, 0, 1, 1, 1, 2, 2]
     assert [frames.nearest_keyframe(timestamp=t) for t in (0.0, 1000.1, 1000.2, 5000.0)] == [0, 0, 2, 2]
-    assert FrameLedger().nearest_keyframe(sequence=5) is None
+    assert FrameLedger().nearest_keyframe(sequence=5) is None and frames.nearest_keyframe() is None
     assert FrameLedger().nearest_keyframe(timestamp=5.0) is None
     unstamped = FrameLedger()
     unstamped.add(1, None, 0)

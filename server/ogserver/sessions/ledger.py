@@ -77,8 +77,10 @@ class FrameLedger:
 
     def nearest_keyframe(self, sequence: int | None = None, timestamp: float | None = None) -> int | None:
         """The keyframe position of the mapped keyframe nearest a frame's ``sequence`` or ``timestamp`` (the
-        earlier on a tie; the frame need not be one that was mapped), None while no keyframe is on record.
-        INVALID_ARGUMENT for a timestamp where no keyframe carries one."""
+        earlier on a tie; the frame need not be one that was mapped), None while no keyframe is on record or
+        for neither. INVALID_ARGUMENT for a timestamp where no keyframe carries one."""
+        if sequence is None and timestamp is None:
+            return None
         if timestamp is not None:
             stamped = [(abs(stamp - timestamp), self._keyframes[sequence], sequence)
                        for stamp, sequence in self._times if self._keyframes[sequence] is not None]

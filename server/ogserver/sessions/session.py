@@ -20,9 +20,8 @@ the recorded frames: a skipped frame left out of the recording gives its number 
 
 Pose corrections (CorrectPoses) reach the map between two frames: the worker holds ``_mapping`` while it maps a
 frame, acknowledges it and writes any checkpoint due, and a correction takes it too, so the batch lands after the
-last frame mapped, a checkpoint holds either all of it or none, and the recording says after which frame (a replay
-and a resume apply it there again). The session keeps the frames it mapped (``ledger.FrameLedger``) to resolve what
-a correction names.
+last frame mapped, a checkpoint holds all of it or none, and the recording says after which frame (a replay and a
+resume apply it there again). The frames mapped (``ledger.FrameLedger``) resolve what a correction or render names.
 """
 
 from __future__ import annotations
@@ -400,12 +399,9 @@ class Session:
     # ------------------------------------------------------------------ queries
 
     def render(self, spec: validation.RenderSpec) -> Rendered:
-        """A render at ``spec.c2w``: in the map's frame, or a client pose from the time of the frame it names
-        (moved as the keyframe nearest that frame was, ``Mapper.render``)."""
-        keyframe = None
-        if spec.sequence is not None or spec.timestamp is not None:
-            with self._lock:
-                keyframe = self._ledger.nearest_keyframe(spec.sequence, spec.timestamp)
+        """At ``spec.c2w``: in the map's frame, or a client pose of the frame it names (``Mapper.render``)."""
+        with self._lock:
+            keyframe = self._ledger.nearest_keyframe(spec.sequence, spec.timestamp)
         return self.mapper.render(spec.c2w, spec.intrinsics, keyframe)
 
     def map_stats(self) -> MapStats:
