@@ -120,11 +120,12 @@ def map_and_score(config, device, streamed, heldout, lpips: Lpips) -> dict[str, 
         mapper.process(frame)
     seconds = time.perf_counter() - start
     record: dict[str, Any] = {}
+    render = mapper_render(mapper)
     for split, frames in (("heldout", heldout), ("streamed", streamed)):
         per_frame = []
         for frame in frames:
             truth = ground_truth(frame, config)
-            rendered = mapper_render(mapper)(truth.c2w, truth.color_intrinsics, truth)
+            rendered = render(truth.c2w, truth.color_intrinsics, truth)
             per_frame.append({**score(rendered, truth), "lpips": lpips(rendered.color, truth.rgb)})
         record[split] = summarise(per_frame)
     stats = mapper.stats()

@@ -53,10 +53,10 @@ def main() -> None:
     mapper = Mapper(config)
     for frame in sequence.streamed:
         mapper.process(frame)
-    rows = []
+    rows, render = [], mapper_render(mapper)
     for frame in sequence.heldout:
         truth = ground_truth(frame, config)
-        rendered = mapper_render(mapper)(truth.c2w, truth.color_intrinsics, truth)
+        rendered = render(truth.c2w, truth.color_intrinsics, truth)
         image = truth.rgb.astype(np.float32) / 255 if truth.rgb.dtype == np.uint8 else truth.rgb
         shifted, offset = best_shift(rendered.color, image)
         row = (psnr(rendered.color, image), psnr(affine_fit(rendered.color, image), image), shifted,

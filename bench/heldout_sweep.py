@@ -34,10 +34,10 @@ def main() -> None:
         run = map_setting(args.preset, setting, streamed)
         config, mapper, keyframes, seconds = run.config, run.mapper, run.keyframes, run.seconds
         splits = {"held-out": heldout, "streamed": streamed} if args.streamed else {"held-out": heldout}
-        scores = []
+        scores, render = [], mapper_render(mapper)
         for name, frames in splits.items():
             truths = [ground_truth(frame, config) for frame in frames]
-            quality = summarise([score(mapper_render(mapper)(t.c2w, t.color_intrinsics, t), t) for t in truths])
+            quality = summarise([score(render(t.c2w, t.color_intrinsics, t), t) for t in truths])
             scores.append(f"{name} PSNR {quality['psnr']:.2f} dB, SSIM {quality['ssim']:.3f}, "
                           f"depth L1 {quality['depth_l1_cm']:.2f} cm")
         print(f"{args.preset} [{setting}]: {len(streamed) / seconds:.2f} FPS ({seconds:.0f} s), {'; '.join(scores)}, "

@@ -94,7 +94,8 @@ def main() -> None:
     for mode in modes:
         start = time.perf_counter()
         mapper = map_run(mode, streamed, args, config)
-        scores = [score(mapper_render(mapper)(truth.c2w, truth.color_intrinsics, truth), truth) for truth in truths]
+        render = mapper_render(mapper)
+        scores = [score(render(truth.c2w, truth.color_intrinsics, truth), truth) for truth in truths]
         raw = np.array([each["psnr"] for each in scores])
         affine = np.mean([each["psnr_affine"] for each in scores])
         exact = raw.mean() if mode == "exact" else exact

@@ -240,10 +240,11 @@ def render(ctx: Context, args: argparse.Namespace) -> int:
                                color_encoding=pb.COLOR_PNG, depth_encoding=pb.DEPTH_PNG16)
     # The pose is the client's from a frame's time (a dataset frame's own, unless named): the server moves it
     # as refinement moved the keyframe nearest that frame (RenderRequest.at).
+    stamp = args.timestamp if args.timestamp is not None else stamp
     if args.sequence is not None:
         request.sequence = args.sequence
-    elif args.timestamp is not None or stamp is not None:
-        request.timestamp = args.timestamp if args.timestamp is not None else stamp
+    elif stamp is not None:
+        request.timestamp = stamp
     response = ctx.stub.Render(request, metadata=session.metadata())
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

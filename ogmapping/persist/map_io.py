@@ -92,8 +92,8 @@ def recorded_keyframe_poses(state: MapState) -> list[KeyframePose]:
     if client.shape != refined.shape or indices.shape != (len(refined),) or not np.isfinite(client).all():
         raise ValueError(f"poses.client_c2w {tuple(client.shape)} and poses.keyframe_indices "
                          f"{tuple(indices.shape)} must match poses.refined_c2w {tuple(refined.shape)}")
-    indices = [index + (1 << 64) if index < 0 else index for index in indices.tolist()]  # frame_indices_as_int64
-    return [KeyframePose(index, client[i], refined[i], False) for i, index in enumerate(indices)]
+    return [KeyframePose(index, client[i], refined[i], False)
+            for i, index in enumerate(training.frame_indices_from_int64(indices))]
 
 
 def load(model: MapModel, keyframes: KeyframeSet, state: MapState, training_state: bool) -> None:

@@ -54,9 +54,9 @@ def frame_indices_as_int64(indices: list[int]) -> torch.Tensor:
     return torch.tensor([index - (1 << 64) if index >= 1 << 63 else index for index in indices], dtype=torch.int64)
 
 
-def _frame_index_from_int64(value: torch.Tensor) -> int:
-    index = int(value[0])
-    return index + (1 << 64) if index < 0 else index
+def frame_indices_from_int64(values: torch.Tensor) -> list[int]:
+    """The frame indices ``frame_indices_as_int64`` stored, unwrapped."""
+    return [index + (1 << 64) if index < 0 else index for index in values.reshape(-1).tolist()]
 
 
 def capture(mapper: Optimisation) -> dict[str, torch.Tensor]:
@@ -194,7 +194,7 @@ def _restore_keyframes(mapper: Optimisation, section: dict[str, torch.Tensor]) -
         fx, fy, cx, cy, width, height = section[prefix + "intrinsics"].tolist()
         rgb, depth = section[prefix + "rgb"], section[prefix + "depth"]
         restored.append(Keyframe(
-            _frame_index_from_int64(section[prefix + "index"]), rgb.pin_memory() if pinned else rgb,
+            frame_indices_from_int64(section[prefix + "index"])[0], rgb.pin_memory() if pinned else rgb,
             depth.pin_memory() if pinned else depth, Intrinsics(fx, fy, cx, cy, int(width), int(height)),
             section[prefix + "c2w"].to(mapper.device), Footprint.of_codes(section[prefix + "codes"].to(mapper.device)),
             pinned,
