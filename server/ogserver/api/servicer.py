@@ -53,6 +53,19 @@ def info(session: HostedSession) -> pb.SessionInfo:
     return messages.session_info(session.config, session.counters(), session.streaming, session.recording)
 
 
+def infos(sessions: Iterable[HostedSession]) -> list[pb.SessionInfo]:
+    """Each listed session's info, leaving out one that closed or expired while it was being listed (a worker
+    process answers NOT_FOUND for it)."""
+    listed = []
+    for session in sessions:
+        try:
+            listed.append(info(session))
+        except ServiceError as error:
+            if error.code != grpc.StatusCode.NOT_FOUND:
+                raise
+    return listed
+
+
 class MappingService(pb_grpc.MappingServicer):
     def __init__(self, registry: SessionHost, callers: Callers, metrics: Metrics) -> None:
         self.registry = registry
@@ -154,7 +167,7 @@ class MappingService(pb_grpc.MappingServicer):
     def ListSessions(self, request: pb.ListSessionsRequest, context: grpc.ServicerContext) -> pb.ListSessionsResponse:
         with status_errors(context):
             owned = self.registry.sessions(self._caller(context))
-            return pb.ListSessionsResponse(sessions=[info(session) for session in owned])
+            return pb.ListSessionsResponse(sessions=infos(owned))
 
     def CorrectPoses(self, request: pb.CorrectPosesRequest, context: grpc.ServicerContext) -> pb.CorrectPosesResponse:
         with status_errors(context):
