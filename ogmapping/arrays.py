@@ -23,4 +23,6 @@ def image_planes(image: torch.Tensor, dtype: torch.dtype = torch.float32) -> np.
 
 
 def _contiguous(t: torch.Tensor, dtype: torch.dtype) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().to("cpu", dtype).numpy())
+    if t.requires_grad:  # detached only then: each operator is a dispatch, and a step converts dozens of tensors
+        t = t.detach()
+    return np.ascontiguousarray(t.to("cpu", dtype).numpy())

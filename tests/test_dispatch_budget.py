@@ -10,6 +10,7 @@ on the CPU and, where one is at hand, the GPU).
 
 from __future__ import annotations
 
+import dataclasses
 from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -20,18 +21,21 @@ from steady_step import mapped
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from ogmapping.mapper import Mapper
+from ogmapping.optim.keyframes import Keyframe, View
+from ogmapping.optim.poses import PoseCorrection
 from ogmapping.runtime.threads import torch_threads
 
-# Operators per step with the window rendered as one batch: 1231 with ``cpu`` (each of the rasterizer's
-# Numba stages one operator, ``torch.library``; backward 444, decode 309, optimizer 224, loss 93,
-# statistics 69, rasterize 61), 1029 with ``cpu`` and the decoders run once per window as on a GPU
-# (decode 262, backward 289), and 23557 with ``torch`` (the reference rasterizer, forward 7752 and most
-# of backward's 14809, loops over the tiles Gaussians reach, so its count also follows the scene).
+# Operators per step with the window rendered as one batch, ``sparse`` refining its keyframes' poses: 1291 with
+# ``cpu`` (each of the rasterizer's Numba stages one operator, ``torch.library``; backward 473, decode 315,
+# optimizer 244, loss 81, window 71: the window's poses one batch, ``optim.window_poses``; statistics 69,
+# rasterize 34), 1089 with ``cpu`` and the decoders run once per window as on a GPU (decode 268, backward 318),
+# and 23694 with ``torch`` (the reference rasterizer, forward 7695 and most of backward's 14935, loops over the
+# tiles Gaussians reach, so its count also follows the scene).
 BUDGETS = {"cpu": 1300, "cpu-shared-decode": 1100, "torch": 24400}
 # The static-shape step as compiled graphs (config step=compiled), counted by the profiler: each operator
-# called outside a graph, each of the graphs' fused kernels and each rasterizer stage once. 245 on the
-# machine above (backward 97, rasterize 67, decode 33, loss 18, optimizer 15: fused Adam's two per
-# parameter group, window 9); dense 308.
+# called outside a graph, each of the graphs' fused kernels and each rasterizer stage once. 233 on the
+# machine above (backward 107, decode 33, rasterize 31, optimizer 21: fused Adam's two per parameter group
+# and the pose corrections' step, loss 18, window 16); dense 284.
 COMPILED_BUDGET = 250
 
 
@@ -74,7 +78,11 @@ def steady_step_count(case: str, monkeypatch: pytest.MonkeyPatch) -> DispatchCou
     """The operators of one step on the next frame's view and the two newest keyframes, counted
     after an uncounted step on the same (so constants cached on first use are not counted)."""
     backend, _, shared = case.partition("-")
-    mapper, view, window = mapped("sparse", {"backend": backend}, shared_decode=bool(shared))
+    return counted_step(*mapped("sparse", {"backend": backend}, shared_decode=bool(shared)), monkeypatch)
+
+
+def counted_step(mapper: Mapper, view: View, window: list[Keyframe], monkeypatch: pytest.MonkeyPatch) -> DispatchCount:
+    """The operators of a step of ``mapper`` on ``view`` and ``window``, after an uncounted one."""
     count = DispatchCount()
     monkeypatch.setattr(mapper.model, "timed", staged(mapper, count))
     with torch_threads(mapper.profile.threads):
@@ -91,6 +99,22 @@ def test_a_step_dispatches_no_more_operators_than_its_budget(case, monkeypatch):
         f"{case}: {count.total} operators per step, budget {BUDGETS[case]}; by stage "
         f"{dict(count.by_stage.most_common())}; most dispatched {count.by_operator.most_common(12)}"
     )
+
+
+def test_a_refining_step_dispatches_the_same_however_many_corrections_it_moves(monkeypatch):
+    """With ``poses.refine`` a step's poses are one batch and its corrections' steps one step: the view's correction
+    moving too (``poses.view_steps``) adds no operator to a step that moves a keyframe's."""
+    counts = {}
+    for view_steps in ("false", "true"):
+        overrides = {"backend": "cpu", "poses.refine": "true", "poses.track_iterations": "0",
+                     "poses.view_steps": view_steps}
+        mapper, view, window = mapped("sparse", overrides)
+        view = dataclasses.replace(view, correction=PoseCorrection("cpu"))
+        moving = [drawn for drawn in (view, *window) if drawn.correction is not None
+                  and mapper.steps.moves(drawn.correction, view)]
+        counts[len(moving)] = counted_step(mapper, view, window, monkeypatch).total
+    assert set(counts) == {1, 2}, counts
+    assert counts[2] <= counts[1], counts
 
 
 def compiled_step_count(preset: str) -> tuple[Counter[str], Counter[str]]:

@@ -170,9 +170,12 @@ def _pixel_shift(frame, truth: np.ndarray, pose: np.ndarray) -> float:
 
 
 def test_refinement_moves_a_displaced_pose_towards_the_truth():
+    # The streamed view's own mapping steps, at the tracking rates, move its pose (``sparse`` moves only its
+    # keyframes', at a quarter of them).
     frames = open_frames("synthetic", "synthetic", "0:7", 1, 1.0, n_frames=40)  # 320x240
     loaded = [frames.load(position) for position in range(7)]
-    mapper = Mapper(resolve("sparse", overrides={"poses.refine": "true", "poses.track_iterations": "0"}))
+    mapper = Mapper(resolve("sparse", overrides={"poses.refine": "true", "poses.track_iterations": "0",
+                                                 "poses.view_steps": "true", "poses.mapping_rate": "1"}))
     for frame in loaded[:6]:
         mapper.process(frame)
     displaced = loaded[6]

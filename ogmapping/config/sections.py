@@ -178,12 +178,17 @@ class PosesConfig:
     # Refine each keyframe's and the streamed view's client pose against the map, in the mapping
     # steps (ogmapping.optim.poses); the first keyframe stays fixed, so the map keeps the client's frame.
     # Off by default: on Replica room0 it gains where poses are noisy and costs a little where they
-    # are exact ("Pose refinement").
+    # are exact ("Pose refinement"); ``sparse`` refines its keyframes' poses in the window alone (no
+    # tracking, the view at its given pose: "Keyframe poses refined in the window").
     refine: bool = False
     # Gradient-descent rates: metres and radians per unit of the loss's gradient (a rotation moves a point
     # about its depth, some 2 m here, times as far: hence the smaller rate).
     translation_lr: float = _learning_rate(0.004)
     rotation_lr: float = _learning_rate(0.001)
+    # Mapping steps move a correction at this share of the rates above (tracking steps at the rates
+    # themselves): a mapping step's gradient is larger than a tracking step's, and at the full rates a
+    # keyframe's correction overshoots by a centimetre a step, both ways ("Keyframe poses refined in the window").
+    mapping_rate: float = ranged(1.0, 0, 1)
     # Gradient steps on the frame's pose alone, against the map as it stands, before its mapping steps: a
     # few mapping steps move a pose little, and meanwhile pull the map towards the pose's error. Two are
     # what ``track_min_gain`` needs to tell a pose that moves from one held; the Gauss-Newton steps below

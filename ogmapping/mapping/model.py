@@ -175,8 +175,11 @@ class MapModel:
         return self.config.octree.depth_max * 2
 
     def camera(self, c2w: torch.Tensor, intrinsics: Intrinsics, blur: float = COVARIANCE_BLUR) -> Camera:
-        return Camera(world_to_camera(c2w), intrinsics_matrix(intrinsics, self.device), intrinsics.width,
-                      intrinsics.height, blur)
+        return self.viewed(world_to_camera(c2w), intrinsics, blur)
+
+    def viewed(self, viewmat: torch.Tensor, intrinsics: Intrinsics, blur: float = COVARIANCE_BLUR) -> Camera:
+        """The camera of a world-to-camera ``viewmat``."""
+        return Camera(viewmat, intrinsics_matrix(intrinsics, self.device), intrinsics.width, intrinsics.height, blur)
 
     def decode(self, center: torch.Tensor, rows: torch.Tensor) -> GaussianSet:
         """The Gaussians of anchors ``rows`` as seen from the camera centre ``center``."""

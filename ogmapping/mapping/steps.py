@@ -15,6 +15,7 @@ import threading
 
 import torch
 
+from ogmapping.frames.geometry import world_to_camera
 from ogmapping.mapping.model import MapModel
 from ogmapping.model.gaussians import GaussianSet, generate_window
 from ogmapping.model.static_gaussians import DrawnGaussianSet, DrawnWindow, frustum_camera
@@ -23,6 +24,7 @@ from ogmapping.optim.exposure import values_of
 from ogmapping.optim.keyframes import Keyframe, KeyframeSet, View
 from ogmapping.optim.losses import same_size_groups
 from ogmapping.optim.poses import PoseCorrection
+from ogmapping.optim.window_poses import Basis, StepRates, step_corrections
 from ogmapping.render import rasterize_batch
 from ogmapping.render.output import RenderOutput
 from ogmapping.runtime.time_budget import Budget, Stop
@@ -36,6 +38,8 @@ class MappingSteps:
         self.model = model
         self.keyframes = keyframes
         self.lock = lock
+        self._bases: dict[tuple[torch.device, torch.dtype], tuple[Basis, torch.Tensor]] = {}
+        self._rates: tuple[tuple, StepRates] | None = None
 
     def run(self, iterations: int, view: View | None, view_is_newest: bool, budget: Budget,
             started: float) -> tuple[torch.Tensor, int, int, Stop | None]:
@@ -90,8 +94,8 @@ class MappingSteps:
             if model.hash_optimizer is not None:
                 model.hash_optimizer.step()
             model.average.update(model.graphs.average)
-            for correction in corrections:
-                correction.step(config.poses)
+            if corrections:
+                step_corrections(corrections, self.step_rates(), model.graphs.pose_step)
         model.drawn.post(renders[0][0].drawn_count())
         return total.detach()
 
@@ -99,19 +103,17 @@ class MappingSteps:
             torch.Tensor, list[tuple[GaussianSet, RenderOutput, View]], list[PoseCorrection]]:
         """A step's loss over ``view`` and ``keyframes``, its renders (Gaussians, output, view) and the
         pose corrections it moves."""
-        model, config = self.model, self.model.config
+        model = self.model
         with model.timed("window"):
             window = [view, *(self.drawn(keyframe) for keyframe in keyframes)]
-            moving = [(drawn, self.moves(drawn.correction, view)) for drawn in window]
-            poses = [drawn.pose() if moves else drawn.pose().detach() for drawn, moves in moving]
-            corrections = list({id(drawn.correction): drawn.correction for drawn, moves in moving if moves}.values())
+            poses, viewmats, corrections = self.poses(window, view)
         static = model.profile.static_shapes
         with model.timed("decode"):
             views = list(zip(poses, window, strict=True))
             decoded = self.decode_static(views) if static else self.decode(views)
             window_gaussians = decoded.views() if static else decoded
         with model.timed("rasterize"):
-            cameras = [model.camera(pose, drawn.intrinsics) for pose, drawn in views]
+            cameras = [model.viewed(viewmat, drawn.intrinsics) for viewmat, drawn in zip(viewmats, window, strict=True)]
             outputs = rasterize_batch(decoded, cameras, backend=model.backend, options=model.raster_options)
         renders = list(zip(window_gaussians, outputs, window, strict=True))
         total = torch.zeros((), device=model.device)
@@ -120,9 +122,42 @@ class MappingSteps:
         with model.timed("loss"):
             for loss, weight in zip(self.view_losses(renders), weights, strict=True):
                 total = total + loss * weight / weight_sum
-            for correction in corrections:
-                total = total + correction.prior(config.poses)
         return total, renders, corrections
+
+    def poses(self, window: list[View], view: View) -> tuple[list[torch.Tensor], list[torch.Tensor],
+                                                             list[PoseCorrection]]:
+        """Each of ``window``'s poses to render at (no gradient) and its world-to-camera, and the corrections the
+        step moves (``moves``; their priors' gradients join their steps, ``window_poses.StepRates``). Where a view
+        carries a correction the window is one batch, its world-to-cameras differentiable in those that move."""
+        if all(drawn.correction is None for drawn in window):
+            poses = [drawn.c2w for drawn in window]
+            return poses, list(world_to_camera(torch.stack(poses)).unbind(0)), []
+        moving = [self.moves(drawn.correction, view) for drawn in window]
+        basis, still = self._basis(view.c2w)
+        deltas = [still if drawn.correction is None else
+                  drawn.correction.delta if moves else drawn.correction.delta.detach()
+                  for drawn, moves in zip(window, moving, strict=True)]
+        poses, viewmats = self.model.graphs.poses(deltas, [drawn.c2w for drawn in window], basis)
+        corrections = {id(drawn.correction): drawn.correction for drawn, moves in zip(window, moving, strict=True)
+                       if moves}
+        viewmats = [viewmat if moves else viewmat.detach() for viewmat, moves in zip(viewmats, moving, strict=True)]
+        return list(poses), viewmats, list(corrections.values())
+
+    def _basis(self, like: torch.Tensor) -> tuple[Basis, torch.Tensor]:
+        """The pose batch's constants and the correction of a view without one (zeros), on ``like``'s device and
+        precision, made once."""
+        key = (like.device, like.dtype)
+        if key not in self._bases:
+            self._bases[key] = (Basis.on(like.device, like.dtype), torch.zeros(6, device=like.device, dtype=like.dtype))
+        return self._bases[key]
+
+    def step_rates(self) -> StepRates:
+        """The corrections' step on the device, made once per ``poses`` settings."""
+        settings, model = self.model.config.poses, self.model
+        key = (tuple(vars(settings).items()), model.device, model.profile.precision)
+        if self._rates is None or self._rates[0] != key:
+            self._rates = (key, StepRates.of(settings, model.device, model.profile.precision))
+        return self._rates[1]
 
     def view_losses(self, renders: list[tuple[GaussianSet, RenderOutput, View]]) -> list[torch.Tensor]:
         """Each render's ``mapping_loss``: per view, or with the Triton loss (``profile.triton_loss``) per

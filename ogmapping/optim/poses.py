@@ -72,17 +72,18 @@ class PoseCorrection:
     def __init__(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> None:
         self.delta = torch.zeros(6, device=device, dtype=dtype, requires_grad=True)
         self.steps = 0
-        # Hit the bound at some step: kept on the device, so a step never waits to learn it (``clamped`` reads it).
-        self._clamped = torch.zeros((), dtype=torch.bool, device=device)
+        # 1 once it hit the bound at some step, else 0: kept on the device, so a step never waits to learn it
+        # (``clamped`` reads it; a mapping step's batch raises it, ``ogmapping.optim.window_poses``).
+        self.hit_bound = torch.zeros((), dtype=dtype, device=device)
         self.held = False  # kept at the client's pose for good (``hold``)
 
     @property
     def clamped(self) -> bool:
-        return bool(self._clamped)
+        return bool(self.hit_bound)
 
     @clamped.setter
     def clamped(self, value: bool) -> None:
-        self._clamped.fill_(value)
+        self.hit_bound.fill_(float(value))
 
     @property
     def translation(self) -> torch.Tensor:
@@ -153,13 +154,13 @@ class PoseCorrection:
     def _clamp(self, part: torch.Tensor, bound: float) -> None:
         """Scale ``part`` back to ``bound`` where it is longer, on the device (times exactly 1 where it is not)."""
         norm = part.norm()
-        self._clamped |= norm > bound
+        torch.maximum(self.hit_bound, (norm > bound).to(norm.dtype), out=self.hit_bound)
         part.mul_((bound / norm.clamp_min(torch.finfo(norm.dtype).tiny)).clamp(max=1.0))
 
     def report(self, c2w: torch.Tensor) -> PoseReport:
         """This correction of the client's ``c2w`` as results report it."""
         with torch.no_grad():  # one copy from the device: the correction, whether it was clamped, the pose
-            values = torch.cat([self.delta.double(), self._clamped.double().reshape(1),
+            values = torch.cat([self.delta.double(), self.hit_bound.double().reshape(1),
                                 self.refined(c2w).double().reshape(-1)]).cpu().numpy()
         return PoseReport(values[:3], values[3:6], bool(values[6]), values[7:].reshape(4, 4))
 
