@@ -183,7 +183,7 @@ class Mapper:
                 first_new = len(model.anchors)
                 model.add_coarse_anchors(new_codes, rgb, depth, frame.color_intrinsics, placed, len(self.keyframes) - 1)
         with model.timed("keyframes"):
-            is_keyframe = self.keyframes.inserts(overlap)
+            is_keyframe = self.keyframes.inserts(overlap, frame.index)
             iterations = self.config.keyframes.step_multiple * self.iterations_for(is_keyframe)
             if is_keyframe:
                 footprint = Footprint(model.octree.keys(0), seen[: model.octree.count(0)])

@@ -22,9 +22,9 @@ def footprint(codes: list[int]) -> Footprint:
     return Footprint.of_codes(torch.tensor(sorted(set(codes)), dtype=torch.int64))
 
 
-def inserts(frames: KeyframeSet, codes: list[int]) -> bool:
-    """Whether a frame seeing ``codes`` becomes a keyframe."""
-    return frames.inserts(read(frames.overlap_with_last(footprint(codes)))[0])
+def inserts(frames: KeyframeSet, codes: list[int], index: int = 1) -> bool:
+    """Whether frame ``index`` seeing ``codes`` becomes a keyframe."""
+    return frames.inserts(read(frames.overlap_with_last(footprint(codes)))[0], index)
 
 
 def test_overlap_ratio_matches_set_arithmetic():
@@ -52,6 +52,17 @@ def test_insertion_follows_the_threshold():
     frames.insert(keyframe(0, [1, 2, 3, 4]))
     assert not inserts(frames, [1, 2, 3, 4, 5])  # 4/5 overlap
     assert inserts(frames, [3, 4, 5, 6, 7])  # 2/7 overlap
+
+
+def test_a_frame_max_gap_frames_after_the_last_keyframe_is_one_whatever_its_overlap():
+    frames = KeyframeSet(KeyframeConfig(overlap_threshold=0.5, max_gap=10))
+    assert inserts(frames, [1, 2, 3], index=4)
+    frames.insert(keyframe(4, [1, 2, 3, 4]))
+    assert not inserts(frames, [1, 2, 3, 4], index=13)
+    assert inserts(frames, [1, 2, 3, 4], index=14)
+    plain = KeyframeSet(KeyframeConfig(overlap_threshold=0.5))
+    plain.insert(keyframe(4, [1, 2, 3, 4]))
+    assert not inserts(plain, [1, 2, 3, 4], index=10**6)  # 0: overlap alone
 
 
 def test_local_and_global_split_by_overlap_weight():

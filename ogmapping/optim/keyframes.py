@@ -252,9 +252,13 @@ class KeyframeSet:
         self._refresh(self.keyframes[-1:])
         return overlap(footprint, self.keyframes[-1].footprint)
 
-    def inserts(self, overlap_with_last: float) -> bool:
-        """A frame is a keyframe when it overlaps the last keyframe less than the threshold (any frame, first)."""
-        return overlap_with_last < 0 or overlap_with_last < self.config.overlap_threshold
+    def inserts(self, overlap_with_last: float, frame_index: int) -> bool:
+        """A frame is a keyframe when it overlaps the last keyframe less than the threshold (any frame, first), or
+        comes ``max_gap`` frames or more after it."""
+        if overlap_with_last < 0 or overlap_with_last < self.config.overlap_threshold:
+            return True
+        gap = self.config.max_gap
+        return bool(gap) and bool(self.keyframes) and frame_index - self.keyframes[-1].index >= gap
 
     def insert(self, keyframe: Keyframe) -> None:
         """Add K_new and split the earlier keyframes into local and global sets by overlap weight
