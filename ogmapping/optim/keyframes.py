@@ -59,10 +59,6 @@ class View:
         """The view of these images; ``compiled`` as ``ssim.reference_statistics``."""
         return cls(rgb, depth, intrinsics, c2w, reference_statistics(rgb, compiled=compiled), correction, exposure)
 
-    def pose(self) -> torch.Tensor:
-        """The camera-to-world to render at: the client's, corrected (differentiably) where refined."""
-        return self.c2w if self.correction is None else self.correction.refined(self.c2w)
-
 
 @dataclass
 class Keyframe:
