@@ -149,3 +149,19 @@ def test_the_step_is_the_same_compiled():
     compiled = torch.compile(corrected, fullgraph=True)
     for ours, theirs in zip(compiled(deltas, grads, rates), corrected(deltas, grads, rates), strict=True):
         torch.testing.assert_close(ours, theirs)
+
+
+def test_the_poses_are_the_same_compiled_values_and_gradients():
+    generator = torch.Generator().manual_seed(19)
+    c2ws = list(_poses(3, generator, torch.float32))
+    basis = Basis.on(torch.device("cpu"), torch.float32)
+    weights = torch.randn(3, 4, 4, generator=generator)
+    corrections = _deltas(generator, torch.float32)[2:5]  # the series' side, its edge, a large turn
+    results = []
+    for run in (window_poses, torch.compile(window_poses, fullgraph=True)):
+        deltas = [delta.clone().requires_grad_(True) for delta in corrections]
+        poses, viewmats = run(deltas, c2ws, basis)
+        (torch.stack(viewmats) * weights).sum().backward()
+        results.append((torch.stack(poses), torch.stack(viewmats), torch.stack([delta.grad for delta in deltas])))
+    for ours, theirs in zip(*results, strict=True):
+        torch.testing.assert_close(ours, theirs)
