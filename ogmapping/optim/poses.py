@@ -65,6 +65,13 @@ def settled(losses: list[torch.Tensor], min_gain: float) -> bool:
     return (before - after) < min_gain * max(first, 1e-12)
 
 
+def prior_weights(settings: PosesConfig) -> list[float]:
+    """The six weights of ``PoseCorrection.prior`` as ``sum(weights * delta**2)``: translation's, then rotation's."""
+    translation = settings.prior / settings.max_translation**2
+    rotation = settings.prior / math.radians(settings.max_rotation) ** 2
+    return [translation] * 3 + [rotation] * 3
+
+
 class PoseCorrection:
     """One pose's correction (translation, then axis-angle rotation, as one leaf 6-vector), stepped
     on its own, so corrections come and go with keyframes without touching the map's optimiser."""
@@ -108,9 +115,7 @@ class PoseCorrection:
 
     def prior_weights(self, settings: PosesConfig) -> torch.Tensor:
         """The prior as ``sum(weights * delta**2)``: its six weights."""
-        translation = settings.prior / settings.max_translation**2
-        rotation = settings.prior / math.radians(settings.max_rotation) ** 2
-        return self.delta.new_tensor([translation] * 3 + [rotation] * 3)
+        return self.delta.new_tensor(prior_weights(settings))
 
     def hold(self) -> None:
         """Back to the client's pose, to stay there: its tracking ``settled`` (``poses.track_min_gain``),

@@ -18,7 +18,7 @@ import torch
 
 from ogmapping.config import PosesConfig
 from ogmapping.frames.geometry import world_to_camera
-from ogmapping.optim.poses import PoseCorrection
+from ogmapping.optim.poses import PoseCorrection, prior_weights
 
 # Below this angle (radians) the left Jacobian's third coefficient, (t - sin t) / t^3, is taken from its
 # series: its closed form cancels in float32 there; the series' next term is t^6 / 9!.
@@ -108,8 +108,7 @@ class StepRates:
         scale = settings.mapping_rate
         rates = torch.tensor([settings.translation_lr * scale] * 3 + [settings.rotation_lr * scale] * 3,
                              dtype=torch.float64)
-        weights = torch.tensor([settings.prior / settings.max_translation**2] * 3
-                               + [settings.prior / math.radians(settings.max_rotation) ** 2] * 3, dtype=torch.float64)
+        weights = torch.tensor(prior_weights(settings), dtype=torch.float64)
         bounds = torch.tensor([settings.max_translation, math.radians(settings.max_rotation)], dtype=torch.float64)
         return cls(*(value.to(device=device, dtype=dtype) for value in (1 - 2 * rates * weights, rates, bounds)))
 
