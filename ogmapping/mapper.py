@@ -156,9 +156,11 @@ class Mapper:
         # With ``poses.refine`` every frame but the first keyframe's carries a correction of its client pose
         # (the first keeps it: the map stays in the client's frame), tracked against the map before this
         # frame adds to it; the frame is placed at the tracked pose, and its steps refine it further.
+        # With ``poses.tracked`` keyframes only a frame that becomes one is tracked, once it is known to be one.
         correction = PoseCorrection(self.device, c2w.dtype) if self.config.poses.refine and self.keyframes else None
+        tracks_every = self.config.poses.tracked == "every"
         placed = c2w
-        if correction is not None:
+        if correction is not None and tracks_every:
             self.tracker.track(frame.color_intrinsics, (rgb, depth, c2w), correction, budget, start)
             placed = correction.refined(c2w).detach()
         # With ``keyframes.exposure`` it carries an exposure too (but the first keyframe), learned in its steps.
@@ -192,6 +194,9 @@ class Mapper:
                                                        exposure=exposure))
                 with self.lock:  # the anchors this frame allocated belong to it, not to the keyframe before
                     model.anchors.keyframe[first_new:] = len(self.keyframes) - 1
+                if correction is not None and not tracks_every:
+                    self.tracker.track(frame.color_intrinsics, (rgb, depth, c2w), correction, budget, start,
+                                       rows_below=first_new)
         # The frame itself, at full precision, is the view every step trains on.
         view = (View.of(rgb, depth, frame.color_intrinsics, c2w, compiled=self.profile.compiled, correction=correction,
                         exposure=exposure)

@@ -228,6 +228,62 @@ def test_tracking_that_settles_holds_every_pose_and_maps_as_without_refinement(t
         assert torch.equal(tensor, held[name]), name
 
 
+def test_tracking_only_keyframes_gates_their_corrections_and_leaves_other_frames_as_given():
+    frames = _frames(6)
+    overrides = {**TINY, "poses.refine": "true", "poses.tracked": "keyframes", "poses.view_steps": "false",
+                 "poses.track_newton_iterations": "0"}
+    plain = Mapper(resolve("sparse-fast", overrides=TINY))
+    gated = Mapper(resolve("sparse-fast", overrides={**overrides, "poses.track_min_gain": "1"}))
+    results = []
+    for frame in frames:
+        results.append(gated.process(frame))
+        plain.process(frame)
+    assert any(not result.keyframe for result in results) and sum(result.keyframe for result in results) > 1
+    corrections = [keyframe.correction for keyframe in gated.keyframes.keyframes[1:]]
+    assert all(correction.held and correction.steps == TRACK_CHECK_STEPS for correction in corrections)
+    # Every pose stays as given: the map is the one made without refinement, to the bit.
+    held = gated.state().tensors
+    for name, tensor in plain.state().tensors.items():
+        assert torch.equal(tensor, held[name]), name
+
+    moving = Mapper(resolve("sparse-fast", overrides={**overrides, "poses.track_min_gain": "0"}))
+    for frame, result in zip(frames, results, strict=True):
+        tracked = moving.process(frame)
+        assert tracked.keyframe == result.keyframe
+        if not tracked.keyframe:  # a streamed frame is neither tracked nor moved by its own steps
+            assert not tracked.pose.translation.any() and not tracked.pose.rotation.any()
+    assert all(keyframe.correction.steps >= 2 for keyframe in moving.keyframes.keyframes[1:])
+
+
+def test_a_keyframe_is_tracked_against_the_map_without_its_own_anchors():
+    loaded = _frames(3)
+    displaced = loaded[2]
+    displaced.c2w = displaced.c2w.copy()
+    displaced.c2w[:3, 3] += np.array([0.01, -0.01, 0.0])
+    mapper = Mapper(resolve("sparse-fast", overrides={
+        **TINY, "keyframes.first_iterations": "40", "keyframes.overlap_threshold": "0.99",  # every frame a keyframe
+        "poses.refine": "true", "poses.tracked": "keyframes", "poses.view_steps": "false",
+        "poses.track_min_gain": "0"}))
+    for frame in loaded[:2]:
+        mapper.process(frame)
+    anchors = len(mapper.model.anchors)
+    rendered, in_map = [], []  # the rows tracking decoded, and the map's size while it tracked
+    decode, track = mapper.model.decode, mapper.tracker.track
+
+    def tracking(*args, **kwargs):
+        in_map.append(len(mapper.model.anchors))
+        mapper.model.decode = lambda center, rows: rendered.append(rows) or decode(center, rows)
+        track(*args, **kwargs)
+        mapper.model.decode = decode
+
+    mapper.tracker.track = tracking
+    result = mapper.process(displaced)
+    assert result.keyframe and in_map[0] > anchors  # tracked once it had added anchors of its own...
+    assert len(rendered) == 1 and 0 < int(rendered[0].max()) < anchors  # ...which it did not render
+    correction = mapper.keyframes.keyframes[-1].correction
+    assert correction.steps >= TRACK_CHECK_STEPS and result.pose.translation_m > 0  # tracking moved it
+
+
 @pytest.mark.parametrize("key", ["poses.track_fine_iterations", "poses.track_newton_iterations"])
 def test_further_tracking_steps_move_a_pose_that_tracking_moves(key):
     loaded = _frames(3)

@@ -28,6 +28,7 @@ StepMode = Literal["auto", "dynamic", "static", "compiled"]
 Allocation = Literal["octree", "unique", "projection"]  # map densification: the paper's, naive, SplaTAM's
 Window = Literal["dynamic", "random", "overlap", "coverage"]  # the paper's, or a fixed window (random: ESLAM's)
 GlobalDraw = Literal["random", "stalest"]  # how the dynamic window draws its global keyframes
+TrackedFrames = Literal["every", "keyframes"]  # which frames' poses tracking corrects
 Growth = Literal["anchor", "error", "none"]  # the paper's progressive growth, Scaffold-GS's error-based, none
 
 MAX_OCTREE_LEVEL = 4
@@ -200,6 +201,10 @@ class PosesConfig:
     # what ``track_min_gain`` needs to tell a pose that moves from one held; the Gauss-Newton steps below
     # take a pose that moves further than more gradient steps would ("Pose refinement").
     track_iterations: int = ranged(2, 0)
+    # Which frames are tracked: every frame, before it adds to the map, or only a frame that becomes a
+    # keyframe, against the anchors the map held before it (its tracking then gates its correction: one that
+    # ``track_min_gain`` holds stays at the client's pose in every window that draws it).
+    tracked: TrackedFrames = "every"
     # ...on every this-many-th pixel of each row and column (2: a quarter of the pixels), rendered at their
     # own centres with the splats blurred as at full size, so the loss is the full-size loss on those
     # pixels, whose minimum lies on the truth; a resized image's lies off it ("What bounds tracking").

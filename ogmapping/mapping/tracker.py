@@ -39,19 +39,20 @@ class Tracker:
         self.lock = lock
 
     def track(self, intrinsics: Intrinsics, tensors: FrameTensors, correction: PoseCorrection, budget: Budget,
-              started: float) -> None:
+              started: float, rows_below: int | None = None) -> None:
         """``poses.track_iterations`` steps on the pose of a prepared frame (its colour camera's ``intrinsics``,
         its colour, depth and pose as device ``tensors``) alone, on every
         ``poses.track_stride``-th pixel, the map held fixed, until ``budget`` says stop. With
         ``poses.track_min_gain`` a pose that ``settled`` after TRACK_CHECK_STEPS steps goes back to the
         client's and is held there, its tracking cut short; one that moves then takes
         ``poses.track_newton_iterations`` Gauss-Newton steps and ``poses.track_fine_iterations`` gradient
-        steps on every pixel."""
+        steps on every pixel. ``rows_below``: the map is its anchors in rows below it (those the frame found,
+        where it has added its own since)."""
         settings = self.model.config.poses
         if not settings.track_iterations:
             return
         with self.lock, self.model.timed("track"):
-            gaussians = self._gaussians(intrinsics, tensors[2])
+            gaussians = self._gaussians(intrinsics, tensors[2], rows_below)
             renderer = self._renderer(intrinsics, tensors, None, gaussians)
             loss_at = self._loss_of(renderer)
             losses: list[torch.Tensor] = []  # before each step, then after the check's steps
@@ -84,11 +85,15 @@ class Tracker:
                 (fine(correction) + correction.prior(settings)).backward()
                 correction.step(settings)
 
-    def _gaussians(self, intrinsics: Intrinsics, c2w: torch.Tensor) -> GaussianSet:
-        """The Gaussians of the anchors a frame sees from its client's pose ``c2w``, decoded from there: the fixed
-        map its tracking steps render, on any of its pixels (a stride keeps the frustum)."""
+    def _gaussians(self, intrinsics: Intrinsics, c2w: torch.Tensor, rows_below: int | None = None) -> GaussianSet:
+        """The Gaussians of the anchors (in rows below ``rows_below``, if given) a frame sees from its client's pose
+        ``c2w``, decoded from there: the fixed map its tracking steps render, on any of its pixels (a stride keeps
+        the frustum)."""
         with self.lock, torch.no_grad():
-            return self.model.decode(c2w[:3, 3], self.model.rows_in_view(c2w, intrinsics))
+            rows = self.model.rows_in_view(c2w, intrinsics)
+            if rows_below is not None:
+                rows = rows[rows < rows_below]
+            return self.model.decode(c2w[:3, 3], rows)
 
     def objective(self, frame: Frame, stride: int | None = None,
                   gaussians: GaussianSet | None = None) -> Callable[[PoseCorrection], torch.Tensor]:
