@@ -39,18 +39,22 @@ STEADY = {
 
 
 class HostWaits(TorchDispatchMode):
-    """Every host-waiting operator dispatched, with the engine function that dispatched it."""
+    """Every host-waiting operator dispatched, with the engine function that dispatched it; those a frame's pose
+    tracking dispatches (``Tracker.track``, the map held fixed) apart, in ``tracking``."""
 
     def __init__(self) -> None:
         super().__init__()
         self.sites: Counter[tuple[str, str]] = Counter()
+        self.tracking: Counter[tuple[str, str]] = Counter()
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         name = str(func)
         boolean_index = name.startswith("aten.index") and any(
             isinstance(index, torch.Tensor) and index.dtype == torch.bool for index in _indices(args))
         if name in WAITING or boolean_index:
-            self.sites[name, _engine_site()] += 1
+            stack = traceback.extract_stack()
+            tracking = any(frame.filename.endswith("mapping/tracker.py") and frame.name == "track" for frame in stack)
+            (self.tracking if tracking else self.sites)[name, _engine_site(stack)] += 1
         return func(*args, **(kwargs or {}))
 
 
@@ -58,9 +62,9 @@ def _indices(args: tuple) -> list:
     return list(args[1]) if len(args) > 1 and isinstance(args[1], (list, tuple)) else []
 
 
-def _engine_site() -> str:
-    """``folder/module.py:function`` of the innermost engine frame on the stack."""
-    for frame in reversed(traceback.extract_stack()):
+def _engine_site(stack: traceback.StackSummary) -> str:
+    """``folder/module.py:function`` of the innermost engine frame on ``stack``."""
+    for frame in reversed(stack):
         if "/ogmapping/" in frame.filename:
             return f"{frame.filename.split('/ogmapping/')[-1]}:{frame.name}"
     return "outside the engine"
@@ -121,18 +125,28 @@ def test_growth_and_pruning_read_the_device_once():
     assert not waits.sites and reads() - before == 1, dict(waits.sites)
 
 
-def test_a_frame_reads_the_device_once_before_its_steps():
+@pytest.mark.parametrize("tracked", ["none", "keyframes"])
+def test_a_frame_reads_the_device_once_before_its_steps(tracked: str):
     """Per frame: one read for its new cells and keyframe test, one for a keyframe's overlap weights, one per
-    refinement; no operator that waits (``static`` step, as on a GPU)."""
-    mapper, _, _ = mapped("sparse", {"refine.interval": "2"}, step="static")
+    refinement, and with ``poses.tracked`` keyframes one for a keyframe's tracking check; no other operator that
+    waits (``static`` step, as on a GPU) but in that tracking, once a keyframe, which waits as tracking does."""
+    overrides = {"refine.interval": "2", "poses.refine": "false"}
+    if tracked == "keyframes":
+        overrides = {**overrides, "poses.refine": "true", "poses.tracked": "keyframes", "poses.view_steps": "false"}
+    mapper, _, _ = mapped("sparse", overrides, step="static")
     frames = open_frames("synthetic", "synthetic", "4:8", scale=0.25)
-    waits, before, expected = HostWaits(), reads(), 0
+    waits, before, expected, keyframes = HostWaits(), reads(), 0, 0
     with torch_threads(mapper.profile.threads):
         for position in frames.selection.streamed:
             iterations = mapper.model.iterations
+            tracking = sum(waits.tracking.values())
             with waits:
                 result = mapper.process(frames.load(position))
             refines = (mapper.model.iterations // 2) - (iterations // 2)
-            expected += 1 + int(result.keyframe) + refines
+            checked = result.keyframe and tracked == "keyframes"
+            expected += 1 + int(result.keyframe) + refines + int(checked)
+            assert (sum(waits.tracking.values()) > tracking) == checked
+            keyframes += result.keyframe
+    assert keyframes, "a keyframe among the frames"
     assert not waits.sites, dict(waits.sites)
     assert reads() - before == expected

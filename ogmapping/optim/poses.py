@@ -23,6 +23,7 @@ import torch
 
 from ogmapping.config import PosesConfig
 from ogmapping.frames.rotation import exp_so3
+from ogmapping.runtime.host_read import read
 
 STATE_SIZE = 9  # a correction's checkpoint row: delta (6), steps, clamped, held
 STATE_SIZES = (8, STATE_SIZE)  # rows written before ``held`` lack it
@@ -61,7 +62,7 @@ def settled(losses: list[torch.Tensor], min_gain: float) -> bool:
     falling (bench/RESULTS.md, "Pose refinement"). Never with ``min_gain`` 0, not even where the loss rose."""
     if min_gain <= 0:
         return False
-    first, before, after = torch.stack(losses[:TRACK_CHECK_STEPS + 1]).tolist()  # one read from the device
+    first, before, after = read(*losses[:TRACK_CHECK_STEPS + 1])  # one read from the device
     return (before - after) < min_gain * max(first, 1e-12)
 
 
