@@ -206,6 +206,7 @@ class Mapper:
             loss, grown, done, stopped = self.steps.run(iterations, view, is_keyframe, budget, start)
         with self.lock:
             pose = correction.report(c2w) if correction is not None else PoseReport.unrefined(frame.c2w)
+        self._review_correction()
         model.count_frame(frame.c2w)
         return FrameResult(
             index=frame.index,
@@ -219,6 +220,19 @@ class Mapper:
             stopped=stopped,
             pose=pose,
         )
+
+    def _review_correction(self) -> None:
+        """With ``poses.review``, review one keyframe's correction (``Tracker.review``), each in turn by the count of
+        frames mapped (so a resumed map reviews the one it would have), none held at the client's pose."""
+        live = self.keyframes.keyframes
+        if not (self.config.poses.refine and self.config.poses.review) or len(live) < 2:
+            return
+        keyframe = live[1 + self.model.frames % (len(live) - 1)]
+        if keyframe.correction is None or keyframe.correction.held:
+            return
+        rgb = keyframe.host_rgb.to(self.device, non_blocking=keyframe.pinned).to(torch.float32) / 255.0
+        self.tracker.review(keyframe.intrinsics, (rgb, keyframe.device_depth(self.device), keyframe.c2w),
+                            keyframe.correction)
 
     def _fit_to(self, intrinsics: Intrinsics) -> None:
         """While the config's resolution rules are pending (until its first frame), resolve them for the step

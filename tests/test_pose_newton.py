@@ -42,13 +42,13 @@ def test_tracking_residuals_sum_to_the_tracking_loss():
 
 @pytest.fixture(scope="module")
 def tracked() -> tuple[Mapper, object, np.ndarray]:
-    """A small map of synthetic frames and the last of them, prepared, at a pose ``SHIFT`` off its truth:
-    the map has seen that frame, so its tracking loss is lowest near the truth. Thirty steps a keyframe: with
-    the preset's ten, where that lowest loss lies moves by up to a pixel with the map's last bits (seeds)."""
+    """A small map of synthetic frames, made at their exact poses, and the last of them, prepared, at a pose
+    ``SHIFT`` off its truth: the map has seen that frame there, so its tracking loss is lowest near the truth.
+    Thirty steps a keyframe: with the preset's ten, where that lowest loss lies moves by up to a pixel with the
+    map's last bits (seeds). Made without refinement, so no keyframe's correction moves the map off the truth."""
     frames = open_frames("synthetic", "synthetic", "0:7", 1, 1.0, n_frames=40)  # 320x240
     loaded = [frames.load(position) for position in range(7)]
-    mapper = Mapper(resolve("sparse", overrides={"poses.refine": "true", "keyframes.frame_iterations": "6",
-                                                 "keyframes.iterations": "30"}))
+    mapper = Mapper(resolve("sparse", overrides={"keyframes.frame_iterations": "6", "keyframes.iterations": "30"}))
     for frame in loaded:
         mapper.process(frame)
     truth = np.asarray(loaded[6].c2w, dtype=np.float64)

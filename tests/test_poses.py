@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -301,3 +302,54 @@ def test_further_tracking_steps_move_a_pose_that_tracking_moves(key):
         refined[further] = mapper.process(displaced).pose.refined_c2w
     assert not np.allclose(refined["0"], refined["3"], rtol=0, atol=1e-7)
     assert not np.allclose(refined["0"], displaced.c2w, rtol=0, atol=1e-7)  # tracking itself moved it
+
+
+def _mapped_with_exact_poses(review: str = "true") -> tuple[Mapper, list]:
+    frames = open_frames("synthetic", "synthetic", "0:4", 1, 0.5, n_frames=40)  # 160x120
+    loaded = [frames.load(position) for position in range(4)]
+    mapper = Mapper(resolve("sparse-fast", overrides={
+        **TINY, "keyframes.first_iterations": "60", "keyframes.overlap_threshold": "0.99",  # every frame a keyframe
+        "poses.refine": "true", "poses.track_iterations": "0", "poses.view_steps": "false", "poses.review": review}))
+    for frame in loaded:
+        mapper.process(frame)
+    return mapper, loaded
+
+
+def _review(mapper: Mapper, frame, client_c2w: np.ndarray, delta: list[float]) -> torch.Tensor:
+    """The correction ``delta`` of ``frame`` seen from ``client_c2w``, after its review."""
+    model = mapper.model
+    prepared = mapper.prepare(dataclasses.replace(frame, c2w=client_c2w))
+    rgb, depth, c2w = model.upload(prepared.rgb, prepared.depth, prepared.c2w)
+    correction = PoseCorrection(model.device)
+    with torch.no_grad():
+        correction.delta.copy_(torch.tensor(delta))
+    mapper.tracker.review(frame.color_intrinsics, (rgb, depth, c2w), correction)
+    return correction.delta.detach()
+
+
+def test_a_review_puts_back_a_correction_the_client_pose_fits_better_and_keeps_one_that_fits_better():
+    mapper, loaded = _mapped_with_exact_poses()
+    frame = loaded[2]
+    off = [0.015, -0.01, 0.0, 0.0, 0.01, 0.0]
+    assert not _review(mapper, frame, frame.c2w, off).any()  # the client's exact pose renders the frame closer
+    displaced = frame.c2w.copy()
+    displaced[:3, 3] -= np.array([0.015, -0.01, 0.0])
+    kept = _review(mapper, frame, displaced, [0.015, -0.01, 0.0, 0.0, 0.0, 0.0])  # the correction undoes the error
+    assert torch.equal(kept, torch.tensor([0.015, -0.01, 0.0, 0.0, 0.0, 0.0]))
+
+
+@pytest.mark.parametrize("review", ["true", "false"])
+def test_after_each_frame_one_keyframe_correction_in_turn_is_reviewed(review):
+    mapper, loaded = _mapped_with_exact_poses(review)
+    corrections = [keyframe.correction for keyframe in mapper.keyframes.keyframes[1:]]
+    assert len(corrections) == 3
+    with torch.no_grad():
+        for correction in corrections:
+            correction.delta.copy_(torch.tensor([0.015, -0.01, 0.0, 0.0, 0.01, 0.0]))
+    turn = mapper.model.frames % len(corrections)  # the correction the next frame's review takes
+    mapper.process(loaded[3])
+    if review == "false":
+        assert all(correction.delta.any() for correction in corrections)
+        return
+    # The reviewed one is back at its client's (exact) pose; the others moved only by their window steps.
+    assert [not correction.delta.any() for correction in corrections] == [i == turn for i in range(3)]

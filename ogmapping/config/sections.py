@@ -222,6 +222,9 @@ class PosesConfig:
     # pose's loss falls on the first step, as the pose fits the young map's own error, then stops; a wrong
     # one's keeps falling ("Pose refinement"). 0: every correction moves. Needs two tracking steps.
     track_min_gain: float = ranged(0.02, 0, 1)
+    # After each frame's steps one keyframe's correction, each in turn, goes back to the client's pose where that
+    # pose fits the keyframe's own image better (``Tracker.review``): a correction caught off its optimum.
+    review: bool = True
     # The streamed view's correction moves in its mapping steps too (else only its tracking steps set it;
     # keyframes' corrections move in every step that draws them).
     view_steps: bool = True

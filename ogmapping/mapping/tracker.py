@@ -85,6 +85,18 @@ class Tracker:
                 (fine(correction) + correction.prior(settings)).backward()
                 correction.step(settings)
 
+    def review(self, intrinsics: Intrinsics, tensors: FrameTensors, correction: PoseCorrection) -> None:
+        """Put a keyframe's ``correction`` back at the client's pose where that pose fits the keyframe (its colour
+        camera's ``intrinsics``, its colour, depth and client pose as device ``tensors``) better: its tracking
+        loss against the map as it stands is lower there. Mapping steps move a correction by the gradient
+        alone, so one that fit the young map's error early can stay caught a few pixels off, where the map has
+        since settled around the client's pose (bench/RESULTS.md, "Corrections reviewed"). Decided on the device:
+        no wait."""
+        with self.lock, self.model.timed("track"), torch.no_grad():
+            loss_at = self._loss_of(self._renderer(intrinsics, tensors, None, None))
+            keep = loss_at(correction) < loss_at(PoseCorrection(self.model.device, correction.delta.dtype))
+            correction.delta.mul_(keep.to(correction.delta.dtype))
+
     def _gaussians(self, intrinsics: Intrinsics, c2w: torch.Tensor, rows_below: int | None = None) -> GaussianSet:
         """The Gaussians of the anchors (in rows below ``rows_below``, if given) a frame sees from its client's pose
         ``c2w``, decoded from there: the fixed map its tracking steps render, on any of its pixels (a stride keeps
