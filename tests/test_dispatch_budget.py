@@ -25,17 +25,17 @@ from ogmapping.optim.keyframes import Keyframe, View
 from ogmapping.optim.poses import PoseCorrection
 from ogmapping.runtime.threads import torch_threads
 
-# Operators per step with the window rendered as one batch: 1195 with ``cpu`` (each of the rasterizer's Numba
-# stages one operator, ``torch.library``; backward 429, decode 315, optimizer 224, loss 81, statistics 69, window 39:
-# the window's poses inverted as one batch, rasterize 34), 993 with ``cpu`` and the decoders run once per window as
-# on a GPU (decode 268, backward 274), and 23694 with ``torch`` (the reference rasterizer, forward 7695 and most of
-# backward's 14935, loops over the tiles Gaussians reach, so its count also follows the scene). With keyframe poses
-# refined in the window (``poses.refine``, one correction moving: ``optim.window_poses``) 1291 and 1089.
+# Operators per step with the window rendered as one batch, ``sparse`` refining its keyframes' poses: 1291 with
+# ``cpu`` (each of the rasterizer's Numba stages one operator, ``torch.library``; backward 473, decode 315,
+# optimizer 244, loss 81, window 71: the window's poses one batch, ``optim.window_poses``; statistics 69,
+# rasterize 34), 1089 with ``cpu`` and the decoders run once per window as on a GPU (decode 268, backward 318),
+# and 23694 with ``torch`` (the reference rasterizer, forward 7695 and most of backward's 14935, loops over the
+# tiles Gaussians reach, so its count also follows the scene). Without refinement 1195 and 993.
 BUDGETS = {"cpu": 1300, "cpu-shared-decode": 1100, "torch": 24400}
 # The static-shape step as compiled graphs (config step=compiled), counted by the profiler: each operator
-# called outside a graph, each of the graphs' fused kernels and each rasterizer stage once. 221 on the
-# machine above (backward 97, decode 33, rasterize 31, window 20, loss 18, optimizer 15: fused Adam's two per
-# parameter group); 233 with keyframe poses refined; dense 284.
+# called outside a graph, each of the graphs' fused kernels and each rasterizer stage once. 233 on the
+# machine above (backward 107, decode 33, rasterize 31, optimizer 21: fused Adam's two per parameter group
+# and the pose corrections' step, loss 18, window 16); 221 without refinement; dense 284.
 COMPILED_BUDGET = 250
 
 

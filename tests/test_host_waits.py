@@ -134,7 +134,8 @@ def test_a_frame_reads_the_device_once_before_its_steps(tracked: str):
     once a frame: it reads nothing), which wait as tracking does."""
     overrides = {"refine.interval": "2", "poses.refine": "false"}
     if tracked == "keyframes":
-        overrides = {**overrides, "poses.refine": "true", "poses.tracked": "keyframes", "poses.view_steps": "false"}
+        overrides = {**overrides, "poses.refine": "true", "poses.tracked": "keyframes", "poses.view_steps": "false",
+                     "poses.track_iterations": "2", "poses.track_newton_iterations": "4"}
     mapper, _, _ = mapped("sparse", overrides, step="static")
     frames = open_frames("synthetic", "synthetic", "4:8", scale=0.25)
     waits, before, expected, keyframes = HostWaits(), reads(), 0, 0

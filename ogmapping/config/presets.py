@@ -76,6 +76,16 @@ PRESET_VALUES: dict[str, dict[str, Any]] = {
         "keyframes.global_draw": "stalest",  # every region revisited in turn: +0.17 / +0.27 dB held out ("A whole run")
         "loss.ssim": 0.1,  # its gradients drive growth: fewer anchors pay for the window's fifth view ("Loss weights")
         "loss.view": 0.5,  # once the window is full, the view weighs half a window keyframe ("Loss weights")
+        # Keyframe poses refined in the windows that draw them, at a quarter of the tracking rates, no tracking,
+        # the streamed view at its given pose, and each correction reviewed in turn against its client's pose:
+        # the map agrees with itself over a whole run, and a render of a frame's time moves with the nearest
+        # keyframe ("Keyframe poses refined in the window", "Corrections reviewed").
+        "poses.refine": True,
+        "poses.track_iterations": 0,
+        "poses.track_newton_iterations": 0,
+        "poses.view_steps": False,
+        "poses.mapping_rate": 0.25,
+        "poses.review": True,
         **_rules("sparse"),
     },
     "sparse-fast": {

@@ -183,10 +183,9 @@ class OptimConfig:
 class PosesConfig:
     # Refine each keyframe's and the streamed view's client pose against the map, in the mapping
     # steps (ogmapping.optim.poses); the first keyframe stays fixed, so the map keeps the client's frame.
-    # Off by default: on Replica room0 it gains where poses are noisy and costs a little where they
-    # are exact ("Pose refinement"). Keyframe poses refined in the window alone (no tracking, the view at its
-    # given pose, ``mapping_rate`` 0.25) gain on 7-Scenes but move Replica's exact poses ("Keyframe poses
-    # refined in the window").
+    # Off by default, on in ``sparse`` (keyframe poses alone, refined in the window: "Keyframe poses refined
+    # in the window", "Corrections reviewed"). With every frame tracked, on Replica room0 it gains where poses
+    # are noisy and costs a little where they are exact ("Pose refinement").
     refine: bool = False
     # Gradient-descent rates: metres and radians per unit of the loss's gradient (a rotation moves a point
     # about its depth, some 2 m here, times as far: hence the smaller rate).
@@ -203,7 +202,8 @@ class PosesConfig:
     track_iterations: int = ranged(2, 0)
     # Which frames are tracked: every frame, before it adds to the map, or only a frame that becomes a
     # keyframe, against the anchors the map held before it (its tracking then gates its correction: one that
-    # ``track_min_gain`` holds stays at the client's pose in every window that draws it).
+    # ``track_min_gain`` holds stays at the client's pose in every window that draws it; on 7-Scenes that held
+    # most keyframes and lost refinement's gain: "Corrections reviewed").
     tracked: TrackedFrames = "every"
     # ...on every this-many-th pixel of each row and column (2: a quarter of the pixels), rendered at their
     # own centres with the splats blurred as at full size, so the loss is the full-size loss on those
@@ -223,8 +223,9 @@ class PosesConfig:
     # one's keeps falling ("Pose refinement"). 0: every correction moves. Needs two tracking steps.
     track_min_gain: float = ranged(0.02, 0, 1)
     # After each frame's steps one keyframe's correction, each in turn, goes back to the client's pose where that
-    # pose fits the keyframe's own image better (``Tracker.review``): a correction caught off its optimum.
-    review: bool = True
+    # pose fits the keyframe's own image better (``Tracker.review``): a correction caught a few pixels off where
+    # the map has settled around the client's pose ("Corrections reviewed").
+    review: bool = False
     # The streamed view's correction moves in its mapping steps too (else only its tracking steps set it;
     # keyframes' corrections move in every step that draws them).
     view_steps: bool = True
