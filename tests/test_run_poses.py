@@ -5,14 +5,18 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from safetensors import safe_open
 
 from ogmapping.cli.commands import main
+from ogmapping.cli.pose_log import PoseLog
 from ogmapping.datasets.synthetic import trajectory as synthetic_trajectory
 from ogmapping.frames.trajectory import pose_errors, read_tum
+from ogmapping.optim.poses import PoseReport
+from ogmapping.queries import KeyframePose
 
 DATA = ["--data", "synthetic", "--format", "synthetic", "--frames", "0:6", "--scale", "0.25"]
 FAST = ["--set", "keyframes.first_iterations=3", "--set", "keyframes.iterations=2", "--device", "cpu", "--quiet"]
@@ -134,3 +138,22 @@ def test_a_refining_run_writes_its_trajectory_and_scores_its_poses_against_the_e
     assert refinement["given_error_cm"] == pytest.approx(
         100 * pose_errors(noisy.poses[:5], read_tum(runs / "exact.tum").poses[:5])[0].mean())
     assert len(refinement["per_frame"]["refined_error_cm"]) == 5
+
+
+def test_a_frame_without_a_correction_of_its_own_is_reported_moved_as_its_nearest_keyframe() -> None:
+    def pose(x: float, y: float = 0.0) -> np.ndarray:
+        c2w = np.eye(4)
+        c2w[:2, 3] = x, y
+        return c2w
+
+    # Keyframes 0 and 4; refinement moved keyframe 4 by a centimetre along y.
+    keyframes = [KeyframePose(0, pose(0.0), pose(0.0), False), KeyframePose(4, pose(0.4), pose(0.4, 0.01), False)]
+    for follow, last in ((False, 0.0), (True, 0.01)):
+        log = PoseLog()
+        for index in range(6):
+            frame = SimpleNamespace(index=index, timestamp=float(index), c2w=pose(0.1 * index))
+            log.add(frame, SimpleNamespace(pose=PoseReport.unrefined(frame.c2w)))
+        log.settle(keyframes, follow_nearest=follow)
+        # Frames 0-2 are nearest keyframe 0, 3-5 keyframe 4 (itself at its final pose either way).
+        assert [round(refined[1, 3], 6) for refined in log.refined] == [0.0, 0.0, 0.0, last, 0.01, last]
+        assert np.allclose([refined[0, 3] for refined in log.refined], [0.1 * index for index in range(6)])

@@ -12,7 +12,7 @@ import numpy as np
 from ogmapping.frames.frame import Frame
 from ogmapping.frames.trajectory import Trajectory, frame_key, pose_errors, write_tum
 from ogmapping.mapper import FrameResult
-from ogmapping.queries import KeyframePose
+from ogmapping.queries import KeyframePose, in_map_frame, nearest
 
 
 @dataclass
@@ -32,10 +32,22 @@ class PoseLog:
         self.refined.append(result.pose.refined_c2w)
         self.clamped.append(result.pose.clamped)
 
-    def settle(self, keyframes: list[KeyframePose]) -> None:
-        """Keyframes go on being refined after their own frame: take their final poses."""
+    def settle(self, keyframes: list[KeyframePose], follow_nearest: bool = False) -> None:
+        """Keyframes go on being refined after their own frame: take their final poses. With ``follow_nearest``
+        (streamed frames have no correction of their own: keyframe poses alone are refined) every other frame's
+        pose is moved as the keyframe nearest it was, as renders of its time are (``Mapper.render``)."""
         final = {pose.index: pose.refined_c2w for pose in keyframes}
-        self.refined = [final.get(index, pose) for index, pose in zip(self.indices, self.refined, strict=True)]
+        indices = [pose.index for pose in keyframes]
+
+        def settled(index: int, given: np.ndarray, refined: np.ndarray) -> np.ndarray:
+            if index in final:
+                return final[index]
+            if not follow_nearest or not keyframes:
+                return refined
+            return in_map_frame(keyframes[nearest(indices, index)], given)
+
+        self.refined = [settled(index, given, refined)
+                        for index, given, refined in zip(self.indices, self.given, self.refined, strict=True)]
 
     def write(self, path: Path) -> None:
         write_tum(path, self.keys, self.refined, ["refined camera-to-world poses of the streamed frames"])

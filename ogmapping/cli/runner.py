@@ -32,7 +32,9 @@ from ogmapping.runtime.profile import resolve_device
 from ogmapping.warmup import warm_up
 
 MEMORY_LOG_INTERVAL = 100  # streamed frames between peak-memory records
-REFINED_POSES = "refined.tum"  # with poses.refine: the streamed frames' refined poses, keyframes' as they ended
+# With poses.refine: the streamed frames' refined poses, keyframes' as they ended (where only keyframes are refined,
+# every other frame's moved as its nearest keyframe's, as renders of its time are).
+REFINED_POSES = "refined.tum"
 EVAL_POSES_KEY = "at_eval_poses"  # results.json's scores at --eval-poses, and their previews' name prefix
 STEP_STAGES = ("window", "decode", "rasterize", "loss", "backward", "statistics", "optimizer", "refine")
 
@@ -137,7 +139,8 @@ def run(options: RunOptions, config: MapperConfig) -> dict:
 
     refinement: dict[str, dict] = {}
     if pose_log is not None:
-        pose_log.settle(mapper.keyframe_poses())
+        settings = mapper.config.poses
+        pose_log.settle(mapper.keyframe_poses(), follow_nearest=not (settings.track_iterations or settings.view_steps))
         pose_log.write(out / REFINED_POSES)
         refinement = {"pose_refinement": {**pose_log.summary(eval_poses), "trajectory": REFINED_POSES}}
     stats = mapper.stats()
