@@ -91,7 +91,7 @@ class Tracker:
         loss against the map as it stands is lower there. Mapping steps move a correction by the gradient
         alone, so one that fit the young map's error early can stay caught a few pixels off, where the map has
         since settled around the client's pose (bench/RESULTS.md, "Corrections reviewed"). Decided on the device:
-        no wait."""
+        no read (the decode's frustum test waits, as tracking's does)."""
         with self.lock, self.model.timed("track"), torch.no_grad():
             loss_at = self._loss_of(self._renderer(intrinsics, tensors, None, None))
             keep = loss_at(correction) < loss_at(PoseCorrection(self.model.device, correction.delta.dtype))
