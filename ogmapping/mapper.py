@@ -206,7 +206,8 @@ class Mapper:
             loss, grown, done, stopped = self.steps.run(iterations, view, is_keyframe, budget, start)
         with self.lock:
             pose = correction.report(c2w) if correction is not None else PoseReport.unrefined(frame.c2w)
-        self._review_correction()
+        if budget.stop(start) is None:  # a frame out of time leaves the review to the next
+            self._review_correction()
         model.count_frame(frame.c2w)
         return FrameResult(
             index=frame.index,

@@ -15,6 +15,7 @@ from ogmapping.mapper import Mapper
 from ogmapping.optim.poses import STATE_SIZE, TRACK_CHECK_STEPS, PoseCorrection, settled
 from ogmapping.persist import map_io, snapshot
 from ogmapping.quality.evaluation import open_frames
+from ogmapping.runtime.time_budget import Budget
 
 TINY = {"keyframes.first_iterations": "6", "keyframes.iterations": "2"}
 
@@ -353,3 +354,14 @@ def test_after_each_frame_one_keyframe_correction_in_turn_is_reviewed(review):
         return
     # The reviewed one is back at its client's (exact) pose; the others moved only by their window steps.
     assert [not correction.delta.any() for correction in corrections] == [i == turn for i in range(3)]
+
+
+def test_a_frame_out_of_time_leaves_the_review_to_the_next():
+    mapper, loaded = _mapped_with_exact_poses()
+    corrections = [keyframe.correction for keyframe in mapper.keyframes.keyframes[1:]]
+    with torch.no_grad():
+        for correction in corrections:
+            correction.delta.copy_(torch.tensor([0.015, -0.01, 0.0, 0.0, 0.01, 0.0]))
+    mapper.process(loaded[3], Budget(seconds=0.0))  # no step either: every correction stays where it was
+    assert all(correction.delta.any() for correction in corrections)
+
