@@ -226,14 +226,13 @@ class Mapper:
         """With ``poses.review``, review one keyframe's correction (``Tracker.review``), each in turn by the count of
         frames mapped (so a resumed map reviews the one it would have), none held at the client's pose."""
         live = self.keyframes.keyframes
-        if not (self.config.poses.refine and self.config.poses.review) or len(live) < 2:
+        if not self.config.poses.review or len(live) < 2:
             return
         keyframe = live[1 + self.model.frames % (len(live) - 1)]
-        if keyframe.correction is None or keyframe.correction.held:
+        if keyframe.correction is None or keyframe.correction.held:  # none without ``poses.refine``
             return
-        rgb = keyframe.host_rgb.to(self.device, non_blocking=keyframe.pinned).to(torch.float32) / 255.0
-        self.tracker.review(keyframe.intrinsics, (rgb, keyframe.device_depth(self.device), keyframe.c2w),
-                            keyframe.correction)
+        tensors = (keyframe.device_rgb(self.device), keyframe.device_depth(self.device), keyframe.c2w)
+        self.tracker.review(keyframe.intrinsics, tensors, keyframe.correction)
 
     def _fit_to(self, intrinsics: Intrinsics) -> None:
         """While the config's resolution rules are pending (until its first frame), resolve them for the step

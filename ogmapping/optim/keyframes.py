@@ -125,17 +125,19 @@ class Keyframe:
         """The depth as float32 on ``device``, copied there in stream order (no wait on the host)."""
         return self.host_depth.to(device, non_blocking=self.pinned).to(torch.float32)
 
+    def device_rgb(self, device: torch.device) -> torch.Tensor:
+        """The colour as float32 in [0, 1] on ``device``, copied there in stream order (no wait on the host)."""
+        return self.host_rgb.to(device, non_blocking=self.pinned).to(torch.float32) / 255.0
+
     def view(self, device: torch.device, *, compiled: bool, images: Callable | None = None) -> View:
         """This keyframe as float32 images on ``device`` (copied there now), with SSIM statistics;
         ``images`` is ``view_images`` or its compiled graph (which ``compiled`` then does not apply to)."""
-        rgb = self.host_rgb.to(device, non_blocking=self.pinned)
-        depth = self.host_depth.to(device, non_blocking=self.pinned)
         if images is not None:
-            rgb, depth, statistics = images(rgb, depth)
+            rgb, depth, statistics = images(self.host_rgb.to(device, non_blocking=self.pinned),
+                                            self.host_depth.to(device, non_blocking=self.pinned))
             return View(rgb, depth, self.intrinsics, self.c2w, statistics, self.correction, self.exposure)
-        rgb, depth = rgb.to(torch.float32) / 255.0, depth.to(torch.float32)
-        return View.of(rgb, depth, self.intrinsics, self.c2w, compiled=compiled, correction=self.correction,
-                       exposure=self.exposure)
+        return View.of(self.device_rgb(device), self.device_depth(device), self.intrinsics, self.c2w,
+                       compiled=compiled, correction=self.correction, exposure=self.exposure)
 
     def downscaled(self, scale: float) -> Keyframe:
         """This keyframe with its images resized by ``scale`` (colour by area, depth nearest), cached."""
