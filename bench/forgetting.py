@@ -7,9 +7,11 @@ offset) is fitted to its render (``psnr_affine``), which takes the frame's expos
 Each held-out pose is rendered as a client pose of its frame's time (``mapper_render``: with
 ``poses.refine``, moved as the nearest keyframe was; then the raw PSNR at the poses as given follows).
 Comparing a run over a short prefix with a run over the whole sequence shows what the later frames
-cost the early ones.
+cost the early ones; ``--at`` shows when: after each frame named there, the held-out frames before it
+are scored as the map then stands (off the clock).
 
     .venv/bin/python bench/forgetting.py --frames 0:300 --scale 0.25 "" "keyframes.global_count=2"
+    .venv/bin/python bench/forgetting.py --frames 0:600 --at 300,450 ""
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts
 import numpy as np
 from sequence import add_sequence_arguments, load_sequence, map_setting
 
+from ogmapping.frames.frame import Frame
+from ogmapping.mapper import Mapper
 from ogmapping.quality.evaluation import ground_truth, mapper_render, score
 
 
@@ -30,11 +34,26 @@ def main() -> None:
     parser.add_argument("settings", nargs="+", help='space-separated KEY=VALUE overrides per setting ("" = preset)')
     add_sequence_arguments(parser)
     parser.add_argument("--stretch", type=int, default=60, help="frames per stretch in the summary (default 60)")
+    parser.add_argument("--at", type=frame_indices, default=(),
+                        help="comma-separated frame indices: after each is mapped, score the held-out frames before "
+                             "it as the map then stands (raw PSNR per stretch)")
     args = parser.parse_args()
     sequence = load_sequence(args)
     selection = sequence.selection
     for setting in args.settings:
-        run = map_setting(args.preset, setting, sequence.streamed)
+        def checkpoint(frame: Frame, mapper: Mapper) -> None:
+            if frame.index not in args.at:
+                return
+            before = [(index, truth) for index, truth in zip(selection.heldout, sequence.heldout, strict=True)
+                      if index < frame.index]
+            if before:
+                config = mapper.config
+                truths = [ground_truth(truth, config) for _, truth in before]
+                raw = [score(mapper_render(mapper)(t.c2w, t.color_intrinsics, t), t)["psnr"] for t in truths]
+                print(f"  after frame {frame.index}: held-out PSNR raw "
+                      f"{per_stretch(raw, [index for index, _ in before], args.stretch)}", flush=True)
+
+        run = map_setting(args.preset, setting, sequence.streamed, checkpoint if args.at else None)
         mapper = run.mapper
         truths = [ground_truth(frame, run.config) for frame in sequence.heldout]
         render = mapper_render(mapper)
@@ -47,6 +66,14 @@ def main() -> None:
             report += f"; raw at the poses as given, unmoved {per_stretch(given, selection.heldout, args.stretch)}"
         print(f"{args.preset} [{setting}]: {run.fps(len(sequence.streamed)):.2f} FPS, "
               f"{mapper.model.iterations} iterations, {len(mapper.model.anchors)} anchors; {report}", flush=True)
+
+
+def frame_indices(text: str) -> tuple[int, ...]:
+    """``--at``'s comma-separated frame indices."""
+    try:
+        return tuple(int(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated frame indices, got {text!r}") from None
 
 
 def per_stretch(values: list[float], indices: list[int], stretch: int) -> str:

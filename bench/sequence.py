@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from ogmapping.config import MapperConfig, parse_override_args, resolve
@@ -49,10 +50,17 @@ class MappedRun:
         return frames / self.seconds
 
 
-def map_setting(preset: str, setting: str, frames: list[Frame]) -> MappedRun:
-    """Map ``frames`` under ``preset`` plus the overrides in ``setting`` ("KEY=VALUE KEY=VALUE")."""
+def map_setting(preset: str, setting: str, frames: list[Frame],
+                after: Callable[[Frame, Mapper], None] | None = None) -> MappedRun:
+    """Map ``frames`` under ``preset`` plus the overrides in ``setting`` ("KEY=VALUE KEY=VALUE"); ``after`` is
+    called with each frame once it is mapped, off the clock."""
     config = resolve(preset, overrides=parse_override_args(setting.split()))
     mapper = Mapper(config)
-    start = time.perf_counter()
-    keyframes = sum(mapper.process(frame).keyframe for frame in frames)
-    return MappedRun(config, mapper, keyframes, time.perf_counter() - start)
+    keyframes, seconds = 0, 0.0
+    for frame in frames:
+        start = time.perf_counter()
+        keyframes += mapper.process(frame).keyframe
+        seconds += time.perf_counter() - start
+        if after is not None:
+            after(frame, mapper)
+    return MappedRun(config, mapper, keyframes, seconds)
