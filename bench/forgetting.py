@@ -22,7 +22,7 @@ import ogmapping  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts
 
 # isort: split
 import numpy as np
-from sequence import add_sequence_arguments, load_sequence, map_setting
+from sequence import Sequence, add_sequence_arguments, load_sequence, map_setting
 
 from ogmapping.frames.frame import Frame
 from ogmapping.mapper import Mapper
@@ -35,25 +35,17 @@ def main() -> None:
     add_sequence_arguments(parser)
     parser.add_argument("--stretch", type=int, default=60, help="frames per stretch in the summary (default 60)")
     parser.add_argument("--at", type=frame_indices, default=(),
-                        help="comma-separated frame indices: after each is mapped, score the held-out frames before "
-                             "it as the map then stands (raw PSNR per stretch)")
+                        help="comma-separated frame indices: once each is mapped (a held-out one: the next streamed "
+                             "one), score the held-out frames before it as the map then stands (raw PSNR per stretch)")
     args = parser.parse_args()
     sequence = load_sequence(args)
     selection = sequence.selection
+    streamed = selection.streamed
+    if outside := [index for index in args.at if not streamed[0] <= index <= streamed[-1]]:
+        parser.error(f"--at {outside[0]} is outside the streamed frames {streamed[0]}-{streamed[-1]}")
     for setting in args.settings:
-        def checkpoint(frame: Frame, mapper: Mapper) -> None:
-            if frame.index not in args.at:
-                return
-            before = [(index, truth) for index, truth in zip(selection.heldout, sequence.heldout, strict=True)
-                      if index < frame.index]
-            if before:
-                config = mapper.config
-                truths = [ground_truth(truth, config) for _, truth in before]
-                raw = [score(mapper_render(mapper)(t.c2w, t.color_intrinsics, t), t)["psnr"] for t in truths]
-                print(f"  after frame {frame.index}: held-out PSNR raw "
-                      f"{per_stretch(raw, [index for index, _ in before], args.stretch)}", flush=True)
-
-        run = map_setting(args.preset, setting, sequence.streamed, checkpoint if args.at else None)
+        checkpoints = Checkpoints(args.at, sequence, args.stretch)
+        run = map_setting(args.preset, setting, sequence.streamed, checkpoints if args.at else None)
         mapper = run.mapper
         truths = [ground_truth(frame, run.config) for frame in sequence.heldout]
         render = mapper_render(mapper)
@@ -66,6 +58,30 @@ def main() -> None:
             report += f"; raw at the poses as given, unmoved {per_stretch(given, selection.heldout, args.stretch)}"
         print(f"{args.preset} [{setting}]: {run.fps(len(sequence.streamed)):.2f} FPS, "
               f"{mapper.model.iterations} iterations, {len(mapper.model.anchors)} anchors; {report}", flush=True)
+
+
+class Checkpoints:
+    """``--at``: once the first streamed frame at or past a checkpoint is mapped (a held-out index names the next
+    one), the held-out frames before it are scored as the map then stands."""
+
+    def __init__(self, indices: tuple[int, ...], sequence: Sequence, stretch: int) -> None:
+        self.pending = sorted(set(indices))
+        self.heldout = list(zip(sequence.selection.heldout, sequence.heldout, strict=True))
+        self.stretch = stretch
+
+    def __call__(self, frame: Frame, mapper: Mapper) -> None:
+        if not self.pending or frame.index < self.pending[0]:
+            return
+        while self.pending and self.pending[0] <= frame.index:
+            self.pending.pop(0)
+        before = [(index, truth) for index, truth in self.heldout if index < frame.index]
+        if not before:
+            return
+        render = mapper_render(mapper)
+        truths = [ground_truth(truth, mapper.config) for _, truth in before]
+        raw = [score(render(t.c2w, t.color_intrinsics, t), t)["psnr"] for t in truths]
+        print(f"  after frame {frame.index}: held-out PSNR raw "
+              f"{per_stretch(raw, [index for index, _ in before], self.stretch)}", flush=True)
 
 
 def frame_indices(text: str) -> tuple[int, ...]:

@@ -19,11 +19,14 @@ def run(*arguments: str) -> subprocess.CompletedProcess:
 
 
 def test_checkpoints_score_the_heldout_frames_mapped_so_far():
-    done = run("--at", "4,9,17", "")
+    done = run("--at", "4,9,15,17", "")
     assert done.returncode == 0, done.stderr
     lines = done.stdout.splitlines()
-    # Frame 4 comes before the first held-out frame (5): nothing to score there.
-    assert [line.split(":")[0].strip() for line in lines[:-1]] == ["after frame 9", "after frame 17"]
+    # Frame 4 comes before the first held-out frame (5): nothing to score there. Frame 15 is held out, never
+    # mapped: the map is scored once frame 16 is.
+    assert [line.split(":")[0].strip() for line in lines[:-1]] == ["after frame 9", "after frame 16",
+                                                                    "after frame 17"]
+    lines = [lines[0], lines[2], lines[3]]
     after_9, after_17, final = lines
     assert re.fullmatch(r"  after frame 9: held-out PSNR raw [0-9.]+ dB, per 10 frames: [0-9.]+", after_9)
     # By frame 17 both held-out frames (5 and 15) are before it, each in a stretch of its own.
@@ -38,3 +41,6 @@ def test_bad_checkpoints_are_refused_by_name():
     done = run("--at", "9,x", "")
     assert done.returncode == 2
     assert "expected comma-separated frame indices, got '9,x'" in done.stderr
+    done = run("--at", "9,18", "")
+    assert done.returncode == 2
+    assert "--at 18 is outside the streamed frames 0-17" in done.stderr
