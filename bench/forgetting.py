@@ -27,6 +27,7 @@ from sequence import Sequence, add_sequence_arguments, load_sequence, map_settin
 from ogmapping.frames.frame import Frame
 from ogmapping.mapper import Mapper
 from ogmapping.quality.evaluation import ground_truth, mapper_render, score
+from ogmapping.quality.metrics import psnr
 
 
 def main() -> None:
@@ -66,22 +67,23 @@ class Checkpoints:
 
     def __init__(self, indices: tuple[int, ...], sequence: Sequence, stretch: int) -> None:
         self.pending = sorted(set(indices))
-        self.heldout = list(zip(sequence.selection.heldout, sequence.heldout, strict=True))
+        self.sequence = sequence
         self.stretch = stretch
+        self.truths: list[Frame] = []  # the held-out frames as the mapper sees them, prepared at the first checkpoint
 
     def __call__(self, frame: Frame, mapper: Mapper) -> None:
         if not self.pending or frame.index < self.pending[0]:
             return
         while self.pending and self.pending[0] <= frame.index:
             self.pending.pop(0)
-        before = [(index, truth) for index, truth in self.heldout if index < frame.index]
-        if not before:
+        indices = [index for index in self.sequence.selection.heldout if index < frame.index]
+        if not indices:
             return
+        if not self.truths:
+            self.truths = [ground_truth(truth, mapper.config) for truth in self.sequence.heldout]
         render = mapper_render(mapper)
-        truths = [ground_truth(truth, mapper.config) for _, truth in before]
-        raw = [score(render(t.c2w, t.color_intrinsics, t), t)["psnr"] for t in truths]
-        print(f"  after frame {frame.index}: held-out PSNR raw "
-              f"{per_stretch(raw, [index for index, _ in before], self.stretch)}", flush=True)
+        raw = [psnr(render(t.c2w, t.color_intrinsics, t).color, t.rgb) for t in self.truths[: len(indices)]]
+        print(f"  after frame {frame.index}: held-out PSNR raw {per_stretch(raw, indices, self.stretch)}", flush=True)
 
 
 def frame_indices(text: str) -> tuple[int, ...]:
