@@ -45,8 +45,8 @@ def main() -> None:
     if outside := [index for index in args.at if not streamed[0] <= index <= streamed[-1]]:
         parser.error(f"--at {outside[0]} is outside the streamed frames {streamed[0]}-{streamed[-1]}")
     for setting in args.settings:
-        checkpoints = Checkpoints(args.at, sequence, args.stretch)
-        run = map_setting(args.preset, setting, sequence.streamed, checkpoints if args.at else None)
+        checkpoints = Checkpoints(args.at, sequence, args.stretch) if args.at else None
+        run = map_setting(args.preset, setting, sequence.streamed, checkpoints)
         mapper = run.mapper
         truths = [ground_truth(frame, run.config) for frame in sequence.heldout]
         render = mapper_render(mapper)
