@@ -21,6 +21,7 @@ from __future__ import annotations
 import copy
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -207,7 +208,7 @@ class Mapper:
         with self.lock:
             pose = correction.report(c2w) if correction is not None else PoseReport.unrefined(frame.c2w)
         if budget.stop(start) is None:  # a frame out of time leaves the review to the next
-            self._review_correction()
+            self._review_correction(lambda: budget.stop(start) is not None)
         model.count_frame(frame.c2w)
         return FrameResult(
             index=frame.index,
@@ -222,7 +223,7 @@ class Mapper:
             pose=pose,
         )
 
-    def _review_correction(self) -> None:
+    def _review_correction(self, stop: Callable[[], bool]) -> None:
         """With ``poses.review``, review one keyframe's correction (``Tracker.review``), each in turn by the count of
         frames mapped (so a resumed map reviews the one it would have), none held at the client's pose."""
         live = self.keyframes.keyframes
@@ -232,7 +233,7 @@ class Mapper:
         if keyframe.correction is None or keyframe.correction.held:  # none without ``poses.refine``
             return
         tensors = (keyframe.device_rgb(self.device), keyframe.device_depth(self.device), keyframe.c2w)
-        self.tracker.review(keyframe.intrinsics, tensors, keyframe.correction)
+        self.tracker.review(keyframe.intrinsics, tensors, keyframe.correction, stop)
 
     def _fit_to(self, intrinsics: Intrinsics) -> None:
         """While the config's resolution rules are pending (until its first frame), resolve them for the step

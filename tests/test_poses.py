@@ -339,6 +339,18 @@ def test_a_review_puts_back_a_correction_the_client_pose_fits_better_and_keeps_o
     assert torch.equal(kept, torch.tensor([0.015, -0.01, 0.0, 0.0, 0.0, 0.0]))
 
 
+def test_a_review_with_newton_steps_retracks_a_correction_towards_the_pose_the_map_fits():
+    mapper, loaded = _mapped_with_exact_poses()
+    frame = loaded[2]
+    displaced = frame.c2w.copy()
+    displaced[:3, 3] -= np.array([0.015, -0.01, 0.0])
+    truth = torch.tensor([0.015, -0.01, 0.0, 0.0, 0.0, 0.0])
+    assert not _review(mapper, frame, displaced, [0.0] * 6).any()  # reviewed alone, a zero correction stays zero
+    mapper.config.poses.review_newton_iterations = 2
+    retracked = _review(mapper, frame, displaced, [0.0] * 6)
+    assert (retracked - truth)[:3].norm() < 0.5 * truth[:3].norm(), retracked  # more than half the way back
+
+
 @pytest.mark.parametrize("review", ["true", "false"])
 def test_after_each_frame_one_keyframe_correction_in_turn_is_reviewed(review):
     mapper, loaded = _mapped_with_exact_poses(review)

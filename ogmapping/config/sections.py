@@ -226,6 +226,11 @@ class PosesConfig:
     # pose fits the keyframe's own image better (``Tracker.review``): a correction caught a few pixels off where
     # the map has settled around the client's pose ("Corrections reviewed").
     review: bool = False
+    # Then this many Gauss-Newton steps on the reviewed correction (none on one held), against the map as it
+    # stands: a keyframe's correction moves only in the windows that draw it, while the map around it settles
+    # under later views; re-tracked in turn, every keyframe keeps fitting the map it supervises ("Keyframes
+    # re-tracked in review"). 0: none.
+    review_newton_iterations: int = ranged(0, 0)
     # The streamed view's correction moves in its mapping steps too (else only its tracking steps set it;
     # keyframes' corrections move in every step that draws them).
     view_steps: bool = True

@@ -85,17 +85,24 @@ class Tracker:
                 (fine(correction) + correction.prior(settings)).backward()
                 correction.step(settings)
 
-    def review(self, intrinsics: Intrinsics, tensors: FrameTensors, correction: PoseCorrection) -> None:
+    def review(self, intrinsics: Intrinsics, tensors: FrameTensors, correction: PoseCorrection,
+               stop: Callable[[], bool] = lambda: False) -> None:
         """Put a keyframe's ``correction`` back at the client's pose where that pose fits the keyframe (its colour
         camera's ``intrinsics``, its colour, depth and client pose as device ``tensors``) better: its tracking
         loss against the map as it stands is lower there. Mapping steps move a correction by the gradient
         alone, so one that fit the young map's error early can stay caught a few pixels off, where the map has
         since settled around the client's pose (bench/RESULTS.md, "Corrections reviewed"). Decided on the device:
-        no read (the decode's frustum test waits, as tracking's does)."""
+        no read (the decode's frustum test waits, as tracking's does). Then ``poses.review_newton_iterations``
+        Gauss-Newton steps on the same pixels, until ``stop()``: the keyframe re-tracked against the map."""
+        settings = self.model.config.poses
         with self.lock, self.model.timed("track"), torch.no_grad():
-            loss_at = self._loss_of(self._renderer(intrinsics, tensors, None, None))
+            renderer = self._renderer(intrinsics, tensors, None, None)
+            loss_at = self._loss_of(renderer)
             keep = loss_at(correction) < loss_at(PoseCorrection(self.model.device, correction.delta.dtype))
             correction.delta.mul_(keep.to(correction.delta.dtype))
+            if settings.review_newton_iterations:
+                newton_track(self._residuals_of(renderer), correction, settings, settings.review_newton_iterations,
+                             stop)
 
     def _gaussians(self, intrinsics: Intrinsics, c2w: torch.Tensor, rows_below: int | None = None) -> GaussianSet:
         """The Gaussians of the anchors (in rows below ``rows_below``, if given) a frame sees from its client's pose
