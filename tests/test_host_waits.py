@@ -131,7 +131,7 @@ def test_a_frame_reads_the_device_once_before_its_steps(tracked: str):
     """Per frame: one read for its new cells and keyframe test, one for a keyframe's overlap weights, one per
     refinement, and with ``poses.tracked`` keyframes one for a keyframe's tracking check; no other operator that
     waits (``static`` step, as on a GPU) but in that tracking and in a correction's review (``poses.review``,
-    once a frame, with its Gauss-Newton steps: no ``read``), which wait as tracking does."""
+    once a frame: it reads nothing), which wait as tracking does."""
     overrides = {"refine.interval": "2", "poses.refine": "false"}
     if tracked == "keyframes":
         overrides = {**overrides, "poses.refine": "true", "poses.tracked": "keyframes", "poses.view_steps": "false",
