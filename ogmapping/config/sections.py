@@ -229,8 +229,8 @@ class PosesConfig:
     # Then this many Gauss-Newton steps on the reviewed correction (none on one held), against the map as it
     # stands: a keyframe's correction moves only in the windows that draw it, while the map around it settles
     # under later views; re-tracked in turn, every keyframe keeps fitting the map it supervises ("Keyframes
-    # re-tracked in review": two gain 0.3-0.6 dB held out on 7-Scenes at about 18% of the speed). 0: none, as every
-    # preset.
+    # re-tracked in review": one gains 0.4-0.6 dB held out on 7-Scenes, as two do, at some 14% of the speed). 0: none,
+    # as every preset.
     review_newton_iterations: int = ranged(0, 0)
     # The streamed view's correction moves in its mapping steps too (else only its tracking steps set it;
     # keyframes' corrections move in every step that draws them).
