@@ -339,7 +339,8 @@ def test_a_review_puts_back_a_correction_the_client_pose_fits_better_and_keeps_o
     assert torch.equal(kept, torch.tensor([0.015, -0.01, 0.0, 0.0, 0.0, 0.0]))
 
 
-def test_a_review_with_newton_steps_retracks_a_correction_towards_the_pose_the_map_fits():
+@pytest.mark.parametrize("stride", [2, 4])
+def test_a_review_with_newton_steps_retracks_a_correction_towards_the_pose_the_map_fits(stride):
     mapper, loaded = _mapped_with_exact_poses()
     frame = loaded[2]
     displaced = frame.c2w.copy()
@@ -347,8 +348,15 @@ def test_a_review_with_newton_steps_retracks_a_correction_towards_the_pose_the_m
     truth = torch.tensor([0.015, -0.01, 0.0, 0.0, 0.0, 0.0])
     assert not _review(mapper, frame, displaced, [0.0] * 6).any()  # reviewed alone, a zero correction stays zero
     mapper.config.poses.review_newton_iterations = 2
+    mapper.config.poses.review_newton_stride = stride
+    widths = []  # of every render the review makes
+    make_camera = mapper.model.camera
+    mapper.model.camera = lambda c2w, intrinsics, blur: widths.append(intrinsics.width) or make_camera(
+        c2w, intrinsics, blur)
     retracked = _review(mapper, frame, displaced, [0.0] * 6)
     assert (retracked - truth)[:3].norm() < 0.5 * truth[:3].norm(), retracked  # more than half the way back
+    # The test at the tracking stride (two renders), the steps' renders at theirs.
+    assert widths[:2] == [80, 80] and set(widths[2:]) == {160 // stride}, widths
 
 
 @pytest.mark.parametrize("review", ["true", "false"])

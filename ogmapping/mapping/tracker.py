@@ -93,14 +93,16 @@ class Tracker:
         alone, so one that fit the young map's error early can stay caught a few pixels off, where the map has
         since settled around the client's pose (bench/RESULTS.md, "Corrections reviewed"). Decided on the device:
         no read (the decode's frustum test waits, as tracking's does). Then ``poses.review_newton_iterations``
-        Gauss-Newton steps on the same pixels, until ``stop()``: the keyframe re-tracked against the map."""
+        Gauss-Newton steps on every ``poses.review_newton_stride``-th pixel of the same decode, until ``stop()``:
+        the keyframe re-tracked against the map."""
         settings = self.model.config.poses
         with self.lock, self.model.timed("track"), torch.no_grad():
-            renderer = self._renderer(intrinsics, tensors, None, None)
-            loss_at = self._loss_of(renderer)
+            gaussians = self._gaussians(intrinsics, tensors[2])
+            loss_at = self._loss_of(self._renderer(intrinsics, tensors, None, gaussians))
             keep = loss_at(correction) < loss_at(PoseCorrection(self.model.device, correction.delta.dtype))
             correction.delta.mul_(keep.to(correction.delta.dtype))
             if settings.review_newton_iterations:
+                renderer = self._renderer(intrinsics, tensors, settings.review_newton_stride, gaussians)
                 newton_track(self._residuals_of(renderer), correction, settings, settings.review_newton_iterations,
                              stop)
 
