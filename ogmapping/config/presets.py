@@ -69,27 +69,23 @@ PRESET_VALUES: dict[str, dict[str, Any]] = {
         "refine.prune_opacity": 0.05,
         "keyframes.iterations": 10,  # a step more than nine gains at little cost ("Keyframes and the window")
         "keyframes.first_iterations": 80,  # the anchor colours need more on the first keyframe ("Anchor colours")
-        # Three global keyframes at full size (a whole run forgets less: "A whole run"; the fourth's renders pay
-        # for the review's re-track below); a streamed frame's steps capped at four renders, so one step on a
-        # full window instead of two ("Keyframes and the window").
-        "keyframes.global_count": 3,
+        # Four global keyframes at full size (a whole run forgets less: "A whole run"); a streamed frame's
+        # steps capped at four renders, so one step on a full window instead of two ("Keyframes and the window").
+        "keyframes.global_count": 4,
         "keyframes.frame_renders": 4,
         "keyframes.global_draw": "stalest",  # every region revisited in turn: +0.17 / +0.27 dB held out ("A whole run")
         "loss.ssim": 0.1,  # its gradients drive growth: fewer anchors pay for the window's fifth view ("Loss weights")
         "loss.view": 0.5,  # once the window is full, the view weighs half a window keyframe ("Loss weights")
         # Keyframe poses refined in the windows that draw them, at a quarter of the tracking rates, no tracking,
-        # the streamed view at its given pose, and each correction reviewed in turn against its client's pose,
-        # then re-tracked by one Gauss-Newton step on every fourth pixel: the map agrees with itself over a whole
-        # run, and a render of a frame's time moves with the nearest keyframe ("Keyframe poses refined in the
-        # window", "Corrections reviewed", "Keyframes re-tracked in review").
+        # the streamed view at its given pose, and each correction reviewed in turn against its client's pose:
+        # the map agrees with itself over a whole run, and a render of a frame's time moves with the nearest
+        # keyframe ("Keyframe poses refined in the window", "Corrections reviewed").
         "poses.refine": True,
         "poses.track_iterations": 0,
         "poses.track_newton_iterations": 0,
         "poses.view_steps": False,
         "poses.mapping_rate": 0.25,
         "poses.review": True,
-        "poses.review_newton_iterations": 1,
-        "poses.review_newton_stride": 4,
         **_rules("sparse"),
     },
     "sparse-fast": {

@@ -229,10 +229,12 @@ class PosesConfig:
     # Then this many Gauss-Newton steps on the reviewed correction (none on one held), against the map as it
     # stands: a keyframe's correction moves only in the windows that draw it, while the map around it settles
     # under later views; re-tracked in turn, every keyframe keeps fitting the map it supervises ("Keyframes
-    # re-tracked in review": one gains 0.4-0.6 dB held out on 7-Scenes, as two do). 0: none; `sparse` takes one.
+    # re-tracked in review": one gains 0.4-0.6 dB held out on 7-Scenes, as two do, at some 14% of the speed, but
+    # where poses are exact it fits the young map's error: the synthetic scene loses 0.6-5.2 dB). 0: none, as every
+    # preset.
     review_newton_iterations: int = ranged(0, 0)
-    # ...on every this-many-th pixel of each row and column, from the review's own decode: at 4 (`sparse`) a step
-    # renders a quarter of the pixels it does at 2 and keeps most of the gain ("Keyframes re-tracked in review").
+    # ...on every this-many-th pixel of each row and column, from the review's own decode: at 4 a step renders a
+    # quarter of the pixels it does at 2 ("Keyframes re-tracked in review").
     review_newton_stride: int = ranged(2, 1, MAX_TRACK_STRIDE)
     # The streamed view's correction moves in its mapping steps too (else only its tracking steps set it;
     # keyframes' corrections move in every step that draws them).
