@@ -230,8 +230,8 @@ class PosesConfig:
     # stands: a keyframe's correction moves only in the windows that draw it, while the map around it settles
     # under later views; re-tracked in turn, every keyframe keeps fitting the map it supervises ("Keyframes
     # re-tracked in review": one gains 0.4-0.6 dB held out on 7-Scenes, as two do, at some 14% of the speed, but
-    # where poses are exact it fits the young map's error: the synthetic scene loses 0.6-5.2 dB). 0: none, as every
-    # preset.
+    # where poses are exact it fits the young map's error: the synthetic scene loses 1.1 dB, up to 5.2 at stride 4).
+    # 0: none, as every preset.
     review_newton_iterations: int = ranged(0, 0)
     # ...on every this-many-th pixel of each row and column, from the review's own decode: at 4 a step renders a
     # quarter of the pixels it does at 2 ("Keyframes re-tracked in review").
