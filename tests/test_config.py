@@ -133,6 +133,8 @@ def test_every_number_has_its_range_beside_it():
     ("optim.average_decay", "-0.5"),
     ("optim.average_growth", "1.5"),  # a share of the map's steps
     ("optim.average_growth", "-0.1"),
+    ("optim.second_moment_decay", "1"),  # Adam's running mean of squared gradients that never moves
+    ("optim.second_moment_decay", "-0.1"),
     ("model.initial_visible", "1.5"),  # a share
     ("model.initial_visible", "nan"),
 ])

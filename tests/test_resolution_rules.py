@@ -76,11 +76,13 @@ def test_a_rule_a_setting_cannot_take_is_refused_by_name(key: str, value: str, m
 
 
 def test_configs_stored_with_the_switches_load_as_the_rules_they_stood_for() -> None:
-    # Stored before `keyframes.global_draw`, `sparse`'s fourth global keyframe and its keyframe poses refined in
-    # the window, they load with the uniform draw, the window and the poses their maps were made with.
+    # Stored before `keyframes.global_draw`, `sparse`'s fourth global keyframe, its keyframe poses refined in
+    # the window and its Adam's shorter memory, they load with the uniform draw, the window, the poses and the
+    # Adam their maps were made with.
     window_then = {"sparse": {"keyframes.global_count": 3, "poses.refine": False, "poses.track_iterations": 2,
                               "poses.track_newton_iterations": 4, "poses.view_steps": True,
-                              "poses.mapping_rate": 1.0, "poses.review": False}}
+                              "poses.mapping_rate": 1.0, "poses.review": False,
+                              "optim.second_moment_decay": 0.999}}
     for name, stored in json.loads(COMPAT.read_text()).items():
         overrides = {"keyframes.global_draw": "random", **window_then.get(name, {})}
         assert MapperConfig.from_dict(stored) == resolve(name, overrides=overrides), name

@@ -177,6 +177,11 @@ class OptimConfig:
     # its touched rows. Off: +0.06 dB held out on 7-Scenes 0-299, -0.05 on 300-599 (seed 0), within the seeds' spread
     # (bench/RESULTS.md "A whole run"); its GPU speed in bench/gpu/raster_options.py.
     selective: bool = False
+    # Adam's second-moment decay for the map (torch's 0.999 remembers some thousand steps). An anchor seen
+    # again after hundreds of steps is still divided by the squared gradients of its first steps and of the
+    # frames that disagreed with it, so it learns slowly where the camera returns; ``sparse`` takes 0.99
+    # ("Adam's memory").
+    second_moment_decay: float = ranged(0.999, 0, 1, open_high=True)
 
 
 @dataclass

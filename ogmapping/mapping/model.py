@@ -102,9 +102,10 @@ class MapModel:
         # Fused: its step counts stay tensors (torch's loop reads each on the host). Only with static shapes,
         # whose maps are not the CPU's: it rounds otherwise than the loop the CPU's maps were tuned with.
         fused = self.profile.static_shapes or None
+        betas = (0.9, self.config.optim.second_moment_decay)
         if self.config.optim.selective:
-            return SelectiveAdam(groups, row_groups=LEARNABLE, eps=1e-15, fused=fused)
-        return torch.optim.Adam(groups, eps=1e-15, fused=fused)
+            return SelectiveAdam(groups, row_groups=LEARNABLE, betas=betas, eps=1e-15, fused=fused)
+        return torch.optim.Adam(groups, betas=betas, eps=1e-15, fused=fused)
 
     @property
     def last_gaussians(self) -> int:
