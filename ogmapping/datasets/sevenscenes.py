@@ -14,6 +14,9 @@ is right at about 1.8 m only: the parallax of a 2.8 cm baseline is 7.4 px at 2 m
 0.8 m. ``"depth"`` reuses the depth camera for colour (registered frames, the files' poses);
 explicit values give a colour camera at the depth camera's centre.
 
+Where the recording stored a capture twice (``repeats="retimed"``, default), each image is seen from the pose
+of its own time (``ogmapping.datasets.repeats``); ``"as-recorded"`` keeps the files' poses.
+
 Pixel convention: every K here, the file's and the measured one, was used with integer pixel
 centres (the measurement was made relative to the file's K, with the file's tools), so both get
 +0.5 on cx and cy. Shifting both keeps the measured colour/depth relation exact and keeps the
@@ -22,6 +25,7 @@ same rays that every other tool casts from this data; the shift is half a pixel 
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path
 
@@ -36,7 +40,9 @@ from ogmapping.datasets.base import (
     matrix_intrinsics,
     opencv_intrinsics,
 )
+from ogmapping.datasets.repeats import colour_time_pose
 from ogmapping.frames.camera import Intrinsics
+from ogmapping.frames.frame import Frame
 
 DEPTH_PATTERN = re.compile(r"^frame-(\d+)\.depth\.png$")
 DEFAULT_DEPTH_K = (585.0, 585.0, 320.0, 240.0)
@@ -44,6 +50,7 @@ MEASURED_COLOR_K = (526.5, 526.5, 321.625, 238.125)
 MEASURED_BASELINE = 0.0281  # metres: the colour camera sits this far along the depth camera's +x axis
 MEASURED_SIZE = (640, 480)
 COLOR_SUFFIXES = (".color.png", ".color.jpg")
+REPEATS = ("retimed", "as-recorded")  # a capture stored twice seen from the pose of its time, or as the files say
 
 
 def find_root(path: Path) -> Path | None:
@@ -58,12 +65,15 @@ class SevenScenes(FileSource):
     """Reader for one 7-Scenes sequence folder (or a folder with it under ``data/``)."""
 
     def __init__(self, path: str | Path, color_intrinsics: str | IntrinsicsOption = "measured",
-                 depth_scale: float = 1000.0, fps: float = 30.0) -> None:
+                 depth_scale: float = 1000.0, fps: float = 30.0, repeats: str = "retimed") -> None:
         root = find_root(Path(path))
         if root is None:
             raise ValueError(f"no 7-Scenes frames (frame-*.depth.png) in {path} or {Path(path) / 'data'}")
         super().__init__("7scenes", root, depth_scale)
+        if repeats not in REPEATS:
+            raise ValueError(f"repeats must be one of {', '.join(REPEATS)}, got {repeats!r}")
         self.fps = fps
+        self.retime_repeats = repeats == "retimed"
         self._files = self._scan(root, fps)
         if not self._files:
             raise ValueError(f"no complete 7-Scenes frame (colour + depth + pose) in {root}")
@@ -114,3 +124,27 @@ class SevenScenes(FileSource):
         """The colour camera's pose: the files hold the depth camera's."""
         depth_c2w = super()._pose(files)
         return depth_c2w if self._color_to_depth is None else depth_c2w @ self._color_to_depth
+
+    def _load(self, position: int) -> Frame:
+        """The frame, its colour image seen from the pose of its own time where a capture repeats (``repeats``)."""
+        frame = super()._load(position)
+        if not self.retime_repeats:
+            return frame
+        files = self._files
+        colour_pose = colour_time_pose(
+            position, [f.color for f in files], [f.depth for f in files],
+            lambda p: FileSource._pose(self, files[p]), self._follows_directly,
+        )
+        if colour_pose is None:
+            return frame
+        depth_c2w = FileSource._pose(self, files[position])
+        depth_to_color = np.eye(4) if self.depth_to_color is None else self.depth_to_color
+        return dataclasses.replace(
+            frame, c2w=colour_pose @ np.linalg.inv(depth_to_color),
+            depth_to_color=depth_to_color @ np.linalg.inv(colour_pose) @ depth_c2w,
+        )
+
+    def _follows_directly(self, position: int) -> bool:
+        """True when the frame at ``position`` is the one numbered right after the frame before it."""
+        numbers = [int(DEPTH_PATTERN.match(self._files[p].depth.name).group(1)) for p in (position - 1, position)]
+        return numbers[1] == numbers[0] + 1

@@ -89,6 +89,14 @@ def slerp(q0: np.ndarray, q1: np.ndarray, alpha: float) -> np.ndarray:
     return (np.sin((1.0 - alpha) * theta) * q0 + np.sin(alpha * theta) * q1) / np.sin(theta)
 
 
+def interpolate_pose(first: np.ndarray, second: np.ndarray, alpha: float) -> np.ndarray:
+    """The 4x4 pose ``alpha`` of the way from ``first`` to ``second``: the translation along the line, the
+    rotation by slerp."""
+    rotation = slerp(np.array(matrix_to_quaternion(first[:3, :3])), np.array(matrix_to_quaternion(second[:3, :3])),
+                     alpha)
+    return quaternion_pose(first[:3, 3] + alpha * (second[:3, 3] - first[:3, 3]), rotation)
+
+
 def axis_angle_matrix(axis: np.ndarray, angle: float) -> np.ndarray:
     """Rotation by ``angle`` radians about the unit vector ``axis`` (Rodrigues' closed form)."""
     cross = np.array(skew_entries(*axis, 0.0))
