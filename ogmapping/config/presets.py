@@ -77,7 +77,7 @@ PRESET_VALUES: dict[str, dict[str, Any]] = {
         "loss.ssim": 0.1,  # its gradients drive growth: fewer anchors pay for the window's fifth view ("Loss weights")
         "loss.view": 0.5,  # once the window is full, the view weighs half a window keyframe ("Loss weights")
         "optim.second_moment_decay": 0.99,  # where the camera returns, the map learns as fast as where it is new:
-        # +0.14 / +0.16 dB held out on 7-Scenes 0-299 / 300-599, +0.2 over 0-599 ("Adam's memory")
+        # +0.14 / +0.16 dB held out on 7-Scenes 0-299 / 300-599, +0.29 on 0-599's lowest stretch ("Adam's memory")
         # Keyframe poses refined in the windows that draw them, at a quarter of the tracking rates, no tracking,
         # the streamed view at its given pose, and each correction reviewed in turn against its client's pose:
         # the map agrees with itself over a whole run, and a render of a frame's time moves with the nearest

@@ -35,15 +35,26 @@ def colour_time_pose(
 ) -> np.ndarray | None:
     """The camera pose at the time of ``position``'s colour image where a repeat moves it from ``pose(position)``;
     None where it does not. ``adjacent(p)``: frame ``p`` directly follows frame ``p - 1`` in the recording."""
-    if position == 0 or not adjacent(position):
+
+    def repeated(at: int) -> tuple[bool, bool]:
+        """Whether frame ``at``'s colour and depth images repeat the frame before's."""
+        if at == 0 or not adjacent(at):
+            return False, False
+        return same_bytes(colours[at - 1], colours[at]), same_bytes(depths[at - 1], depths[at])
+
+    def halfway(at: int) -> np.ndarray | None:
+        """Between the poses either side of ``at``, where it has a frame after it."""
+        if at + 1 >= len(depths) or not adjacent(at + 1):
+            return None
+        return interpolate_pose(pose(at - 1), pose(at + 1), 0.5)
+
+    colour, depth = repeated(position)
+    if colour == depth:
         return None
-    colour_repeats = same_bytes(colours[position - 1], colours[position])
-    depth_repeats = same_bytes(depths[position - 1], depths[position])
-    if colour_repeats == depth_repeats:
-        return None
-    if colour_repeats:
-        earlier = colour_time_pose(position - 1, colours, depths, pose, adjacent)
-        return pose(position - 1) if earlier is None else earlier
-    if position + 1 >= len(depths) or not adjacent(position + 1):
-        return None
-    return interpolate_pose(pose(position - 1), pose(position + 1), 0.5)
+    if depth:
+        return halfway(position)
+    source = position - 1  # the frame whose colour image this is: back over a run of colour images alone
+    while repeated(source) == (True, False):
+        source -= 1
+    earlier = halfway(source) if repeated(source) == (False, True) else None
+    return pose(source) if earlier is None else earlier
