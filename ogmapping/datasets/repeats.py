@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ogmapping.datasets.base import FrameFiles
 from ogmapping.frames.rotation import interpolate_pose
 
 
@@ -28,8 +29,7 @@ def same_bytes(first: Path, second: Path) -> bool:
 
 def colour_time_pose(
     position: int,
-    colours: Sequence[Path],
-    depths: Sequence[Path],
+    files: Sequence[FrameFiles],
     pose: Callable[[int], np.ndarray],
     adjacent: Callable[[int], bool],
 ) -> np.ndarray | None:
@@ -40,11 +40,12 @@ def colour_time_pose(
         """Whether frame ``at``'s colour and depth images repeat the frame before's."""
         if at == 0 or not adjacent(at):
             return False, False
-        return same_bytes(colours[at - 1], colours[at]), same_bytes(depths[at - 1], depths[at])
+        return (same_bytes(files[at - 1].color, files[at].color),
+                same_bytes(files[at - 1].depth, files[at].depth))
 
     def halfway(at: int) -> np.ndarray | None:
         """Between the poses either side of ``at``, where it has a frame after it."""
-        if at + 1 >= len(depths) or not adjacent(at + 1):
+        if at + 1 >= len(files) or not adjacent(at + 1):
             return None
         return interpolate_pose(pose(at - 1), pose(at + 1), 0.5)
 
@@ -54,7 +55,7 @@ def colour_time_pose(
     if depth:
         return halfway(position)
     source = position - 1  # the frame whose colour image this is: back over a run of colour images alone
-    while repeated(source) == (True, False):
+    while (kind := repeated(source)) == (True, False):
         source -= 1
-    earlier = halfway(source) if repeated(source) == (False, True) else None
+    earlier = halfway(source) if kind == (False, True) else None
     return pose(source) if earlier is None else earlier

@@ -130,15 +130,13 @@ class SevenScenes(FileSource):
         frame = super()._load(position)
         if not self.retime_repeats:
             return frame
-        files = self._files
         colour_pose = colour_time_pose(
-            position, [f.color for f in files], [f.depth for f in files],
-            lambda p: FileSource._pose(self, files[p]), self._follows_directly,
+            position, self._files, lambda p: FileSource._pose(self, self._files[p]), self._follows_directly,
         )
         if colour_pose is None:
             return frame
-        depth_c2w = FileSource._pose(self, files[position])
         depth_to_color = np.eye(4) if self.depth_to_color is None else self.depth_to_color
+        depth_c2w = frame.c2w @ depth_to_color  # the files' pose, as read for the frame
         return dataclasses.replace(
             frame, c2w=colour_pose @ np.linalg.inv(depth_to_color),
             depth_to_color=depth_to_color @ np.linalg.inv(colour_pose) @ depth_c2w,
