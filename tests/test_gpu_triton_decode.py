@@ -37,7 +37,7 @@ NAMES = ["n5-window8", "n10-hidden64"]
 def _cuda() -> torch.device:
     _, device = kernels(DECODE)
     if device.type != "cuda":
-        pytest.skip("TRITON_INTERPRET=1 is set in this session: run the GPU tests on their own (pytest -m gpu)")
+        pytest.skip("TRITON_INTERPRET=1 is set in this pytest process: run the GPU tests on their own (pytest -m gpu)")
     return device
 
 

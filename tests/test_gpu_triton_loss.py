@@ -32,7 +32,7 @@ def _kernels():
     from ogmapping.optim import triton_loss
 
     if interpreted(triton_loss):
-        pytest.skip("TRITON_INTERPRET=1 is set in this session: run the GPU tests on their own (pytest -m gpu)")
+        pytest.skip("TRITON_INTERPRET=1 is set in this pytest process: run the GPU tests on their own (pytest -m gpu)")
     return triton_loss
 
 

@@ -42,7 +42,7 @@ def kernels(name: str) -> tuple[ModuleType, torch.device]:
     if interpreted(module):
         return module, torch.device("cpu")
     if not torch.cuda.is_available():
-        pytest.skip("the Triton kernels were imported compiled in this session and there is no GPU to run them")
+        pytest.skip("the Triton kernels were imported compiled in this pytest process and there is no GPU to run them")
     return module, torch.device("cuda")
 
 
