@@ -10,6 +10,7 @@ import numpy as np
 from numba import njit, prange
 
 TAP_COUNT = 11  # the SSIM window's length, written out in the kernel's sums
+_RADIUS = TAP_COUNT // 2
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -30,7 +31,7 @@ def blur(maps, taps, channels):
     t0, t1, t2, t3, t4, t5 = taps[0], taps[1], taps[2], taps[3], taps[4], taps[5]
     t6, t7, t8, t9, t10 = taps[6], taps[7], taps[8], taps[9], taps[10]
     c = np.uint64(channels)
-    pad = np.uint64(5) * c
+    pad = np.uint64(_RADIUS) * c
     zeros = np.zeros(length, maps.dtype)
     out = np.empty_like(maps)
     for job in prange(count * height):
@@ -47,7 +48,7 @@ def blur(maps, taps, channels):
         a8 = maps[m, r + 3] if r + 3 < height else zeros
         a9 = maps[m, r + 4] if r + 4 < height else zeros
         a10 = maps[m, r + 5] if r + 5 < height else zeros
-        column = np.zeros(length + 2 * 5 * channels, maps.dtype)
+        column = np.zeros(length + 2 * _RADIUS * channels, maps.dtype)
         for j in range(length):
             i = np.uint64(j)
             column[pad + i] = (
